@@ -1,0 +1,70 @@
+"""The ``mecanum-hil`` command line: one module per command, errors as one line.
+
+Each command module defines one function registered here. Heavy imports (numba, OpenCV,
+python-can, matplotlib) happen inside the command functions, so ``--help`` stays instant.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from ..errors import MecanumHILError
+from . import demo, simulate
+
+app = typer.Typer(
+    name="mecanum-hil",
+    help="Hardware-in-the-loop bridge and data acquisition for Mecanum-wheeled robots.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+
+@app.callback()
+def _root(
+    debug: bool = typer.Option(False, "--debug", help="Show tracebacks of errors."),
+) -> None:
+    """Hardware-in-the-loop bridge and data acquisition for Mecanum-wheeled robots."""
+
+
+app.command("simulate")(simulate.command)
+app.command("demo")(demo.command)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI and return its exit code.
+
+    The package's own errors become ``error: ...`` on stderr and their ``exit_code``; usage
+    errors are typer's (exit 2); an unexpected exception is one line too (exit 70), with the
+    traceback behind ``--debug``. Commands end with other codes through ``typer.Exit``.
+    """
+    args = sys.argv[1:] if argv is None else list(argv)
+    debug = "--debug" in args
+    try:
+        app(args=args, prog_name="mecanum-hil")
+    except SystemExit as exit_:
+        code = exit_.code
+        return code if isinstance(code, int) else (0 if code is None else 1)
+    except MecanumHILError as err:
+        if debug:
+            raise
+        print(f"error: {err}", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # a bug: still one line, the traceback behind --debug
+        if debug:
+            raise
+        print(f"error: internal error: {type(err).__name__}: {err} (run with --debug for the "
+              "traceback, and please report it)", file=sys.stderr)
+        return 70
+    return 0
+
+
+def run() -> None:
+    """Console-script entry point."""
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Where data enters and leaves through files: recordings, TOML configuration, resources."""

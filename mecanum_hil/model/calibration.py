@@ -1,0 +1,309 @@
+"""Model coefficients and physical effects: the calibration file (``calibration/*.toml``).
+
+A calibration holds the motor coefficients A, B, C of the paper's wheel model::
+
+    W(s) / U(s) = (A s + C) / (s^2 + (A + B) s + C)
+
+(a PI controller ``Kp + Ki / s`` around a first-order motor ``K / (s + B)``: ``A = K Kp``,
+``C = K Ki``), optionally the physical effects that ``diagnose`` added, and where the numbers came
+from. The same file format is written by ``fit`` and ``diagnose`` and read by every command's
+``--calibration``.
+
+File layout::
+
+    [motor]
+    A = 14.7          # [1/s]
+    B = 16.1          # [1/s]
+    C = 303.0         # [1/s^2]
+
+    [ci95]            # optional, written by fit: 95 % intervals
+    A = [lo, hi]
+    ...
+
+    [fit]             # optional, free-form metrics and provenance (rmse_rpm, fit_percent, ...)
+
+    [effects.dead_time]
+    dead_time_s = 0.03
+    [effects.saturation]
+    top_speed_rpm = 130.0
+    [effects.rate_limit]
+    rate_limit_rpm_per_s = 200.0
+    [effects.deadband]
+    deadband_rpm = 5.0
+    [effects.wheel_gain]
+    gains = [1.0, 0.8, 1.0, 1.0]
+    [effects.slip]
+    efficiency = [0.95, 0.8, 0.9]
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigError
+from ..io.resources import DEFAULT_CALIBRATION, resolve
+from ..io.toml_config import TableReader, load_toml
+
+
+@dataclass(frozen=True)
+class Effects:
+    """Physical effects beyond the paper's linear model; defaults mean "absent".
+
+    The signal path of one wheel, in this order: wheel target from the inverse kinematics ->
+    ``deadband`` (targets with ``|u| < deadband_rpm`` become 0) -> ``wheel_gain`` (times
+    ``gains[i]``) -> ``dead_time`` (delayed by ``dead_time_s``) -> ``rate_limit`` (the drive's
+    set-point ramp, at most ``rate_limit_rpm_per_s``) -> PI + motor, whose drive output is limited
+    by ``saturation`` to ``B * top_speed_rpm`` so the wheel accelerates ever more slowly towards
+    ``top_speed_rpm`` (the integrator is frozen while the limit holds it back: anti-windup) ->
+    wheel speed. ``slip`` scales the body twist ``(vx, vy, wz)`` by ``efficiency`` before the
+    pose is integrated; it does not change wheel speeds.
+
+    Attributes
+    ----------
+    dead_time_s : float
+        Transport delay of the command [s].
+    top_speed_rpm : float
+        Wheel speed the limited drive output can hold at most [rpm]; ``inf`` when absent.
+    rate_limit_rpm_per_s : float
+        Largest rate of change of the drive's set-point [rpm/s]; ``inf`` when absent.
+    deadband_rpm : float
+        Wheel targets below this magnitude are not acted on [rpm].
+    gains : tuple of 4 float
+        Per-wheel gain on the target [-].
+    efficiency : tuple of 3 float
+        Body-velocity efficiency for ``vx``, ``vy``, ``wz`` [-].
+    """
+
+    dead_time_s: float = 0.0
+    top_speed_rpm: float = math.inf
+    rate_limit_rpm_per_s: float = math.inf
+    deadband_rpm: float = 0.0
+    gains: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    efficiency: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def active(self) -> dict[str, dict[str, Any]]:
+        """The effects that are present, by name, with their parameters."""
+        out: dict[str, dict[str, Any]] = {}
+        for name, spec in EFFECTS.items():
+            params = {p: getattr(self, p) for p in spec.parameters}
+            if any(params[p] != spec.absent[p] for p in spec.parameters):
+                out[name] = {p: (list(v) if isinstance(v, tuple) else v) for p, v in params.items()}
+        return out
+
+    @property
+    def nonlinear(self) -> bool:
+        """Whether an effect needs the sub-stepped (not closed-form) simulation."""
+        return math.isfinite(self.top_speed_rpm) or math.isfinite(self.rate_limit_rpm_per_s)
+
+    def without(self, name: str) -> Effects:
+        """A copy with effect ``name`` removed."""
+        return replace(self, **EFFECTS[name].absent)
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    """Name, parameters and "absent" values of one effect of the library."""
+
+    name: str
+    parameters: tuple[str, ...]
+    absent: dict[str, Any]
+    description: str
+
+
+EFFECTS: dict[str, EffectSpec] = {
+    "dead_time": EffectSpec(
+        "dead_time", ("dead_time_s",), {"dead_time_s": 0.0},
+        "transport delay between command and drive [s]"),
+    "saturation": EffectSpec(
+        "saturation", ("top_speed_rpm",), {"top_speed_rpm": math.inf},
+        "drive output limit: acceleration falls off towards a top wheel speed [rpm]"),
+    "rate_limit": EffectSpec(
+        "rate_limit", ("rate_limit_rpm_per_s",), {"rate_limit_rpm_per_s": math.inf},
+        "the drive's set-point ramp [rpm/s]"),
+    "deadband": EffectSpec(
+        "deadband", ("deadband_rpm",), {"deadband_rpm": 0.0},
+        "no motion below a wheel target [rpm]"),
+    "wheel_gain": EffectSpec(
+        "wheel_gain", ("gains",), {"gains": (1.0, 1.0, 1.0, 1.0)},
+        "per-wheel scale of the target [-]"),
+    "slip": EffectSpec(
+        "slip", ("efficiency",), {"efficiency": (1.0, 1.0, 1.0)},
+        "body-velocity efficiency for vx, vy, wz (needs pose data) [-]"),
+}
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Coefficients of the wheel model, effects, and provenance.
+
+    Attributes
+    ----------
+    A : float
+        Numerator coefficient of s, ``K Kp`` [1/s].
+    B : float
+        Motor pole [1/s].
+    C : float
+        ``K Ki`` [1/s^2].
+    effects : Effects
+        Physical effects beyond the linear model.
+    ci95 : Mapping[str, tuple[float, float]]
+        95 % confidence intervals of coefficients, when fitted.
+    info : Mapping[str, Any]
+        Fit metrics and provenance (``[fit]`` table of the file).
+    source : str
+        File the calibration came from.
+    """
+
+    A: float = 14.7
+    B: float = 16.1
+    C: float = 303.0
+    effects: Effects = field(default_factory=Effects)
+    ci95: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    info: Mapping[str, Any] = field(default_factory=dict)
+    source: str = "<defaults>"
+
+    def __post_init__(self) -> None:
+        check_coefficients(self.A, self.B, self.C, self.source)
+
+    @property
+    def coefficients(self) -> tuple[float, float, float]:
+        """``(A, B, C)``."""
+        return (self.A, self.B, self.C)
+
+    def with_coefficients(self, A: float, B: float, C: float) -> Calibration:
+        """A copy with new coefficients (intervals and metrics dropped)."""
+        return replace(self, A=float(A), B=float(B), C=float(C), ci95={}, info={})
+
+
+def check_coefficients(A: float, B: float, C: float, source: str = "<coefficients>") -> None:
+    """Refuse coefficients of an unstable or unphysical wheel model.
+
+    The characteristic polynomial ``s^2 + (A + B) s + C`` is stable iff ``A + B > 0`` and
+    ``C > 0``; ``A = K Kp`` and ``B`` are also non-negative for a real PI drive.
+    """
+    for name, value in (("A", A), ("B", B), ("C", C)):
+        if not math.isfinite(value):
+            raise ConfigError(f"{source}: key 'motor.{name}' must be finite, got {value!r}")
+    if A < 0:
+        raise ConfigError(f"{source}: key 'motor.A' must be >= 0, got {A:g}")
+    if B < 0:
+        raise ConfigError(f"{source}: key 'motor.B' must be >= 0, got {B:g}")
+    if C <= 0:
+        raise ConfigError(f"{source}: key 'motor.C' must be > 0 (stable model), got {C:g}")
+    if A + B <= 0:
+        raise ConfigError(f"{source}: keys 'motor.A' + 'motor.B' must be > 0 (stable model)")
+
+
+def _read_effects(reader: TableReader | None) -> Effects:
+    if reader is None:
+        return Effects()
+    reader.reject_unknown(set(EFFECTS))
+    values: dict[str, Any] = {}
+    for name, spec in EFFECTS.items():
+        sub = reader.sub(name, required=False)
+        if sub is None:
+            continue
+        sub.reject_unknown(set(spec.parameters))
+        if name == "dead_time":
+            values["dead_time_s"] = sub.number("dead_time_s", minimum=0.0, maximum=5.0)
+        elif name == "saturation":
+            values["top_speed_rpm"] = sub.number("top_speed_rpm", minimum=0, strict_minimum=True)
+        elif name == "rate_limit":
+            values["rate_limit_rpm_per_s"] = sub.number(
+                "rate_limit_rpm_per_s", minimum=0, strict_minimum=True)
+        elif name == "deadband":
+            values["deadband_rpm"] = sub.number("deadband_rpm", minimum=0.0)
+        elif name == "wheel_gain":
+            values["gains"] = sub.numbers("gains", 4, minimum=0.0)
+        elif name == "slip":
+            values["efficiency"] = sub.numbers("efficiency", 3, minimum=0.0)
+    return Effects(**values)
+
+
+def read_effects_table(table: Mapping[str, Any], source: str) -> Effects:
+    """Effects from an ``[effects.*]`` table (used by calibration and sim-robot effect files)."""
+    return _read_effects(TableReader(table, source, "effects"))
+
+
+def load_calibration(name_or_path: str | Path = DEFAULT_CALIBRATION) -> Calibration:
+    """Read a calibration TOML file (a shipped name such as ``paper`` or a path)."""
+    path = resolve("calibration", name_or_path)
+    src = str(path)
+    doc = TableReader(load_toml(path), src)
+    doc.reject_unknown({"motor", "ci95", "fit", "effects", "notes"})
+    motor = doc.sub("motor")
+    motor.reject_unknown({"A", "B", "C"})
+    ci95: dict[str, tuple[float, float]] = {}
+    ci = doc.sub("ci95", required=False)
+    if ci is not None:
+        for key in ci.table:
+            lo, hi = ci.numbers(key, 2)
+            ci95[key] = (lo, hi)
+    info = dict(doc.table.get("fit", {}))
+    effects = _read_effects(doc.sub("effects", required=False))
+    A = motor.number("A")
+    B = motor.number("B")
+    C = motor.number("C")
+    check_coefficients(A, B, C, src)
+    return Calibration(A=A, B=B, C=C, effects=effects, ci95=ci95, info=info, source=src)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        v = float(value)
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        if math.isnan(v):
+            return "nan"
+        return repr(v) if isinstance(value, float) else str(value)
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+        return f'"{escaped}"'
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def calibration_to_toml(cal: Calibration, header: str = "") -> str:
+    """The text of a calibration file for ``cal`` (see the module docstring for the layout)."""
+    lines = [f"# {line}" if line else "#" for line in header.splitlines()]
+    if lines:
+        lines.append("")
+    lines += [
+        "[motor]",
+        f"A = {_toml_value(float(cal.A))}   # [1/s]",
+        f"B = {_toml_value(float(cal.B))}   # [1/s]",
+        f"C = {_toml_value(float(cal.C))}   # [1/s^2]",
+    ]
+    if cal.ci95:
+        lines += ["", "[ci95]"]
+        lines += [f"{k} = {_toml_value(list(v))}" for k, v in cal.ci95.items()]
+    if cal.info:
+        lines += ["", "[fit]"]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in cal.info.items()]
+    for name, params in cal.effects.active().items():
+        lines += ["", f"[effects.{name}]"]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in params.items()]
+    return "\n".join(lines) + "\n"
+
+
+def save_calibration(cal: Calibration, path: str | Path, header: str = "") -> Path:
+    """Write ``cal`` as a calibration file; the result loads back equal."""
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(calibration_to_toml(cal, header))
+    except OSError as err:
+        raise ConfigError(f"{p}: cannot write calibration: {err.strerror or err}") from err
+    return p
+
+
+def effect_field_names() -> list[str]:
+    """All parameter field names of :class:`Effects`."""
+    return [f.name for f in fields(Effects)]

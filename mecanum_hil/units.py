@@ -1,0 +1,39 @@
+"""Unit conversions, in one place.
+
+The model works in the paper's units: wheel speeds and body velocities in wheel revolutions per
+minute [rpm], turning speed in degrees per second [deg/s], angles in degrees, positions in metres.
+A body velocity "in wheel-rpm units" is the wheel speed that would produce it with no slip.
+"""
+
+from __future__ import annotations
+
+import math
+
+#: One wheel revolution per minute expressed in radians per second.
+RPM_TO_RAD_S = 2.0 * math.pi / 60.0
+
+#: A body turning speed of 1 deg/s expressed in body revolutions per minute (60 / 360).
+DPS_TO_RPM = 1.0 / 6.0
+
+
+def rpm_to_mps(speed_rpm, wheel_radius_m: float):
+    """Wheel-rpm units to metres per second.
+
+    Parameters
+    ----------
+    speed_rpm : float or ndarray
+        Speed in wheel revolutions per minute [rpm].
+    wheel_radius_m : float
+        Wheel radius [m].
+
+    Returns
+    -------
+    float or ndarray
+        Rim speed [m/s].
+    """
+    return speed_rpm * RPM_TO_RAD_S * wheel_radius_m
+
+
+def mps_to_rpm(speed_mps, wheel_radius_m: float):
+    """Metres per second to wheel-rpm units (inverse of :func:`rpm_to_mps`)."""
+    return speed_mps / (RPM_TO_RAD_S * wheel_radius_m)
