@@ -153,8 +153,9 @@ def simulate_kernel(
                             d = lim
                         elif d < -lim:
                             d = -lim
+                        # hold the ramp's mean over the sub-step (second order in the step)
+                        u = ue[i] + 0.5 * d
                         ue[i] += d
-                        u = ue[i]
                     else:
                         ue[i] = u
                     yi = y[i]

@@ -196,9 +196,13 @@ def simulate_batch(
         final_state = np.empty((n_rob, STATE_WIDTH))
     final_pose = np.empty((n_rob, 3))
 
-    delays = np.array([c.effects.dead_time_s for c in calibs])
-    for delay in np.unique(delays):
-        members = np.flatnonzero(delays == delay)
+    # Robots are simulated in groups sharing a time grid: the same dead time (its grid is split at
+    # the delayed command changes) and the same path (sub-stepped or closed-form), so a robot's
+    # result never depends on which other robots share its batch.
+    keys = [(c.effects.dead_time_s, c.effects.nonlinear) for c in calibs]
+    for key in sorted(set(keys)):
+        delay, nonlinear = key
+        members = np.flatnonzero([k == key for k in keys])
         whole = members.size == n_rob
         group = calibs if whole else [calibs[i] for i in members]
         gcmd = cmd if whole else cmd[members]
@@ -206,7 +210,6 @@ def simulate_batch(
             grid, gcmd, sample_idx = _delay_grid(t, gcmd, float(delay), cmd0[members])
         else:
             grid, sample_idx = t, None
-        nonlinear = any(c.effects.nonlinear for c in group)
         table, didx, nsub = _step_tables(
             group, np.diff(grid) if grid.size > 1 else np.array([1.0]),
             max_substep_s if nonlinear else None)

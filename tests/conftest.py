@@ -1,0 +1,25 @@
+"""Shared test fixtures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def repo() -> Path:
+    """The repository root."""
+    return REPO
+
+
+@pytest.fixture(scope="session")
+def shared_real_data() -> Path:
+    """../shared/data/real, or skip when this checkout has no shared folder beside it."""
+    path = SHARED_DATA / "real"
+    if not path.is_dir():
+        pytest.skip("../shared/data/real is not present beside this checkout")
+    return path

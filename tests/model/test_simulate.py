@@ -1,0 +1,215 @@
+"""The simulator: exactness, the issue's checks, batch = single, effects (issue 2)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from mecanum_hil.errors import ConfigError
+from mecanum_hil.model import (
+    Calibration,
+    Effects,
+    RobotProfile,
+    simulate,
+    simulate_batch,
+    uniform_time,
+)
+from mecanum_hil.model.motor import transfer_function
+from mecanum_hil.units import rpm_to_mps
+
+PAPER = Calibration()
+ROBOT = RobotProfile()
+
+
+def hold(n, omega, theta, t):
+    return np.tile([n, omega, theta], (t.size, 1)).astype(float)
+
+
+def test_unit_step_response_values():
+    t = uniform_time(0.2, 1000)
+    w = simulate(hold(1, 0, 90, t), t, PAPER).wheel_rpm[0, :, 0]
+    got = [w[50], w[100], w[150], w[200]]
+    np.testing.assert_allclose(got, [0.5588, 0.8390, 0.9576, 0.9984], atol=5e-5)
+
+
+def test_matches_analytic_step_response_at_any_rate():
+    num, den = transfer_function(*PAPER.coefficients)
+    for rate in (7.0, 100.0, 1000.0):
+        t = uniform_time(1.0, rate)
+        w = simulate(hold(60, 0, 90, t), t, PAPER).wheel_rpm[0, :, 0]
+        _, y = signal.step((num, den), T=t)
+        np.testing.assert_allclose(w, 60 * y, atol=1e-9)
+
+
+def test_straight_run_distance():
+    t = uniform_time(2.0, 100)
+    pose = simulate(hold(120, 0, 90, t), t, PAPER).pose[0, -1]
+    expected = rpm_to_mps(120, ROBOT.wheel_radius_m) * (2 - PAPER.B / PAPER.C)
+    assert rpm_to_mps(120, ROBOT.wheel_radius_m) == pytest.approx(1.2818, abs=1e-4)
+    # default heading 90 deg: theta = 90 (ahead) is world +Y
+    assert pose[1] == pytest.approx(expected, rel=1e-9)
+    assert pose[0] == pytest.approx(0.0, abs=1e-12)
+    assert pose[2] == pytest.approx(90.0)
+
+
+@pytest.mark.parametrize("theta", [0.0, 30.0, 135.0, 250.0])
+def test_translation_goes_in_theta_direction_with_default_heading(theta):
+    t = uniform_time(2.0, 50)
+    pose = simulate(hold(100, 0, theta, t), t, PAPER).pose[0, -1]
+    dist = rpm_to_mps(100, ROBOT.wheel_radius_m) * (2 - PAPER.B / PAPER.C)
+    v = dist * float(1 / (abs(np.sin(np.radians(theta))) + abs(np.cos(np.radians(theta)))))
+    np.testing.assert_allclose(pose[:2], [v * np.cos(np.radians(theta)),
+                                          v * np.sin(np.radians(theta))], atol=1e-9)
+
+
+def test_turn_angle():
+    t = uniform_time(3.0, 100)
+    pose = simulate(hold(0, 60, 90, t), t, PAPER).pose[0, -1]
+    assert pose[2] - 90.0 == pytest.approx(60 * (3 - PAPER.B / PAPER.C), rel=1e-9)
+    np.testing.assert_allclose(pose[:2], 0.0, atol=1e-12)
+
+
+def test_circle_is_exact_for_constant_twist():
+    # after the transient, drive forward while turning: the path must be a circle whose radius
+    # is v / w whatever the step size (the pose update is exact for a constant twist)
+    state = np.zeros((1, 12))
+    state[0, :4] = [-45.588235294117645 + 50, 50 + 45.588235294117645,
+                    50 - 45.588235294117645, 50 + 45.588235294117645]
+    for rate in (10.0, 1000.0):
+        t = uniform_time(6.0, rate)
+        # start at the exact steady state of this command so the twist is constant
+        cmd = hold(95.588235294117645, 60, 90, t)
+        traj = simulate(cmd, t, PAPER, initial_state=_steady_state(cmd[0]))
+        xy = traj.pose[0, :, :2]
+        v = rpm_to_mps(95.588235294117645, ROBOT.wheel_radius_m) * 1.0
+        radius = v / np.radians(60.0)
+        centre = np.array([-radius, 0.0])  # heading 90 deg, turning left: centre at -X
+        np.testing.assert_allclose(np.hypot(*(xy - centre).T), radius, rtol=1e-9)
+
+
+def _steady_state(command):
+    from mecanum_hil.model import command_to_wheels
+
+    w = command_to_wheels(*command, ROBOT.k)
+    state = np.zeros(12)
+    state[:4] = w
+    state[4:8] = PAPER.B * w / PAPER.C  # drive = C z = B y at rest on the target
+    state[8:] = w
+    return state
+
+
+def test_batch_equals_single_with_own_commands_and_coefficients():
+    rng = np.random.default_rng(3)
+    t = uniform_time(1.5, 200)
+    n_rob = 5
+    cmds = np.empty((n_rob, t.size, 3))
+    for i in range(n_rob):
+        cmds[i] = hold(*rng.uniform([0, -40, 0], [90, 40, 360]), t)
+        cmds[i, 100:] = [rng.uniform(0, 60), 0, rng.uniform(0, 360)]
+    cals = [PAPER.with_coefficients(*rng.uniform([5, 5, 100], [30, 30, 600]))
+            for _ in range(n_rob)]
+    cals[2] = replace(cals[2], effects=Effects(dead_time_s=0.0123, gains=(1, 0.9, 1, 1.1)))
+    cals[3] = replace(cals[3], effects=Effects(top_speed_rpm=50.0, rate_limit_rpm_per_s=300.0))
+    batch = simulate_batch(cmds, t, cals)
+    for i in range(n_rob):
+        single = simulate(cmds[i], t, cals[i])
+        np.testing.assert_allclose(batch.wheel_rpm[i], single.wheel_rpm[0], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(batch.pose[i], single.pose[0], rtol=0, atol=1e-10)
+
+
+def test_continuation_equals_one_run():
+    t = uniform_time(2.0, 100)
+    cmd = hold(80, 20, 60, t)
+    cmd[120:] = [40, -30, 200]
+    whole = simulate(cmd, t, PAPER)
+    first = simulate(cmd[:101], t[:101], PAPER)
+    second = simulate(cmd[100:], t[100:], PAPER, initial_state=first.final_state,
+                      initial_pose=first.pose[0, -1])
+    np.testing.assert_allclose(second.wheel_rpm[0], whole.wheel_rpm[0, 100:], atol=1e-10)
+    np.testing.assert_allclose(second.pose[0], whole.pose[0, 100:], atol=1e-10)
+
+
+def test_irregular_grid_equals_uniform_at_common_samples():
+    t = uniform_time(1.0, 100)
+    cmd = hold(120, 30, 70, t)
+    ref = simulate(cmd, t, PAPER)
+    tt = np.sort(np.concatenate([t, t[:-1] + 0.0037]))
+    traj = simulate(hold(120, 30, 70, tt), tt, PAPER)
+    idx = np.searchsorted(tt, t)
+    np.testing.assert_allclose(traj.wheel_rpm[0, idx], ref.wheel_rpm[0], atol=1e-9)
+    # the pose is exact for a constant twist, second order otherwise: sub-mm here
+    np.testing.assert_allclose(traj.pose[0, idx], ref.pose[0], atol=1e-4)
+
+
+def test_dead_time_is_an_exact_shift():
+    t = uniform_time(1.0, 100)
+    cmd = hold(60, 0, 90, t)
+    base = simulate(cmd, t, PAPER).wheel_rpm[0]
+    late = simulate(cmd, t, replace(PAPER, effects=Effects(dead_time_s=0.05))).wheel_rpm[0]
+    np.testing.assert_allclose(late[5:], base[:-5], atol=1e-10)
+    np.testing.assert_allclose(late[:6], 0.0, atol=1e-12)
+
+
+def test_fractional_dead_time_matches_fine_grid():
+    t = uniform_time(1.0, 100)
+    eff = replace(PAPER, effects=Effects(dead_time_s=0.0137))
+    coarse = simulate(hold(60, 0, 90, t), t, eff).wheel_rpm[0, :, 0]
+    tf = uniform_time(1.0, 10000)
+    fine = simulate(hold(60, 0, 90, tf), tf, eff).wheel_rpm[0, ::100, 0]
+    np.testing.assert_allclose(coarse, fine, atol=1e-9)
+
+
+def test_saturation_ceiling_and_slower_rise():
+    t = uniform_time(3.0, 200)
+    sat = replace(PAPER, effects=Effects(top_speed_rpm=110.0))
+    w_sat = simulate(hold(130, 0, 90, t), t, sat).wheel_rpm[0, :, 0]
+    w_lin = simulate(hold(130, 0, 90, t), t, PAPER).wheel_rpm[0, :, 0]
+    assert w_sat[-1] == pytest.approx(110.0, abs=0.01)
+    assert (w_sat[1:] <= w_lin[1:] + 1e-9).all()
+    # a command below the ceiling with a gentle transient is hardly affected
+    w_low = simulate(hold(30, 0, 90, t), t, sat).wheel_rpm[0, :, 0]
+    w_low_lin = simulate(hold(30, 0, 90, t), t, PAPER).wheel_rpm[0, :, 0]
+    np.testing.assert_allclose(w_low, w_low_lin, atol=1e-9)
+
+
+def test_substeps_converge():
+    t = uniform_time(2.0, 100)
+    sat = replace(PAPER, effects=Effects(top_speed_rpm=100.0, rate_limit_rpm_per_s=400.0))
+    a = simulate(hold(120, 0, 90, t), t, sat, max_substep_s=1e-3).wheel_rpm
+    b = simulate(hold(120, 0, 90, t), t, sat, max_substep_s=1e-4).wheel_rpm
+    assert np.abs(a - b).max() < 0.1
+
+
+def test_rate_limit_slope():
+    t = uniform_time(2.0, 100)
+    eff = replace(PAPER, effects=Effects(rate_limit_rpm_per_s=100.0))
+    w = simulate(hold(120, 0, 90, t), t, eff).wheel_rpm[0, :, 0]
+    # the wheel follows a 100 rpm/s ramp with the model's lag: its slope mid-way is 100 rpm/s
+    slope = (w[100] - w[80]) / 0.2
+    assert slope == pytest.approx(100.0, rel=0.01)
+
+
+def test_deadband_gains_and_slip():
+    t = uniform_time(2.0, 100)
+    db = replace(PAPER, effects=Effects(deadband_rpm=10.0))
+    assert np.all(simulate(hold(8, 0, 90, t), t, db).wheel_rpm == 0)
+    assert simulate(hold(12, 0, 90, t), t, db).wheel_rpm[0, -1, 0] == pytest.approx(12.0)
+    g = replace(PAPER, effects=Effects(gains=(1.0, 0.5, 1.0, 1.0)))
+    np.testing.assert_allclose(simulate(hold(100, 0, 90, t), t, g).wheel_rpm[0, -1],
+                               [100, 50, 100, 100], atol=1e-6)
+    slip = replace(PAPER, effects=Effects(efficiency=(0.5, 1.0, 1.0)))
+    straight = simulate(hold(100, 0, 90, t), t, PAPER)
+    slipping = simulate(hold(100, 0, 90, t), t, slip)
+    np.testing.assert_allclose(slipping.wheel_rpm, straight.wheel_rpm)
+    assert slipping.pose[0, -1, 1] == pytest.approx(0.5 * straight.pose[0, -1, 1])
+
+
+def test_bad_inputs_are_config_errors():
+    t = uniform_time(1.0, 10)
+    with pytest.raises(ConfigError):
+        simulate(hold(1, 0, 90, t)[:-1], t, PAPER)
+    with pytest.raises(ConfigError):
+        simulate(hold(np.nan, 0, 90, t), t, PAPER)
+    with pytest.raises(ConfigError):
+        simulate(hold(1, 0, 90, t), t[::-1], PAPER)
