@@ -1,0 +1,76 @@
+"""The thin CLI: simulate and demo, errors as one line (run as a user would, in a subprocess)."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mecanum_hil.io.recording import read_recording
+
+
+def cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "mecanum_hil", *map(str, args)],
+                          capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def test_help_is_quick_and_lists_commands():
+    r = cli("--help")
+    assert r.returncode == 0
+    assert "simulate" in r.stdout and "demo" in r.stdout
+
+
+def test_simulate_profile_then_commands_of_a_recording(tmp_path):
+    out = tmp_path / "sim.csv"
+    r = cli("simulate", "--profile", "paper-step-60", "--out", out, "--plot", tmp_path / "s.png")
+    assert r.returncode == 0, r.stderr
+    rec = read_recording(out)
+    assert rec.metadata["calibration"].endswith("paper.toml")
+    assert rec.wheel_rpm[-1] == pytest.approx([0, 0, 0, 0], abs=0.5)
+    assert (tmp_path / "s.png").stat().st_size > 10_000
+    # the commands of any recording drive the model; t_s and extra columns are kept
+    src = tmp_path / "src.csv"
+    lines = out.read_text().splitlines()
+    src.write_text("\n".join([lines[0] + ",note"] + [
+        ",".join(line.split(",")[:4] + [""] * 7 + ["x"]) for line in lines[1:]]) + "\n")
+    r = cli("simulate", "--commands", src, "--out", tmp_path / "again.csv")
+    assert r.returncode == 0, r.stderr
+    again = read_recording(tmp_path / "again.csv")
+    np.testing.assert_allclose(again.wheel_rpm, rec.wheel_rpm, atol=1e-5)
+    assert again.extra["note"][0] == "x"
+
+
+@pytest.mark.parametrize(
+    ("args", "fragment"),
+    [
+        (["simulate", "--profile", "nope", "--out", "x.csv"], "unknown profile 'nope'"),
+        (["simulate", "--commands", "missing.csv", "--out", "x.csv"], "missing.csv: file not found"),
+        (["simulate", "--profile", "paper-step-60", "--calibration", "bad.toml", "--out", "x.csv"],
+         "bad.toml: key 'motor.C' must be > 0"),
+        (["simulate", "--profile", "limit.toml", "--out", "x.csv"], "beyond the robot's limit"),
+    ],
+)
+def test_errors_are_one_line_and_non_zero(tmp_path, args, fragment):
+    (tmp_path / "bad.toml").write_text("[motor]\nA = 1\nB = 1\nC = 0\n")
+    (tmp_path / "limit.toml").write_text(
+        '[[segments]]\nkind = "step"\nduration_s = 1.0\nn_rpm = 150.0\n')
+    r = cli(*args, cwd=tmp_path)
+    assert r.returncode == 1
+    assert r.stderr.startswith("error: ") and fragment in r.stderr
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+    assert not (tmp_path / "x.csv").exists()
+
+
+def test_malformed_csv_is_one_line(tmp_path):
+    (tmp_path / "bad.csv").write_text("t_s,n_cmd_rpm\n0,1\n")
+    r = cli("simulate", "--commands", "bad.csv", "--out", "x.csv", cwd=tmp_path)
+    assert r.returncode == 1 and "missing column 'omega_cmd_dps'" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_demo_writes_recordings_and_plots(tmp_path):
+    r = cli("demo", "--out", tmp_path / "demo")
+    assert r.returncode == 0, r.stderr
+    rec = read_recording(tmp_path / "demo" / "model" / "paper-step-120.csv")
+    assert rec.wheel_rpm[300, 0] == pytest.approx(120.0, abs=0.01)
+    assert (tmp_path / "demo" / "model" / "paper-turn.png").exists()

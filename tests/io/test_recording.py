@@ -1,0 +1,95 @@
+"""The recording format: round trip, extras, sidecar, malformed input, incremental writing."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mecanum_hil.errors import RecordingError
+from mecanum_hil.io.recording import (
+    COLUMNS,
+    Recording,
+    RecordingWriter,
+    read_recording,
+    write_recording,
+)
+
+HEADER = ",".join(COLUMNS)
+
+
+def test_columns_are_pinned():
+    assert COLUMNS == (
+        "t_s", "n_cmd_rpm", "omega_cmd_dps", "theta_cmd_deg", "wheel1_rpm", "wheel2_rpm",
+        "wheel3_rpm", "wheel4_rpm", "x_m", "y_m", "phi_deg")
+
+
+def test_round_trip_with_missing_values_extras_and_sidecar(tmp_path):
+    t = np.array([0.0, 0.01, 0.02])
+    rec = Recording(
+        t, np.tile([60.0, 0.0, 90.0], (3, 1)),
+        np.array([[0, 1.5, np.nan, 2], [3, 4, 5, 6], [np.nan] * 4]),
+        np.full((3, 3), np.nan), {"controller_t_s": ["1.0", "1.01", ""], "note": ["a", "b", "c"]},
+        {"source": "test", "sample_rate_hz": 100},
+    )
+    path = write_recording(rec, tmp_path / "run.csv")
+    lines = path.read_text().splitlines()
+    assert lines[0] == HEADER + ",controller_t_s,note"
+    assert lines[1].startswith("0.000000,60,0,90,0,1.5,,2,,,,1.0,a")
+    assert json.loads((tmp_path / "run.json").read_text())["source"] == "test"
+    back = read_recording(path)
+    np.testing.assert_array_equal(back.t_s, t)
+    np.testing.assert_array_equal(back.wheel_rpm, rec.wheel_rpm)
+    assert np.isnan(back.pose).all()
+    assert back.extra == rec.extra
+    assert back.metadata["sample_rate_hz"] == 100
+    np.testing.assert_array_equal(back.extra_numeric("controller_t_s"), [1.0, 1.01, np.nan])
+
+
+def test_recording_without_sidecar_is_valid(tmp_path):
+    p = tmp_path / "r.csv"
+    p.write_text(HEADER + "\n0,1,2,3,,,,,,,\n")
+    rec = read_recording(p)
+    assert len(rec) == 1 and rec.metadata == {}
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ("t_s,n_cmd_rpm\n0,1\n", "missing column 'omega_cmd_dps'"),
+        (HEADER.replace("wheel2_rpm", "wheel_2") + "\n", "column 6: expected 'wheel2_rpm'"),
+        (HEADER + "\n0,1,2,3,,,,,,,\n0.1,abc,2,3,,,,,,,\n", "line 3, column 'n_cmd_rpm'"),
+        (HEADER + "\n0,1,2,3,,,,,,,\n0,1,2,3,,,,,,,\n", "line 3, column 't_s': time 0 does not"),
+        (HEADER + "\n0.2,1,2,3,,,,,,,\n0.1,1,2,3,,,,,,,\n", "does not increase"),
+        (HEADER + "\n0,1,2,3,,,,,,\n", "line 2: 10 fields, header has 11"),
+        (HEADER + "\n,1,2,3,,,,,,,\n", "time is missing"),
+        (HEADER + "\n0,1,2,3,nan,,,,,,\n", "not a finite number"),
+        ("", "empty file"),
+    ],
+)
+def test_malformed_input_names_file_line_and_column(tmp_path, text, fragment):
+    p = tmp_path / "bad.csv"
+    p.write_text(text)
+    with pytest.raises(RecordingError) as err:
+        read_recording(p)
+    assert fragment in str(err.value)
+    assert str(p) in str(err.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(RecordingError, match="file not found"):
+        read_recording(tmp_path / "nope.csv")
+
+
+def test_writer_leaves_a_valid_file_at_every_flush(tmp_path):
+    p = tmp_path / "live.csv"
+    w = RecordingWriter(p, extra_columns=("controller_t_s",), metadata={"source": "t"},
+                        flush_interval_s=0.0)
+    for i in range(5):
+        w.write(i * 0.01, (10.0, 0.0, 90.0), (1.0, 2.0, 3.0, 4.0), extra=(i * 0.01 + 5,))
+        rec = read_recording(p)  # readable while still open: every flushed row is complete
+        assert len(rec) == i + 1
+    with pytest.raises(RecordingError, match="does not increase"):
+        w.write(0.01)
+    w.close({"rows": 5})
+    assert read_recording(p).metadata == {"source": "t", "rows": 5}
+    assert len(read_recording(p)) == 5
