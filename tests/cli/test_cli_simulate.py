@@ -44,7 +44,8 @@ def test_simulate_profile_then_commands_of_a_recording(tmp_path):
     ("args", "fragment"),
     [
         (["simulate", "--profile", "nope", "--out", "x.csv"], "unknown profile 'nope'"),
-        (["simulate", "--commands", "missing.csv", "--out", "x.csv"], "missing.csv: file not found"),
+        (["simulate", "--commands", "missing.csv", "--out", "x.csv"],
+         "missing.csv: file not found"),
         (["simulate", "--profile", "paper-step-60", "--calibration", "bad.toml", "--out", "x.csv"],
          "bad.toml: key 'motor.C' must be > 0"),
         (["simulate", "--profile", "limit.toml", "--out", "x.csv"], "beyond the robot's limit"),

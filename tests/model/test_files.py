@@ -98,13 +98,13 @@ def test_paper_experiments():
     assert set(PAPER_EXPERIMENTS) == {
         "paper-step-30", "paper-step-60", "paper-step-90", "paper-step-100", "paper-step-120",
         "paper-ramp", "paper-turn"}
-    t, cmd = PAPER_EXPERIMENTS["paper-ramp"].sample(10.0)
+    _, cmd = PAPER_EXPERIMENTS["paper-ramp"].sample(10.0)
     assert cmd[:, 0].max() == pytest.approx(130.0)
     slope = np.diff(cmd[:, 0]) * 10.0
     assert slope.max() == pytest.approx(5.0)
-    t, cmd = PAPER_EXPERIMENTS["paper-turn"].sample(10.0)
+    _, cmd = PAPER_EXPERIMENTS["paper-turn"].sample(10.0)
     assert set(cmd[:, 1]) == {0.0, 60.0} and (cmd[:, 0] == 0).all()
-    t, cmd = PAPER_EXPERIMENTS["paper-step-60"].sample(100.0)
+    _, cmd = PAPER_EXPERIMENTS["paper-step-60"].sample(100.0)
     assert cmd[50, 0] == 60.0 and cmd[49, 0] == 0.0
 
 
