@@ -1,0 +1,1 @@
+"""Identification: model coefficients and effect parameters from recordings (pure)."""

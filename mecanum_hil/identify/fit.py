@@ -1,0 +1,627 @@
+"""Least-squares identification of the wheel model (and of effect parameters) from recordings.
+
+The engine of ``mecanum-hil fit`` and ``diagnose``: any subset of the named parameters
+(:data:`PARAMETER_NAMES`) is estimated jointly by continuous least squares on every measured wheel
+sample of every recording, the other parameters held at the calibration's values. The model is the
+project's simulator (:func:`mecanum_hil.model.simulate_batch`) driven by the recorded commands,
+from rest, exactly as :func:`mecanum_hil.prediction.predict` runs it; one batch call evaluates the
+base point and all finite-difference perturbations of a Jacobian together.
+
+Methods (see ``docs/fit.md``):
+
+* ``lsq`` -- :func:`scipy.optimize.least_squares` (trust-region reflective, bounds that keep the
+  model stable) from the best point of a coarse logarithmic grid, then 95 % Wald intervals
+  ``x +- t_{0.975, n-p} sqrt(diag(s^2 (J^T J)^-1))`` with ``s^2 = SSE / (n - p)``.
+* ``paper-grid`` -- the paper's three-pass grid search (:mod:`mecanum_hil.identify.grid`).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from .. import __version__
+from ..errors import ConfigError, FitError
+from ..io.recording import Recording
+from ..model.calibration import Calibration
+from ..model.kinematics import command_to_wheels
+from ..model.robot import RobotProfile
+from ..model.simulate import DEFAULT_POSE, simulate_batch
+from ..prediction import require_commands
+from ..units import RPM_TO_RAD_S
+
+#: Every parameter :func:`fit_parameters` can estimate: the coefficients, then the effects'.
+PARAMETER_NAMES: tuple[str, ...] = (
+    "A", "B", "C", "dead_time_s", "top_speed_rpm", "rate_limit_rpm_per_s", "deadband_rpm",
+    "gains[0]", "gains[1]", "gains[2]", "gains[3]",
+    "efficiency[0]", "efficiency[1]", "efficiency[2]",
+)
+
+_INDEXED = re.compile(r"^(gains|efficiency)\[(\d)\]$")
+_COEFFICIENTS = ("A", "B", "C")
+
+#: Default bounds: the model stays stable (A, B >= 0, C > 0) and effects physical.
+DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
+    "A": (0.0, math.inf),
+    "B": (0.0, math.inf),
+    "C": (1e-6, math.inf),
+    "dead_time_s": (0.0, 5.0),
+    "top_speed_rpm": (1e-6, math.inf),
+    "rate_limit_rpm_per_s": (1e-6, math.inf),
+    "deadband_rpm": (0.0, math.inf),
+    **{f"gains[{i}]": (0.0, math.inf) for i in range(4)},
+    **{f"efficiency[{i}]": (0.0, math.inf) for i in range(3)},
+}
+
+# Typical magnitude below which a finite-difference step stops shrinking with the value.
+_FD_FLOOR = {"dead_time_s": 0.01}
+_FD_RELATIVE = 1e-6
+
+#: Coarse starting grid for the coefficients (log-spaced, covers slow drives to fast micro-motors).
+START_GRID: dict[str, tuple[float, ...]] = {
+    "A": (0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0),
+    "B": (0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0),
+    "C": (1.0, 10.0, 100.0, 1e3, 1e4, 1e5, 1e6),
+}
+
+#: Largest condition number of the column-scaled Jacobian for which intervals are trusted.
+MAX_CONDITION = 1e8
+
+
+def _check_name(name: str) -> None:
+    if name not in PARAMETER_NAMES:
+        raise FitError(f"unknown parameter {name!r}; choose from {', '.join(PARAMETER_NAMES)}")
+
+
+def parameter_value(calibration: Calibration, name: str) -> float:
+    """The current value of a named parameter (see :data:`PARAMETER_NAMES`)."""
+    _check_name(name)
+    if name in _COEFFICIENTS:
+        return float(getattr(calibration, name))
+    m = _INDEXED.match(name)
+    if m:
+        return float(getattr(calibration.effects, m.group(1))[int(m.group(2))])
+    return float(getattr(calibration.effects, name))
+
+
+def with_parameters(calibration: Calibration, values: Mapping[str, float]) -> Calibration:
+    """Substitute named parameters (coefficients or effect parameters) into a calibration.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        The calibration to start from; parameters not named keep their values.
+    values : Mapping[str, float]
+        Name (one of :data:`PARAMETER_NAMES`) -> value, in the parameter's unit.
+
+    Returns
+    -------
+    Calibration
+        A copy with the values substituted. Its intervals and fit metrics are dropped when any
+        value changed, since they described the old values.
+
+    Raises
+    ------
+    FitError
+        For an unknown name.
+    ConfigError
+        For coefficients of an unstable model.
+    """
+    if not values:
+        return calibration
+    coeffs: dict[str, float] = {}
+    effects: dict[str, Any] = {}
+    indexed: dict[str, list[float]] = {}
+    for name, value in values.items():
+        _check_name(name)
+        v = float(value)
+        if name in _COEFFICIENTS:
+            coeffs[name] = v
+            continue
+        m = _INDEXED.match(name)
+        if m:
+            field_name = m.group(1)
+            seq = indexed.setdefault(field_name, list(getattr(calibration.effects, field_name)))
+            seq[int(m.group(2))] = v
+        else:
+            effects[name] = v
+    for field_name, seq in indexed.items():
+        effects[field_name] = tuple(seq)
+    eff = replace(calibration.effects, **effects) if effects else calibration.effects
+    return replace(calibration, **coeffs, effects=eff, ci95={}, info={})
+
+
+def toml_key(name: str) -> str:
+    """A parameter name as a bare TOML key for ``[ci95]`` (``gains[1]`` -> ``gains_1``)."""
+    m = _INDEXED.match(name)
+    return f"{m.group(1)}_{m.group(2)}" if m else name
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """Outcome of a fit.
+
+    Attributes
+    ----------
+    calibration : Calibration
+        The input calibration with the fitted values substituted and ``ci95`` (bare TOML keys, see
+        :func:`toml_key`) and ``info`` (metrics, method, data sources) filled in.
+    parameters : dict[str, float]
+        Fitted free parameters, in their units.
+    ci95 : dict[str, tuple[float, float]]
+        95 % confidence intervals of the free parameters (NaN when not identifiable).
+    rmse_rpm : float
+        Root mean square wheel-speed error over all measured wheel samples used [rpm].
+    fit_percent : float
+        ``100 (1 - ||y - y_model|| / ||y - mean(y)||)`` over the same samples [%].
+    sse : float
+        Sum of squared wheel-speed errors [rpm^2] (the pose channels are not included).
+    n_samples : int
+        Number of measured wheel samples used.
+    method : str
+        ``"lsq"`` or ``"paper-grid"``.
+    warnings : tuple of str
+        Problems the caller should see (a coefficient not identifiable, a bound reached ...).
+    """
+
+    calibration: Calibration
+    parameters: dict[str, float]
+    ci95: dict[str, tuple[float, float]]
+    rmse_rpm: float
+    fit_percent: float
+    sse: float
+    n_samples: int
+    method: str
+    warnings: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """One recording ready for the model: commands, times, measured channels and masks."""
+
+    t_s: np.ndarray
+    commands: np.ndarray
+    wheel_rpm: np.ndarray         # (T, 4) measured, NaN where not
+    wheel_mask: np.ndarray        # (T, 4) bool
+    pose: np.ndarray              # (T, 3) measured, NaN where not
+    pose_mask: np.ndarray         # (T, 3) bool
+    pose0: tuple[float, float, float]
+    pose_scale: np.ndarray        # (3,) pose residual -> wheel-rpm equivalent
+    source: str
+
+
+def pose_scale(duration_s: float, robot: RobotProfile) -> np.ndarray:
+    """Factors turning pose residuals ``(x [m], y [m], phi [deg])`` into wheel-rpm equivalents.
+
+    A position error ``e`` [m] accumulated over the recording's duration ``T`` is what a constant
+    wheel-speed error of ``e / (T r 2 pi / 60)`` [rpm] would cause; a heading error ``e`` [deg]
+    likewise corresponds to a turning-speed error ``e / T`` [deg/s], which the kinematics turns
+    into ``k e / (6 T)`` [rpm] at the wheels.
+    """
+    T = max(float(duration_s), 1e-9)
+    pos = 1.0 / (T * RPM_TO_RAD_S * robot.wheel_radius_m)
+    return np.array([pos, pos, robot.k / (6.0 * T)])
+
+
+def _source(i: int, rec: Recording, sources: Sequence[str] | None) -> str:
+    if sources is not None and i < len(sources):
+        return str(sources[i])
+    return str(rec.metadata.get("source_file", f"recording {i + 1}"))
+
+
+def prepare(recordings: Sequence[Recording], robot: RobotProfile,
+            sources: Sequence[str] | None = None) -> list[_Prepared]:
+    """Check recordings and keep what a fit needs.
+
+    Raises
+    ------
+    FitError
+        Without recordings, without any measured wheel speed, or without excitation (every wheel
+        target zero: the model at rest explains nothing).
+    RecordingError
+        For a recording whose command columns are not all filled.
+    """
+    if not recordings:
+        raise FitError("no recordings given")
+    out: list[_Prepared] = []
+    for i, rec in enumerate(recordings):
+        src = _source(i, rec, sources)
+        require_commands(rec, src)
+        wheel = np.asarray(rec.wheel_rpm, dtype=float)
+        pose = np.asarray(rec.pose, dtype=float)
+        first = pose[0]
+        pose0 = tuple(float(v) for v in (first if np.isfinite(first).all() else DEFAULT_POSE))
+        out.append(_Prepared(
+            np.asarray(rec.t_s, dtype=float), np.asarray(rec.commands, dtype=float), wheel,
+            np.isfinite(wheel), pose, np.isfinite(pose), pose0,
+            pose_scale(rec.t_s[-1] - rec.t_s[0], robot), src))
+    n = sum(int(p.wheel_mask.sum()) for p in out)
+    if n == 0:
+        raise FitError("no measured wheel speed in the recordings (wheel1_rpm..wheel4_rpm are "
+                       "all empty); fit needs wheel speeds from telemetry or video")
+    targets = [command_to_wheels(p.commands[:, 0], p.commands[:, 1], p.commands[:, 2], robot.k)
+               for p in out]
+    if all(np.all(np.abs(w[:-1]) < 1e-12) for w in targets):
+        raise FitError("no excitation: every wheel target is zero (the robot was never commanded "
+                       "to move), so the data cannot identify the model")
+    measured = np.concatenate([p.wheel_rpm[p.wheel_mask] for p in out])
+    if np.ptp(measured) == 0.0:
+        raise FitError("no excitation: every measured wheel speed has the same value")
+    return out
+
+
+def _simulate(p: _Prepared, calibs: Sequence[Calibration], robot: RobotProfile):
+    traj = simulate_batch(p.commands, p.t_s, list(calibs), robot, initial_pose=p.pose0)
+    return traj.wheel_rpm, traj.pose
+
+
+def _residual_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration], robot: RobotProfile,
+                   pose_weight: float) -> np.ndarray:
+    """Residual vectors ``measured - model``, one row per calibration (wheels, then poses)."""
+    parts = []
+    for p in data:
+        wheels, pose = _simulate(p, calibs, robot)
+        parts.append((p.wheel_rpm[None] - wheels)[:, p.wheel_mask])
+        if pose_weight > 0 and p.pose_mask.any():
+            d = p.pose[None] - pose
+            d[..., 2] = (d[..., 2] + 180.0) % 360.0 - 180.0  # headings compare modulo a turn
+            d *= pose_weight * p.pose_scale
+            parts.append(d[:, p.pose_mask])
+    return np.concatenate(parts, axis=1)
+
+
+def _wheel_count(data: Sequence[_Prepared]) -> int:
+    return sum(int(p.wheel_mask.sum()) for p in data)
+
+
+def residuals(recordings: Sequence[Recording], calibration: Calibration,
+              robot: RobotProfile) -> list[np.ndarray]:
+    """Measured minus model wheel speeds, per recording.
+
+    The model runs on each recording's commands and times from rest, as in
+    :func:`mecanum_hil.prediction.predict`.
+
+    Returns
+    -------
+    list of ndarray, shape (T, 4)
+        ``wheel_rpm - model`` [rpm]; NaN where the wheel speed was not measured.
+    """
+    out = []
+    for rec in recordings:
+        require_commands(rec)
+        first = rec.pose[0]
+        pose0 = first if np.isfinite(first).all() else DEFAULT_POSE
+        traj = simulate_batch(rec.commands, rec.t_s, calibration, robot, initial_pose=pose0)
+        out.append(np.asarray(rec.wheel_rpm, dtype=float) - traj.wheel_rpm[0])
+    return out
+
+
+class _Problem:
+    """Residuals and their Jacobian for a set of free parameters, one batch call per point."""
+
+    def __init__(self, data, calibration, robot, free, lower, upper, pose_weight):
+        self.data = data
+        self.calibration = calibration
+        self.robot = robot
+        self.free = list(free)
+        self.lower = lower
+        self.upper = upper
+        self.pose_weight = pose_weight
+        self.nfev = 0
+        self._x: np.ndarray | None = None
+        self._r: np.ndarray | None = None
+        self._J: np.ndarray | None = None
+
+    def calibration_at(self, x) -> Calibration:
+        return with_parameters(self.calibration, dict(zip(self.free, map(float, x), strict=True)))
+
+    def steps(self, x: np.ndarray) -> np.ndarray:
+        floor = np.array([_FD_FLOOR.get(n, 1.0) for n in self.free])
+        h = _FD_RELATIVE * np.maximum(np.abs(x), floor)
+        # step into the feasible region (a parameter on its bound is differentiated one-sidedly)
+        return np.where(x + h > self.upper, -h, h)
+
+    def evaluate(self, x: np.ndarray) -> None:
+        x = np.array(x, dtype=float)
+        h = self.steps(x)
+        points = [x] + [x + h[j] * np.eye(x.size)[j] for j in range(x.size)]
+        try:
+            calibs = [self.calibration_at(pt) for pt in points]
+        except ConfigError as err:
+            raise FitError(f"the fit reached an invalid model: {err}") from err
+        rows = _residual_rows(self.data, calibs, self.robot, self.pose_weight)
+        self.nfev += 1
+        self._x, self._r = x, rows[0]
+        # residuals are measured - model, so d(residual)/dx = (r(x + h) - r(x)) / h
+        self._J = ((rows[1:] - rows[0]) / h[:, None]).T
+
+    def fun(self, x) -> np.ndarray:
+        if self._x is None or not np.array_equal(self._x, x):
+            self.evaluate(x)
+        return self._r
+
+    def jac(self, x) -> np.ndarray:
+        if self._x is None or not np.array_equal(self._x, x):
+            self.evaluate(x)
+        return self._J
+
+
+def _sse_of(data, calibs, robot) -> np.ndarray:
+    rows = _residual_rows(data, calibs, robot, 0.0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        s = np.einsum("ij,ij->i", rows, rows)
+    return np.where(np.isfinite(s), s, np.inf)
+
+
+def _data_start_values(data: Sequence[_Prepared]) -> dict[str, float]:
+    """Starting values of effect parameters whose "absent" value cannot start a search."""
+    measured = np.concatenate([p.wheel_rpm[p.wheel_mask] for p in data])
+    peak = float(np.max(np.abs(measured)))
+    slopes = []
+    for p in data:
+        dt = np.diff(p.t_s)[:, None]
+        d = np.abs(np.diff(p.wheel_rpm, axis=0)) / dt
+        slopes.append(d[np.isfinite(d)])
+    slope = float(np.percentile(np.concatenate(slopes), 95)) if any(s.size for s in slopes) else 1.0
+    return {"top_speed_rpm": max(1.25 * peak, 1.0), "rate_limit_rpm_per_s": max(slope, 1.0)}
+
+
+def _start(data, calibration, robot, free, x0, lower, upper) -> dict[str, float]:
+    """Starting values: given ones, else a coarse grid for A, B, C and a scan for dead time."""
+    given = dict(x0 or {})
+    start = {n: given.get(n, parameter_value(calibration, n)) for n in free}
+    defaults = _data_start_values(data)
+    for n in free:
+        if n not in given and not math.isfinite(start[n]):
+            start[n] = defaults.get(n, 1.0)
+    base = with_parameters(calibration, {n: v for n, v in start.items() if n not in _COEFFICIENTS})
+    grid_names = [n for n in _COEFFICIENTS if n in free and n not in given]
+    if grid_names:
+        axes = [START_GRID[n] if n in grid_names else (getattr(base, n),) for n in _COEFFICIENTS]
+        pts = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
+        pts = pts[(pts[:, 0] + pts[:, 1] > 0) & (pts[:, 2] > 0)]
+        calibs = [base.with_coefficients(*pt) for pt in pts]
+        best = pts[int(np.argmin(_sse_of(data, calibs, robot)))]
+        for i, n in enumerate(_COEFFICIENTS):
+            if n in grid_names:
+                start[n] = float(best[i])
+        base = with_parameters(base, {n: start[n] for n in _COEFFICIENTS if n in free})
+    if "dead_time_s" in free and "dead_time_s" not in given:
+        span = min(float(np.median([p.t_s[-1] - p.t_s[0] for p in data])) / 4.0, 0.5)
+        cands = np.unique(np.concatenate([[start["dead_time_s"]], np.linspace(0.0, span, 26)]))
+        calibs = [with_parameters(base, {"dead_time_s": c}) for c in cands]
+        start["dead_time_s"] = float(cands[int(np.argmin(_sse_of(data, calibs, robot)))])
+    return {n: float(np.clip(start[n], lower[i], upper[i])) for i, n in enumerate(free)}
+
+
+def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free: Sequence[str]):
+    """95 % Wald intervals from the Jacobian; warnings for parameters the data cannot pin down."""
+    from scipy.stats import t as student_t
+
+    n, p = J.shape
+    warnings: list[str] = []
+    half = np.full(p, np.nan)
+    dof = n - p
+    if dof <= 0:
+        warnings.append(f"{n} residuals for {p} parameters: no confidence intervals")
+        return half, warnings
+    s2 = float(r_wheel_and_pose @ r_wheel_and_pose) / dof
+    norms = np.linalg.norm(J, axis=0)
+    dead = norms == 0.0
+    Js = J[:, ~dead] / norms[~dead]
+    if Js.size:
+        S, Vt = np.linalg.svd(Js, full_matrices=False)[1:]
+        cond = S[0] / S[-1] if S[-1] > 0 else math.inf
+        if math.isfinite(cond) and cond <= MAX_CONDITION:
+            cov = (Vt.T / S**2) @ Vt / np.outer(norms[~dead], norms[~dead])
+            half[~dead] = student_t.ppf(0.975, dof) * np.sqrt(s2 * np.diag(cov))
+        else:
+            names = ", ".join(n for n, d in zip(free, dead, strict=True) if not d)
+            warnings.append(f"parameters {names} are not jointly identifiable from these data "
+                            f"(condition number {cond:.3g}); intervals not computed")
+    for name, d in zip(free, dead, strict=True):
+        if d:
+            warnings.append(f"{name} is not identifiable: the data do not depend on it")
+    for i, name in enumerate(free):
+        if math.isfinite(half[i]) and half[i] > max(abs(x[i]), 1e-12):
+            warnings.append(
+                f"{name} is poorly identified: 95 % interval +-{half[i]:.4g} exceeds its value "
+                f"{x[i]:.4g} (the data may lack a transient, e.g. a step too short)")
+    return half, warnings
+
+
+def _metrics(data, calibration, robot) -> tuple[float, float, float, int, list[float]]:
+    rows = _residual_rows(data, [calibration], robot, 0.0)[0]
+    measured = np.concatenate([p.wheel_rpm[p.wheel_mask] for p in data])
+    sse = float(rows @ rows)
+    n = measured.size
+    spread = float(np.linalg.norm(measured - measured.mean()))
+    fit_pct = 100.0 * (1.0 - math.sqrt(sse) / spread) if spread > 0 else -math.inf
+    per = []
+    start = 0
+    for p in data:
+        m = p.wheel_rpm[p.wheel_mask]
+        r = rows[start:start + m.size]
+        start += m.size
+        sp = float(np.linalg.norm(m - m.mean()))
+        per.append(100.0 * (1.0 - float(np.linalg.norm(r)) / sp) if sp > 0 else math.nan)
+    return sse, math.sqrt(sse / n), fit_pct, n, per
+
+
+def finish(data, calibration, robot, free, x, method, *, J=None, r=None, pose_weight=0.0,
+           lower=None, upper=None, extra_warnings=(), info_extra=None) -> FitResult:
+    """Metrics, intervals and provenance for parameters ``x`` of ``free`` (shared by methods)."""
+    x = np.asarray(x, dtype=float)
+    if J is None or r is None:
+        problem = _Problem(data, calibration, robot, free,
+                           np.array([DEFAULT_BOUNDS[n][0] for n in free]),
+                           np.array([DEFAULT_BOUNDS[n][1] for n in free]), pose_weight)
+        r, J = problem.fun(x), problem.jac(x)
+    half, warnings = _intervals(J, r, x, free)
+    warnings = list(extra_warnings) + warnings
+    if lower is not None and upper is not None:
+        for i, name in enumerate(free):
+            if x[i] <= lower[i] or x[i] >= upper[i]:
+                warnings.append(f"{name} = {x[i]:.6g} is on its bound; its interval assumes an "
+                                "interior optimum")
+    params = {n: float(v) for n, v in zip(free, x, strict=True)}
+    cal = with_parameters(calibration, params)
+    sse, rmse, fit_pct, n, per = _metrics(data, cal, robot)
+    ci = {n: (float(x[i] - half[i]), float(x[i] + half[i])) for i, n in enumerate(free)}
+    info: dict[str, Any] = {
+        "method": method,
+        "rmse_rpm": rmse,
+        "fit_percent": fit_pct,
+        "sse": sse,
+        "n_samples": n,
+        "free": list(free),
+        "sources": [p.source for p in data],
+        "fit_percent_per_recording": per,
+        "tool_version": __version__,
+    }
+    if pose_weight > 0:
+        info["pose_weight"] = float(pose_weight)
+    info.update(info_extra or {})
+    if warnings:
+        info["warnings"] = list(warnings)
+    cal = replace(cal, ci95={toml_key(k): v for k, v in ci.items() if all(map(math.isfinite, v))},
+                  info=info)
+    return FitResult(cal, params, ci, rmse, fit_pct, sse, n, method, tuple(warnings))
+
+
+def _bounds(free, bounds) -> tuple[np.ndarray, np.ndarray]:
+    given = dict(bounds or {})
+    for n in given:
+        _check_name(n)
+    lo = np.array([float(given.get(n, DEFAULT_BOUNDS[n])[0]) for n in free])
+    hi = np.array([float(given.get(n, DEFAULT_BOUNDS[n])[1]) for n in free])
+    d_lo = np.array([DEFAULT_BOUNDS[n][0] for n in free])
+    d_hi = np.array([DEFAULT_BOUNDS[n][1] for n in free])
+    if (lo < d_lo).any() or (hi > d_hi).any() or (lo >= hi).any():
+        raise FitError("bounds must lie within the stable, physical range "
+                       f"{ {n: DEFAULT_BOUNDS[n] for n in free} } and have lower < upper")
+    return lo, hi
+
+
+def fit_parameters(
+    recordings: Sequence[Recording],
+    calibration: Calibration,
+    robot: RobotProfile,
+    free: Sequence[str] = ("A", "B", "C"),
+    *,
+    x0: Mapping[str, float] | None = None,
+    bounds: Mapping[str, tuple[float, float]] | None = None,
+    pose_weight: float = 0.0,
+    sources: Sequence[str] | None = None,
+) -> FitResult:
+    """Joint continuous least squares of free parameters on all measured samples.
+
+    Parameters
+    ----------
+    recordings : sequence of Recording
+        Any commands (steps, ramps, turns, mixed); wheel speeds from telemetry or video, empty
+        values skipped. The model starts each recording from rest.
+    calibration : Calibration
+        Values of the parameters that are not free (and effects present).
+    robot : RobotProfile
+        Geometry for the kinematics.
+    free : sequence of str
+        Names from :data:`PARAMETER_NAMES` to estimate.
+    x0 : Mapping[str, float], optional
+        Starting values; parameters without one start from a coarse grid (A, B, C), a scan
+        (dead time), the data (top speed, rate limit) or the calibration's value.
+    bounds : Mapping[str, (float, float)], optional
+        Narrower bounds than :data:`DEFAULT_BOUNDS`.
+    pose_weight : float
+        Weight of the pose channels ``(x_m, y_m, phi_deg)`` where measured, whose residuals enter
+        as wheel-rpm equivalents (see :func:`pose_scale`); 0 fits wheel speeds only.
+    sources : sequence of str, optional
+        Names of the recordings for the provenance (default: ``recording 1`` ...).
+
+    Returns
+    -------
+    FitResult
+
+    Raises
+    ------
+    FitError
+        Bad input (see :func:`prepare`), an unknown parameter, or no convergence.
+    """
+    from scipy.optimize import least_squares
+
+    free = list(dict.fromkeys(free))
+    if not free:
+        raise FitError("no free parameters to fit")
+    for n in free:
+        _check_name(n)
+    if not (pose_weight >= 0 and math.isfinite(pose_weight)):
+        raise FitError(f"pose_weight must be a finite number >= 0, got {pose_weight!r}")
+    data = prepare(recordings, robot, sources)
+    lo, hi = _bounds(free, bounds)
+    start = _start(data, calibration, robot, free, x0, lo, hi)
+    problem = _Problem(data, calibration, robot, free, lo, hi, pose_weight)
+    x_start = np.array([start[n] for n in free])
+    try:
+        sol = least_squares(problem.fun, x_start, jac=problem.jac, bounds=(lo, hi),
+                            x_scale="jac", method="trf", max_nfev=200 * len(free))
+    except FitError:
+        raise
+    except (ValueError, np.linalg.LinAlgError) as err:
+        raise FitError(f"least squares failed: {err}") from err
+    if sol.status <= 0 or not np.isfinite(sol.cost):
+        raise FitError(f"least squares did not converge: {sol.message}")
+    x = sol.x
+    r, J = problem.fun(x), problem.jac(x)
+    return finish(data, calibration, robot, free, x, "lsq", J=J, r=r, pose_weight=pose_weight,
+                  lower=lo, upper=hi, info_extra={"evaluations": problem.nfev})
+
+
+def fit(
+    recordings: Sequence[Recording],
+    robot: RobotProfile,
+    method: str = "lsq",
+    calibration: Calibration | None = None,
+    *,
+    sources: Sequence[str] | None = None,
+    **grid_options,
+) -> FitResult:
+    """Estimate A, B, C from recordings (``mecanum-hil fit``).
+
+    Parameters
+    ----------
+    recordings : sequence of Recording
+        Recordings with commands and measured wheel speeds.
+    robot : RobotProfile
+        Geometry for the kinematics.
+    method : {"lsq", "paper-grid"}
+        Continuous least squares, or the paper's three-pass grid search.
+    calibration : Calibration, optional
+        Effects to keep fixed during the fit (default: none, the paper's linear model).
+    sources : sequence of str, optional
+        Names of the recordings for the provenance.
+    **grid_options
+        For ``paper-grid``: see :func:`mecanum_hil.identify.grid.paper_grid`.
+
+    Returns
+    -------
+    FitResult
+    """
+    cal = calibration if calibration is not None else Calibration(source="<fit>")
+    if method == "lsq":
+        if grid_options:
+            raise FitError(f"grid options {sorted(grid_options)} apply to --method paper-grid only")
+        return fit_parameters(recordings, cal, robot, sources=sources)
+    if method == "paper-grid":
+        from .grid import paper_grid
+
+        data = prepare(recordings, robot, sources)
+        res = paper_grid(data, cal, robot, **grid_options)
+        x = np.array([res.A, res.B, res.C])
+        return finish(data, cal, robot, list(_COEFFICIENTS), x, "paper-grid",
+                      extra_warnings=res.warnings, info_extra=res.info)
+    raise FitError(f"unknown method {method!r}; choose lsq or paper-grid")
