@@ -97,10 +97,9 @@ def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command:
 
 def _step_tables(calibs: Sequence[Calibration], dt: np.ndarray, max_substep_s: float | None):
     """Discretisation tables for the distinct step lengths, and per-step row and sub-step count."""
-    if max_substep_s is None:
-        nsub = np.ones(dt.size, dtype=np.int64)
-    else:
-        nsub = np.maximum(1, np.ceil(dt / max_substep_s - 1e-9)).astype(np.int64)
+    from .stepper import substeps
+
+    nsub = substeps(dt, max_substep_s)
     h = dt / nsub
     # step lengths equal to rounding share one table row
     key = np.round(h * 1e12).astype(np.int64)
@@ -154,6 +153,7 @@ def simulate_batch(
     Trajectory
     """
     from ._kernels import STATE_WIDTH, simulate_kernel
+    from .stepper import effect_arrays
 
     robot = robot or RobotProfile()
     t = _times(time_s)
@@ -219,16 +219,11 @@ def simulate_batch(
         else:
             didx = np.append(didx, 0)
             nsub = np.append(nsub, 0)
-        eff = [c.effects for c in group]
         args = (
             np.ascontiguousarray(gcmd), didx, nsub, table,
             np.array([c.coefficients for c in group], dtype=float),
             float(robot.k), float(robot.wheel_radius_m),
-            np.array([e.deadband_rpm for e in eff], dtype=float),
-            np.array([e.gains for e in eff], dtype=float),
-            np.array([e.top_speed_rpm for e in eff], dtype=float),
-            np.array([e.rate_limit_rpm_per_s for e in eff], dtype=float),
-            np.array([e.efficiency for e in eff], dtype=float),
+            *effect_arrays([c.effects for c in group]),
             state0 if whole else np.ascontiguousarray(state0[members]),
             pose0 if whole else np.ascontiguousarray(pose0[members]),
         )

@@ -1,0 +1,358 @@
+"""A low-level array API to the simulator: N robots advanced one control period at a time.
+
+:func:`~mecanum_hil.model.simulate_batch` takes whole command streams and lists of
+:class:`Calibration` objects; called once per control period for thousands of robots its
+per-call Python work (validation, discretising, grouping by dead time) would dominate. This
+module keeps everything the compiled kernel needs as arrays, built once:
+
+* the coefficients ``(A, B, C)`` per robot as an ``(N, 3)`` array, with the discretisation
+  tables for the fixed control period cached per coefficient set (:func:`step_tables`) and
+  computed in compiled code when new sets arrive (domain randomisation draws thousands);
+* the effects' parameters as arrays (:func:`effect_arrays`, shared with ``simulate_batch``);
+* a command delay line, because ``simulate_batch`` is exact across a dead time only within one
+  call: here each period is split at the instant the delayed command changes, as
+  ``simulate_batch`` splits its grid, so stepping period by period reproduces one long call.
+
+:class:`BatchStepper` is the small stateful shell (wheel state, pose, delay line) around the
+pure kernel ``mecanum_hil.model._kernels.simulate_kernel``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ConfigError
+from .calibration import Calibration, Effects, check_coefficients
+from .motor import TABLE_WIDTH
+from .robot import RobotProfile
+
+#: Default longest sub-step on the sub-stepped path (saturation, rate limit) [s].
+DEFAULT_MAX_SUBSTEP_S = 1e-3
+
+# Largest number of coefficient sets kept in the table cache before it is cleared.
+_CACHE_LIMIT = 65536
+_TABLE_CACHE: dict[tuple, np.ndarray] = {}
+
+
+def effect_arrays(effects: Sequence[Effects]) -> tuple[np.ndarray, ...]:
+    """The effects' parameters as the kernel's per-robot arrays.
+
+    Parameters
+    ----------
+    effects : sequence of N Effects
+
+    Returns
+    -------
+    tuple of ndarray
+        ``deadband (N,)`` [rpm], ``gains (N, 4)`` [-], ``top_speed (N,)`` [rpm],
+        ``rate_limit (N,)`` [rpm/s], ``efficiency (N, 3)`` [-], in the kernel's argument order.
+    """
+    return (
+        np.array([e.deadband_rpm for e in effects], dtype=float),
+        np.array([e.gains for e in effects], dtype=float),
+        np.array([e.top_speed_rpm for e in effects], dtype=float),
+        np.array([e.rate_limit_rpm_per_s for e in effects], dtype=float),
+        np.array([e.efficiency for e in effects], dtype=float),
+    )
+
+
+def substeps(dt_s: np.ndarray, max_substep_s: float | None) -> np.ndarray:
+    """Number of sub-steps for steps of ``dt_s`` [s] (1 each on the closed-form path)."""
+    if max_substep_s is None:
+        return np.ones(dt_s.size, dtype=np.int64)
+    return np.maximum(1, np.ceil(dt_s / max_substep_s - 1e-9)).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class StepPlan:
+    """How one control period is cut into pieces for the kernel.
+
+    Attributes
+    ----------
+    period_s : float
+        Control period [s].
+    delay_periods : int
+        Whole control periods inside the dead time.
+    piece_s : ndarray, shape (P,)
+        Lengths of the P pieces of one period [s] (P = 2 when the dead time is not a whole
+        number of periods: the delayed command changes inside the period).
+    nsub : ndarray, shape (P,)
+        Sub-steps per piece.
+    """
+
+    period_s: float
+    delay_periods: int
+    piece_s: np.ndarray
+    nsub: np.ndarray
+
+    @property
+    def substep_s(self) -> np.ndarray:
+        """Sub-step length of each piece [s]; the rows of a discretisation table."""
+        return self.piece_s / self.nsub
+
+
+def step_plan(period_s: float, effects: Effects,
+              max_substep_s: float = DEFAULT_MAX_SUBSTEP_S) -> StepPlan:
+    """Cut one control period at the dead time's command change, as ``simulate_batch`` does.
+
+    A command sent at ``t_j`` acts from ``t_j + dead_time_s = t_(j + m) + r`` with ``m`` whole
+    periods and a remainder ``r``: within the period after ``t_k`` the command of ``t_(k-m-1)``
+    acts for ``r`` seconds, then that of ``t_(k-m)``.
+    """
+    h = float(period_s)
+    if not (math.isfinite(h) and h > 0):
+        raise ConfigError(f"control period must be a positive number of seconds, got {h!r}")
+    d = float(effects.dead_time_s)
+    m = math.floor(d / h + 1e-9)
+    r = d - m * h
+    # simulate_batch merges breakpoints closer than 1e-9 s; so does this
+    pieces = np.array([h]) if r <= 1e-9 or h - r <= 1e-9 else np.array([r, h - r])
+    if h - r <= 1e-9 and r > 1e-9:
+        m += 1
+    nsub = substeps(pieces, max_substep_s if effects.nonlinear else None)
+    return StepPlan(h, m, pieces, nsub)
+
+
+def _compile_discretise():
+    from numba import njit, prange
+
+    @njit(cache=True)
+    def expm4(m):
+        # scaling and squaring with a Taylor series: ||m / 2^s|| <= 1/4, 18 terms leave a
+        # truncation error far below rounding, for the 4 x 4 augmented wheel model
+        norm = 0.0
+        for i in range(4):
+            row = 0.0
+            for j in range(4):
+                row += abs(m[i, j])
+            norm = max(norm, row)
+        s = 0
+        while norm > 0.25:
+            norm *= 0.5
+            s += 1
+        a = m / (2.0 ** s)
+        out = np.eye(4)
+        term = np.eye(4)
+        for n in range(1, 19):
+            term = term @ a / n
+            out += term
+        for _ in range(s):
+            out = out @ out
+        return out
+
+    @njit(cache=True, parallel=True)
+    def discretise_kernel(coeffs, h_s, out):
+        for r in prange(coeffs.shape[0]):
+            A = coeffs[r, 0]
+            B = coeffs[r, 1]
+            C = coeffs[r, 2]
+            for j in range(h_s.size):
+                h = h_s[j]
+                m = np.zeros((4, 4))
+                m[0, 0] = -(A + B) * h
+                m[0, 1] = C * h
+                m[0, 3] = A * h
+                m[1, 0] = -h
+                m[1, 3] = h
+                m[2, 0] = h
+                e = expm4(m)
+                out[r, j, 0] = e[0, 0]
+                out[r, j, 1] = e[0, 1]
+                out[r, j, 2] = e[1, 0]
+                out[r, j, 3] = e[1, 1]
+                out[r, j, 4] = e[0, 3]
+                out[r, j, 5] = e[1, 3]
+                out[r, j, 6] = e[2, 0]
+                out[r, j, 7] = e[2, 1]
+                out[r, j, 8] = e[2, 3]
+                out[r, j, 9] = math.exp(-B * h)
+                out[r, j, 10] = h
+
+    return discretise_kernel
+
+
+_discretise_kernel = None
+
+
+def discretise_many(coefficients, h_s) -> np.ndarray:
+    """:func:`mecanum_hil.model.motor.discretise` for many coefficient sets, compiled.
+
+    Parameters
+    ----------
+    coefficients : array_like, shape (M, 3)
+        ``(A [1/s], B [1/s], C [1/s^2])`` rows.
+    h_s : array_like, shape (K,)
+        Step lengths [s].
+
+    Returns
+    -------
+    ndarray, shape (M, K, 11)
+        Table rows as :func:`~mecanum_hil.model.motor.discretise` gives them (equal to
+        rounding); about a microsecond per row instead of SciPy's ``expm`` per matrix.
+    """
+    global _discretise_kernel
+    if _discretise_kernel is None:
+        _discretise_kernel = _compile_discretise()
+    co = np.ascontiguousarray(np.asarray(coefficients, dtype=float).reshape(-1, 3))
+    h = np.ascontiguousarray(np.asarray(h_s, dtype=float).reshape(-1))
+    out = np.empty((co.shape[0], h.size, TABLE_WIDTH))
+    _discretise_kernel(co, h, out)
+    return out
+
+
+def step_tables(coefficients, substep_s) -> np.ndarray:
+    """Discretisation tables for N robots, cached per coefficient set and sub-step lengths.
+
+    Parameters
+    ----------
+    coefficients : array_like, shape (N, 3)
+        ``(A, B, C)`` per robot.
+    substep_s : array_like, shape (P,)
+        Sub-step lengths of the pieces of one control period [s] (:attr:`StepPlan.substep_s`).
+
+    Returns
+    -------
+    ndarray, shape (N, P, 11)
+    """
+    co = np.asarray(coefficients, dtype=float).reshape(-1, 3)
+    hs = tuple(float(v) for v in np.asarray(substep_s, dtype=float).reshape(-1))
+    distinct, which = np.unique(co, axis=0, return_inverse=True)
+    keys = [(*map(float, row), hs) for row in distinct]
+    missing = [i for i, key in enumerate(keys) if key not in _TABLE_CACHE]
+    if missing:
+        if len(_TABLE_CACHE) + len(missing) > _CACHE_LIMIT:
+            _TABLE_CACHE.clear()
+        fresh = discretise_many(distinct[missing], np.array(hs))
+        for i, rows in zip(missing, fresh, strict=True):
+            _TABLE_CACHE[keys[i]] = rows
+    tables = np.stack([_TABLE_CACHE[key] for key in keys])
+    return np.ascontiguousarray(tables[which.reshape(-1)])
+
+
+class BatchStepper:
+    """N robots of one calibration's effects, advanced one control period per :meth:`step`.
+
+    The coefficients may differ per robot (domain randomisation); the effects and the control
+    period are shared. State lives in plain arrays that callers may read (and, between steps,
+    write): ``state`` (N, 12) as ``Trajectory.final_state``, ``pose`` (N, 3) ``(X [m], Y [m],
+    phi [deg])`` with phi not wrapped, as :func:`~mecanum_hil.model.simulate` returns it.
+
+    Parameters
+    ----------
+    n_robots : int
+        Number of robots N.
+    period_s : float
+        Control period [s]: a command given to :meth:`step` is held for this long.
+    calibration : Calibration
+        Coefficients (for all robots until :meth:`set_coefficients`) and effects.
+    robot : RobotProfile, optional
+        Geometry (default: the paper's robot).
+    max_substep_s : float
+        Longest sub-step on the sub-stepped path (saturation, rate limit) [s].
+    """
+
+    def __init__(self, n_robots: int, period_s: float, calibration: Calibration,
+                 robot: RobotProfile | None = None, *,
+                 max_substep_s: float = DEFAULT_MAX_SUBSTEP_S) -> None:
+        from ._kernels import STATE_WIDTH, simulate_kernel
+
+        self._kernel = simulate_kernel
+        n = int(n_robots)
+        if n < 1:
+            raise ConfigError(f"n_robots must be at least 1, got {n_robots!r}")
+        self.n_robots = n
+        self.robot = robot or RobotProfile()
+        self.effects = calibration.effects
+        self.plan = step_plan(period_s, self.effects, max_substep_s)
+        pieces = self.plan.piece_s.size
+        self._effect_args = tuple(
+            np.ascontiguousarray(np.broadcast_to(a, (n, *a.shape[1:])))
+            for a in effect_arrays([self.effects]))
+        self._saturating = math.isfinite(self.effects.top_speed_rpm)
+        self.coefficients = np.empty((n, 3))
+        self._tables = np.empty((n, pieces, TABLE_WIDTH))
+        self.set_coefficients(np.array(calibration.coefficients))
+        self.state = np.zeros((n, STATE_WIDTH))
+        self.pose = np.zeros((n, 3))
+        # delay line: slot (step mod L) holds the command sent at that step
+        self._history = np.zeros((n, self.plan.delay_periods + 2, 3))
+        self._step = 0
+        self._cmd = np.zeros((n, pieces + 1, 3))
+        self._didx = np.append(np.arange(pieces, dtype=np.int64), 0)
+        self._nsub = np.append(self.plan.nsub, 0).astype(np.int64)
+        self._wheels_out = np.zeros((n, pieces + 1, 4))
+        self._pose_out = np.zeros((n, pieces + 1, 3))
+
+    @property
+    def wheel_rpm(self) -> np.ndarray:
+        """Wheel speeds 1..4 [rpm], shape (N, 4) (a view of ``state``)."""
+        return self.state[:, :4]
+
+    def set_coefficients(self, coefficients, index=None) -> None:
+        """Set ``(A, B, C)`` for all robots or for those in ``index``.
+
+        Parameters
+        ----------
+        coefficients : array_like, shape (3,) or (M, 3)
+        index : array_like of int or bool mask, optional
+            Robots to change (default: all).
+        """
+        idx = slice(None) if index is None else index
+        rows = np.broadcast_to(np.asarray(coefficients, dtype=float),
+                               self.coefficients[idx].shape)
+        if rows.size == 0:
+            return
+        for A, B, C in np.unique(rows.reshape(-1, 3), axis=0):
+            check_coefficients(A, B, C, "coefficients")
+            if self._saturating and B <= 0:
+                raise ConfigError("coefficients: the saturation effect needs B > 0")
+        self.coefficients[idx] = rows
+        self._tables[idx] = step_tables(rows, self.plan.substep_s).reshape(
+            self._tables[idx].shape)
+
+    def reset(self, index=None, pose=(0.0, 0.0, 90.0), state=None, command=None) -> None:
+        """Put robots (all, or those in ``index``) at a pose, at rest or in a given state.
+
+        Parameters
+        ----------
+        index : array_like of int or bool mask, optional
+        pose : array_like, shape (3,) or (M, 3)
+            ``(X [m], Y [m], phi [deg])``.
+        state : array_like, shape (12,) or (M, 12), optional
+            Wheel state (default at rest).
+        command : array_like, shape (3,) or (M, 3), optional
+            Command taken as in force before now, seen through the dead time (default zero).
+        """
+        idx = slice(None) if index is None else index
+        self.pose[idx] = pose
+        self.state[idx] = 0.0 if state is None else state
+        c = np.zeros(3) if command is None else np.asarray(command, dtype=float)
+        self._history[idx] = c[..., None, :] if c.ndim == 2 else c
+
+    def step(self, commands) -> None:
+        """Hold ``commands`` (N, 3) ``(n [rpm], omega [deg/s], theta [deg])`` for one period.
+
+        Updates ``state``, ``pose`` (and so ``wheel_rpm``) in place. Commands are used as given:
+        limits are the caller's business (see ``RobotProfile.check_commands``).
+        """
+        hist = self._history
+        size = hist.shape[1]
+        hist[:, self._step % size] = commands
+        m = self.plan.delay_periods
+        pieces = self.plan.piece_s.size
+        if pieces == 1:
+            self._cmd[:, 0] = hist[:, (self._step - m) % size]
+        else:
+            self._cmd[:, 0] = hist[:, (self._step - m - 1) % size]
+            self._cmd[:, 1] = hist[:, (self._step - m) % size]
+        self._step += 1
+        k = self.robot
+        # state and pose are read per robot before they are written: in-place is safe
+        self._kernel(
+            self._cmd, self._didx, self._nsub, self._tables, self.coefficients,
+            float(k.k), float(k.wheel_radius_m), *self._effect_args,
+            self.state, self.pose, self._wheels_out, self._pose_out, self.state, self.pose)
