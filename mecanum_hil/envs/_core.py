@@ -1,0 +1,158 @@
+"""The batch core both environments share: N robots, their targets, limits and rewards.
+
+One code path serves the single environment (N = 1) and the vector environment, so the vector
+environment equals N single ones by construction; the numbers come from
+:class:`mecanum_hil.model.stepper.BatchStepper`, i.e. the simulator's compiled kernel.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LimitError
+from ..model import Calibration, RobotProfile, load_calibration, load_robot_profile
+from ..model.stepper import DEFAULT_MAX_SUBSTEP_S, BatchStepper
+from ..units import RPM_TO_RAD_S
+from .randomisation import CoefficientRanges
+from .task import ReachTask, wrap_deg
+
+#: Names and units of the observation vector's entries, in order.
+OBSERVATION_LAYOUT = (
+    ("x_m", "X position, world frame [m]"),
+    ("y_m", "Y position, world frame [m]"),
+    ("phi_deg", "heading, CCW from world X, wrapped to [-180, 180) [deg]"),
+    ("vx_mps", "body velocity forward, robot frame [m/s]"),
+    ("vy_mps", "body velocity to the left, robot frame [m/s]"),
+    ("omega_dps", "turning speed, CCW positive [deg/s]"),
+    ("wheel1_rpm", "wheel 1 (front left) speed [rpm]"),
+    ("wheel2_rpm", "wheel 2 (front right) speed [rpm]"),
+    ("wheel3_rpm", "wheel 3 (rear left) speed [rpm]"),
+    ("wheel4_rpm", "wheel 4 (rear right) speed [rpm]"),
+    ("target_forward_m", "target position ahead of the robot, robot frame [m]"),
+    ("target_left_m", "target position to the robot's left, robot frame [m]"),
+    ("target_dphi_deg", "target heading minus heading, wrapped to [-180, 180) [deg]"),
+)
+OBS_SIZE = len(OBSERVATION_LAYOUT)
+
+
+def as_calibration(calibration: Calibration | str | Path) -> Calibration:
+    """A calibration object, or one loaded from a shipped name or TOML path."""
+    return calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+
+
+def as_robot(robot: RobotProfile | str | Path) -> RobotProfile:
+    """A robot profile object, or one loaded from a shipped name or TOML path."""
+    return robot if isinstance(robot, RobotProfile) else load_robot_profile(robot)
+
+
+class BatchCore:
+    """State, limits, observation and reward of N robots on one calibration."""
+
+    def __init__(self, n: int, calibration: Calibration | str | Path = "paper",
+                 robot: RobotProfile | str | Path = "tdam-stm", *,
+                 control_period_s: float = 0.02, task: ReachTask | None = None,
+                 randomize: bool = False,
+                 coefficient_ranges: Mapping[str, tuple[float, float]] | None = None,
+                 max_substep_s: float = DEFAULT_MAX_SUBSTEP_S) -> None:
+        self.calibration = as_calibration(calibration)
+        self.robot = as_robot(robot)
+        self.task = task or ReachTask()
+        self.control_period_s = float(control_period_s)
+        self.ranges = (CoefficientRanges.from_calibration(self.calibration, coefficient_ranges)
+                       if randomize else None)
+        self.stepper = BatchStepper(n, self.control_period_s, self.calibration, self.robot,
+                                    max_substep_s=max_substep_s)
+        self.n = n
+        self.episode_steps = max(1, round(self.task.episode_s / self.control_period_s))
+        nmax = self.robot.wheel_speed_max_rpm
+        self.action_low = np.array([0.0, -self.robot.omega_max_dps, -180.0])
+        self.action_high = np.array([nmax, self.robot.omega_max_dps, 180.0])
+        self.targets = np.zeros((n, 3))
+        self.steps = np.zeros(n, dtype=np.int64)
+        self.commands = np.zeros((n, 3))
+        self._potential = np.zeros(n)
+        self.success = np.zeros(n, dtype=bool)
+        eff = self.calibration.effects
+        r = self.robot.wheel_radius_m
+        # forward kinematics with slip, straight to (m/s, m/s, deg/s)
+        self._fk = np.array([[1, -1, -1], [1, 1, 1], [1, 1, -1], [1, -1, 1]], float) / 4.0 * (
+            np.array([eff.efficiency[0] * RPM_TO_RAD_S * r, eff.efficiency[1] * RPM_TO_RAD_S * r,
+                      eff.efficiency[2] * 6.0 / self.robot.k]))
+
+    def reset_robots(self, index: np.ndarray, rngs: Sequence[np.random.Generator]) -> None:
+        """Start new episodes for the robots in ``index``, drawing from their generators."""
+        m = len(index)
+        coeffs = np.empty((m, 3)) if self.ranges is not None else None
+        targets = np.empty((m, 3))
+        for j, rng in enumerate(rngs):
+            if coeffs is not None:
+                coeffs[j] = self.ranges.draw(rng)
+            targets[j] = self.task.draw_target(rng)
+        if coeffs is not None:
+            self.stepper.set_coefficients(coeffs, index)
+        self.stepper.reset(index, pose=self.task.start_pose)
+        self.targets[index] = targets
+        self.steps[index] = 0
+        self.commands[index] = 0.0
+        pose = self.stepper.pose[index]
+        _, _, dist, dphi = self.task.errors(pose, targets)
+        self._potential[index] = self.task.potential(dist, dphi)
+
+    def limit(self, actions) -> np.ndarray:
+        """Commands actually sent: actions clipped to the box, then kept within the wheel limit.
+
+        The fastest wheel target of ``(n, omega, theta)`` is ``|n| + k |omega| / 6`` whatever
+        ``theta``; when it exceeds ``wheel_speed_max_rpm``, ``n`` and ``omega`` are scaled down
+        by the same factor so that it equals the limit (direction and the ratio of translation to
+        turning kept). No command beyond the limit is ever sent.
+        """
+        a = np.asarray(actions, dtype=float).reshape(self.n, 3)
+        if not np.isfinite(a).all():
+            raise LimitError("action contains NaN or infinite values")
+        cmd = np.clip(a, self.action_low, self.action_high)
+        peak = np.abs(cmd[:, 0]) + self.robot.k / 6.0 * np.abs(cmd[:, 1])
+        scale = np.minimum(1.0, self.robot.wheel_speed_max_rpm / np.maximum(peak, 1e-300))
+        cmd[:, 0] *= scale
+        cmd[:, 1] *= scale
+        return cmd
+
+    def step(self, actions):
+        """Advance every robot one control period; ``(reward, terminated, truncated)`` (N,)."""
+        cmd = self.limit(actions)
+        self.commands = cmd
+        self.stepper.step(cmd)
+        self.steps += 1
+        pose = self.stepper.pose
+        _, _, dist, dphi = self.task.errors(pose, self.targets)
+        pot = self.task.potential(dist, dphi)
+        success, left = self.task.outcome(pose, dist, dphi)
+        t = self.task
+        reward = (pot - self._potential - t.time_cost_per_s * self.control_period_s
+                  + t.success_bonus * success - t.leave_penalty * left)
+        self._potential = pot
+        self.success = success
+        terminated = success | left
+        truncated = (self.steps >= self.episode_steps) & ~terminated
+        return reward, terminated, truncated
+
+    def observe(self, index=None) -> np.ndarray:
+        """Observations (N, 13) (or of the robots in ``index``); layout in OBSERVATION_LAYOUT."""
+        idx = slice(None) if index is None else index
+        pose = self.stepper.pose[idx]
+        wheels = self.stepper.wheel_rpm[idx]
+        target = self.targets[idx]
+        out = np.empty((pose.shape[0], OBS_SIZE))
+        out[:, 0:2] = pose[:, 0:2]
+        out[:, 2] = wrap_deg(pose[:, 2])
+        out[:, 3:6] = wheels @ self._fk
+        out[:, 6:10] = wheels
+        phi = np.deg2rad(pose[:, 2])
+        c, s = np.cos(phi), np.sin(phi)
+        dx, dy, _, dphi = self.task.errors(pose, target)
+        out[:, 10] = c * dx + s * dy
+        out[:, 11] = c * dy - s * dx
+        out[:, 12] = dphi
+        return out
