@@ -1,0 +1,183 @@
+"""Marker candidates in one frame: saturated blobs with a sub-pixel centroid.
+
+Per frame the search region is looked at on a coarse grid (every ``stride``-th pixel) for
+saturated pixels (``max(B,G,R) - min(B,G,R)``, hue-blind) or pixels inside a pinned HSV box; each
+connected blob is then measured at full resolution in a small window: its centroid is weighted by
+how far each pixel's saturation exceeds the background's, which makes it sub-pixel (anti-aliased
+and blurred edges count by their share). Which blob is the marker is decided later, over the
+whole video (:func:`~mecanum_hil.vision.geometry.select_track`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import VideoError
+
+#: Saturation (max - min channel, 0..255) from which a pixel may belong to a marker.
+MIN_SATURATION = 70
+#: Saturation counted as background in the centroid weights.
+BACKGROUND_SATURATION = 30
+#: Largest number of blobs kept per frame and region (the biggest ones).
+MAX_BLOBS = 8
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    """What the marker looks like.
+
+    Attributes
+    ----------
+    kind : str
+        ``"auto"`` (any saturated dot), ``"hsv"`` (a pinned colour) or ``"aruco"``.
+    hsv_low, hsv_high : tuple of 3 int or None
+        OpenCV HSV box (H 0..179, S, V 0..255) for ``"hsv"``; ``hsv_low[0] > hsv_high[0]``
+        wraps around red.
+    min_saturation : int
+        Saturation threshold of ``"auto"`` (0..255).
+    """
+
+    kind: str = "auto"
+    hsv_low: tuple[int, int, int] | None = None
+    hsv_high: tuple[int, int, int] | None = None
+    min_saturation: int = MIN_SATURATION
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("auto", "hsv", "aruco"):
+            raise VideoError(f"unknown marker kind '{self.kind}' (auto, hsv, aruco)")
+        if self.kind == "hsv" and (self.hsv_low is None or self.hsv_high is None):
+            raise VideoError("an HSV marker needs a low and a high HSV bound")
+
+
+def parse_hsv(text: str) -> MarkerSpec:
+    """``"H1,S1,V1:H2,S2,V2"`` (OpenCV HSV, H 0..179) as a pinned-colour marker."""
+    try:
+        lo_s, hi_s = text.split(":")
+        lo = tuple(int(v) for v in lo_s.split(","))
+        hi = tuple(int(v) for v in hi_s.split(","))
+    except ValueError:
+        raise VideoError(f"--marker-hsv '{text}': expected H1,S1,V1:H2,S2,V2 "
+                         "(e.g. 50,100,80:70,255,255)") from None
+    if len(lo) != 3 or len(hi) != 3:
+        raise VideoError(f"--marker-hsv '{text}': expected three numbers on each side")
+    for v, top in zip(lo + hi, (179, 255, 255) * 2, strict=True):
+        if not 0 <= v <= top:
+            raise VideoError(f"--marker-hsv '{text}': H is 0..179, S and V are 0..255")
+    return MarkerSpec("hsv", lo, hi)  # type: ignore[arg-type]
+
+
+def parse_roi(text: str, default_wheel: int = 1) -> tuple[int, tuple[int, int, int, int]]:
+    """``"N:x,y,w,h"`` or ``"x,y,w,h"`` as ``(wheel, (x, y, w, h))``."""
+    wheel = default_wheel
+    body = text
+    if ":" in text:
+        head, body = text.split(":", 1)
+        try:
+            wheel = int(head)
+        except ValueError:
+            raise VideoError(f"--roi '{text}': the wheel before ':' must be 1..4") from None
+    try:
+        x, y, w, h = (int(v) for v in body.split(","))
+    except ValueError:
+        raise VideoError(f"--roi '{text}': expected [N:]x,y,w,h in pixels") from None
+    if wheel not in (1, 2, 3, 4):
+        raise VideoError(f"--roi '{text}': wheel must be 1..4")
+    if w < 8 or h < 8 or x < 0 or y < 0:
+        raise VideoError(f"--roi '{text}': needs x, y >= 0 and a size of at least 8x8 px")
+    return wheel, (x, y, w, h)
+
+
+def _hue_deg(b: float, g: float, r: float) -> float:
+    mx, mn = max(b, g, r), min(b, g, r)
+    if mx - mn <= 1e-9:
+        return 0.0
+    if mx == r:
+        h = (g - b) / (mx - mn)
+    elif mx == g:
+        h = 2.0 + (b - r) / (mx - mn)
+    else:
+        h = 4.0 + (r - g) / (mx - mn)
+    return (60.0 * h) % 360.0
+
+
+class BlobDetector:
+    """Find marker candidates in one region of each frame.
+
+    Parameters
+    ----------
+    spec : MarkerSpec
+    roi : (x, y, w, h)
+        Search region [px], clipped to the frame.
+    frame_size : (width, height)
+        [px].
+    """
+
+    def __init__(self, spec: MarkerSpec, roi: tuple[int, int, int, int] | None,
+                 frame_size: tuple[int, int]) -> None:
+        fw, fh = frame_size
+        x, y, w, h = roi if roi is not None else (0, 0, fw, fh)
+        self.x0, self.y0 = max(0, x), max(0, y)
+        self.x1, self.y1 = min(fw, x + w), min(fh, y + h)
+        if self.x1 - self.x0 < 8 or self.y1 - self.y0 < 8:
+            raise VideoError(f"--roi {x},{y},{w},{h} lies outside the {fw}x{fh} frame")
+        self.spec = spec
+        # A coarse grid of about 200 px across finds dots of a few px radius and keeps the cost
+        # per frame far below decoding's.
+        self.stride = max(1, math.ceil(max(self.x1 - self.x0, self.y1 - self.y0) / 200))
+
+    @property
+    def size_px(self) -> float:
+        """Larger side of the search region [px]."""
+        return float(max(self.x1 - self.x0, self.y1 - self.y0))
+
+    def _mask(self, small: np.ndarray) -> np.ndarray:
+        import cv2
+
+        if self.spec.kind == "hsv":
+            hsv = cv2.cvtColor(small, cv2.COLOR_BGR2HSV)
+            lo, hi = self.spec.hsv_low, self.spec.hsv_high
+            if lo[0] <= hi[0]:
+                return cv2.inRange(hsv, np.array(lo), np.array(hi))
+            return cv2.bitwise_or(
+                cv2.inRange(hsv, np.array(lo), np.array((179, hi[1], hi[2]))),
+                cv2.inRange(hsv, np.array((0, lo[1], lo[2])), np.array(hi)))
+        b, g, r = cv2.split(small)
+        sat = cv2.subtract(cv2.max(cv2.max(b, g), r), cv2.min(cv2.min(b, g), r))
+        _, mask = cv2.threshold(sat, self.spec.min_saturation - 1, 255, cv2.THRESH_BINARY)
+        return mask
+
+    def __call__(self, frame: np.ndarray) -> np.ndarray:
+        """Candidates in a BGR frame: rows ``(x [px], y [px], hue [deg], weight)``."""
+        import cv2
+
+        crop = frame[self.y0:self.y1, self.x0:self.x1]
+        s = self.stride
+        small = np.ascontiguousarray(crop[::s, ::s]) if s > 1 else crop
+        mask = self._mask(small)
+        n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        if n <= 1:
+            return np.empty((0, 4))
+        order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:MAX_BLOBS] + 1
+        out = []
+        hc, wc = crop.shape[:2]
+        for k in order:
+            bx, by, bw, bh = stats[k, :4]
+            wx0, wy0 = max(0, (bx - 1) * s), max(0, (by - 1) * s)
+            wx1, wy1 = min(wc, (bx + bw + 1) * s), min(hc, (by + bh + 1) * s)
+            win = crop[wy0:wy1, wx0:wx1].astype(np.int16)
+            weight = (win.max(axis=2) - win.min(axis=2) - BACKGROUND_SATURATION).astype(np.float32)
+            np.maximum(weight, 0.0, out=weight)
+            if self.spec.kind == "hsv":
+                weight *= self._mask(np.ascontiguousarray(crop[wy0:wy1, wx0:wx1])) > 0
+            total = float(weight.sum())
+            if total <= 0.0:
+                continue
+            cx = float(weight.sum(axis=0) @ np.arange(wx1 - wx0)) / total
+            cy = float(weight.sum(axis=1) @ np.arange(wy1 - wy0)) / total
+            mean = np.tensordot(weight, win, axes=([0, 1], [0, 1])) / total
+            out.append((self.x0 + wx0 + cx, self.y0 + wy0 + cy,
+                        _hue_deg(float(mean[0]), float(mean[1]), float(mean[2])), total))
+        return np.array(out, dtype=float).reshape(-1, 4)

@@ -1,0 +1,276 @@
+"""The marker's path: a circle seen as an ellipse, found robustly among candidate blobs (pure).
+
+An oblique (affine) view of a wheel turns its rim into an ellipse. The angle of the wheel is taken
+after mapping the ellipse back onto a circle: rotate into the ellipse's axes and stretch the
+minor axis to the major one. Under an affine view this recovers the wheel angle up to a constant;
+a strongly perspective view (camera close to the wheel, wide lens) is only approximately affine.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import VideoError
+
+#: Largest accepted ratio of the ellipse axes (a tilt of about 80 degrees).
+MAX_AXIS_RATIO = 6.0
+
+
+@dataclass(frozen=True)
+class Ellipse:
+    """An ellipse in the image.
+
+    Attributes
+    ----------
+    cx_px, cy_px : float
+        Centre [px].
+    a_px, b_px : float
+        Semi-axes [px]: ``a_px`` along ``angle_deg``, ``b_px`` across it.
+    angle_deg : float
+        Direction of the ``a`` axis [deg], measured as OpenCV does (x right, y down).
+    """
+
+    cx_px: float
+    cy_px: float
+    a_px: float
+    b_px: float
+    angle_deg: float
+
+    @property
+    def tilt_deg(self) -> float:
+        """View angle off the wheel axis implied by the axis ratio [deg]."""
+        lo, hi = sorted((self.a_px, self.b_px))
+        return math.degrees(math.acos(min(1.0, lo / hi)))
+
+    def unit(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Points mapped onto the unit circle: ``(radius ratio, angle [rad])``.
+
+        The angle is counter-clockwise positive as seen in the image (y points down there), up
+        to a constant.
+        """
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        t = math.radians(self.angle_deg)
+        dx = xy[:, 0] - self.cx_px
+        dy = xy[:, 1] - self.cy_px
+        u = (math.cos(t) * dx + math.sin(t) * dy) / self.a_px
+        v = (-math.sin(t) * dx + math.cos(t) * dy) / self.b_px
+        return np.hypot(u, v), np.arctan2(-v, u)
+
+
+def _from_cv(box) -> Ellipse | None:
+    (cx, cy), (w, h), ang = box
+    if not (np.isfinite([cx, cy, w, h, ang]).all() and w > 0 and h > 0):
+        return None
+    return Ellipse(float(cx), float(cy), 0.5 * float(w), 0.5 * float(h), float(ang))
+
+
+def fit_ellipse(xy: np.ndarray) -> Ellipse | None:
+    """Least-squares ellipse through points (OpenCV's direct fit); None when degenerate."""
+    import cv2
+
+    pts = np.ascontiguousarray(xy, dtype=np.float32).reshape(-1, 1, 2)
+    if len(pts) < 5:
+        return None
+    try:
+        return _from_cv(cv2.fitEllipseDirect(pts))
+    except cv2.error:
+        return None
+
+
+def fit_circle(xy: np.ndarray) -> Ellipse | None:
+    """Least-squares circle through points (algebraic fit); None when degenerate."""
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    if len(xy) < 3:
+        return None
+    m = xy.mean(axis=0)
+    d = xy - m
+    A = np.column_stack([d, np.ones(len(d))])
+    rhs = (d ** 2).sum(axis=1)
+    sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    cx, cy = sol[0] / 2, sol[1] / 2
+    r2 = sol[2] + cx * cx + cy * cy
+    if not r2 > 0:
+        return None
+    r = math.sqrt(r2)
+    return Ellipse(float(cx + m[0]), float(cy + m[1]), r, r, 0.0)
+
+
+def plausible(e: Ellipse | None, max_radius_px: float, min_radius_px: float = 3.0) -> bool:
+    """Whether an ellipse can be a wheel's marker path in a region of this size."""
+    if e is None:
+        return False
+    lo, hi = sorted((e.a_px, e.b_px))
+    return lo >= min_radius_px and hi <= max_radius_px and hi / lo <= MAX_AXIS_RATIO
+
+
+def angular_coverage(angle_rad: np.ndarray) -> float:
+    """Share of the full turn spanned by the angles: one minus the largest gap between them."""
+    if angle_rad.size < 2:
+        return 0.0
+    a = np.sort(np.mod(angle_rad, 2 * np.pi))
+    gaps = np.diff(np.concatenate([a, [a[0] + 2 * np.pi]]))
+    return float(1.0 - gaps.max() / (2 * np.pi))
+
+
+@dataclass(frozen=True)
+class Track:
+    """The marker's chosen detections and its path.
+
+    Attributes
+    ----------
+    path : Ellipse
+    xy_px : ndarray, shape (N, 2)
+        Marker position per frame [px]; NaN where it was not found.
+    found : ndarray of bool, shape (N,)
+    coverage : float
+        Share of the path's full turn that the marker was seen on (see
+        :func:`angular_coverage`).
+    shape : str
+        ``"ellipse"`` or ``"circle"`` (too little of the path seen to fit an ellipse).
+    """
+
+    path: Ellipse
+    xy_px: np.ndarray
+    found: np.ndarray
+    coverage: float
+    shape: str
+
+
+def _hue_close(h: np.ndarray, h0: float, tol_deg: float) -> np.ndarray:
+    d = np.abs((h - h0 + 180.0) % 360.0 - 180.0)
+    return d <= tol_deg
+
+
+def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_frames: int,
+                 max_radius_px: float, rng: np.random.Generator | None = None,
+                 hypotheses: int = 400, rho_tol: float = 0.12, hue_tol_deg: float = 25.0,
+                 source: str = "video") -> Track:
+    """Find the candidate blobs that move on a circle (an ellipse in the image).
+
+    RANSAC: ellipses through five candidates of one hue from different places; the winner is the
+    one that the most frames have a same-hue candidate on. Static blobs (no circle) and blobs
+    moving on a line (degenerate ellipse) lose. The path is then refit on every frame's best
+    candidate: an ellipse when the marker visited most of it, else a circle.
+
+    Parameters
+    ----------
+    frame_idx : ndarray of int, shape (M,)
+        Frame of each candidate.
+    xy : ndarray, shape (M, 2)
+        Candidate centroids [px].
+    hue_deg : ndarray, shape (M,)
+        Candidate hues [deg].
+    n_frames : int
+    max_radius_px : float
+        Largest plausible path radius [px] (the search region's size).
+
+    Raises
+    ------
+    VideoError
+        No candidate moves on a circle.
+    """
+    rng = rng or np.random.default_rng(12345)
+    m = len(frame_idx)
+    if m < 5:
+        raise VideoError(f"{source}: no marker: no saturated blob found in the video "
+                         "(give --marker-hsv, or --roi around the wheel)")
+    grid = np.round(xy / 2.0).astype(np.int64)
+    cell = grid[:, 0] * 1_000_003 + grid[:, 1]
+    link = _link_frames(frame_idx, xy, hue_deg, n_frames, 0.25 * max_radius_px, hue_tol_deg)
+    moving = np.flatnonzero((link >= 0) & (np.hypot(*(xy[np.maximum(link, 0)] - xy).T) > 0.5))
+    best: tuple[float, Ellipse | None, float] = (-1.0, None, 0.0)
+    for h in range(hypotheses):
+        # Half the hypotheses follow one blob from frame to frame (five points of one chain),
+        # half draw moving blobs of one hue at random (robust when the linking fails).
+        i0 = int(rng.choice(moving)) if moving.size and h % 4 else int(rng.integers(m))
+        same = np.flatnonzero(_hue_close(hue_deg, hue_deg[i0], hue_tol_deg))
+        if same.size < 5:
+            continue
+        if h % 2:
+            chain = _follow(link, i0, int(rng.integers(5, max(6, min(n_frames, 400)))))
+            if len(chain) < 5:
+                continue
+            pick = np.array(chain)[np.linspace(0, len(chain) - 1, 5).astype(int)]
+        else:
+            pool = np.intersect1d(same, moving) if moving.size else same
+            pick = rng.choice(pool if pool.size >= 5 else same, 5, replace=False)
+        pts = xy[pick]
+        if np.ptp(pts[:, 0]) + np.ptp(pts[:, 1]) < 4.0:
+            continue
+        e = fit_ellipse(pts)
+        if not plausible(e, max_radius_px):
+            continue
+        rho, ang = e.unit(xy[same])
+        ok = np.abs(rho - 1.0) < rho_tol
+        # Distinct places, not frames: a static blob that happens to lie on a hypothesis counts
+        # once, however many frames it is in; times the share of the path visited: a blob
+        # sliding along a line sits on a thin ellipse's two ends only.
+        score = np.unique(cell[same[ok]]).size * angular_coverage(ang[ok])
+        if score > best[0]:
+            best = (score, e, float(hue_deg[i0]))
+    score, path, hue0 = best
+    if path is None or score < 3:
+        raise VideoError(f"{source}: no marker: no saturated blob moves on a circle "
+                         "(give --marker-hsv, or --roi around the wheel)")
+    for _ in range(2):  # refit on the chosen detections, then choose again with the refined path
+        track_xy, found = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol,
+                                          hue_tol_deg)
+        pts = track_xy[found]
+        _, ang = path.unit(pts)
+        coverage = angular_coverage(ang)
+        if coverage < 0.05:
+            raise VideoError(f"{source}: the marker does not move (it stays within "
+                             f"{360 * coverage:.0f} deg of its path); no speed can be measured")
+        shape = "ellipse" if coverage >= 0.6 else "circle"
+        refit = fit_ellipse(pts) if shape == "ellipse" else fit_circle(pts)
+        if plausible(refit, max_radius_px):
+            path = refit
+        else:
+            shape = "ellipse" if path.a_px != path.b_px else "circle"
+    track_xy, found = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol,
+                                      hue_tol_deg)
+    _, ang = path.unit(track_xy[found])
+    return Track(path, track_xy, found, angular_coverage(ang), shape)
+
+
+def _best_per_frame(path: Ellipse, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol, hue_tol):
+    rho, _ = path.unit(xy)
+    err = np.abs(rho - 1.0)
+    ok = (err < rho_tol) & _hue_close(hue_deg, hue0, hue_tol)
+    track = np.full((n_frames, 2), np.nan)
+    best_err = np.full(n_frames, np.inf)
+    for i in np.flatnonzero(ok):
+        f = frame_idx[i]
+        if err[i] < best_err[f]:
+            best_err[f] = err[i]
+            track[f] = xy[i]
+    return track, np.isfinite(best_err)
+
+
+def _link_frames(frame_idx, xy, hue_deg, n_frames, max_step_px, hue_tol) -> np.ndarray:
+    """For each candidate, its nearest same-hue candidate in the next frame (-1: none)."""
+    link = np.full(len(frame_idx), -1, dtype=int)
+    order = np.argsort(frame_idx, kind="stable")
+    starts = np.searchsorted(frame_idx[order], np.arange(n_frames + 1))
+    for f in range(n_frames - 1):
+        a = order[starts[f]:starts[f + 1]]
+        b = order[starts[f + 1]:starts[f + 2]]
+        if a.size == 0 or b.size == 0:
+            continue
+        d = np.hypot(xy[a, 0][:, None] - xy[b, 0][None], xy[a, 1][:, None] - xy[b, 1][None])
+        dh = np.abs((hue_deg[a][:, None] - hue_deg[b][None] + 180.0) % 360.0 - 180.0)
+        d[dh > hue_tol] = np.inf
+        j = np.argmin(d, axis=1)
+        ok = d[np.arange(a.size), j] <= max_step_px
+        link[a[ok]] = b[j[ok]]
+    return link
+
+
+def _follow(link: np.ndarray, start: int, length: int) -> list[int]:
+    chain = [start]
+    while len(chain) < length and link[chain[-1]] >= 0:
+        chain.append(int(link[chain[-1]]))
+    return chain

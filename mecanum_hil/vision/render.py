@@ -1,0 +1,373 @@
+"""Render a video of wheels with markers turning as a recording's wheel speeds say.
+
+The renderer exists for tests and the demo: it gives videos with a known truth. Each wheel is a
+dark tyre, a grey hub and grey spokes (unsaturated, so they never pass for a marker) with one
+saturated dot near the rim. The wheel angle is the exact integral of the recording's wheel speed
+(taken as piecewise linear between samples) at each frame's mid-exposure time. Realism knobs:
+sensor noise, motion blur (the dot is smeared over the exposure), lighting drift, an oblique view
+(an affine squash: the rim becomes an ellipse), JPEG compression of each frame on top of the
+codec's, distractor objects (static and moving saturated blobs), and occlusions.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import VideoError
+from ..io.recording import WHEEL_COLUMNS, Recording
+from .video import VideoWriter, fourcc_for
+
+_SHIFT = 4  # cv2 drawing with 1/16 px coordinates, so the truth is sub-pixel
+_SCALE = 1 << _SHIFT
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How to film the wheels.
+
+    Attributes
+    ----------
+    width_px, height_px : int
+        Frame size [px].
+    fps : float
+        Frame rate [1/s].
+    wheels : tuple of int
+        Wheels (1..4) to show, side by side, each with its own marker hue.
+    camera_start_s : float
+        Recording time of the first frame, after the recording's first sample [s]; the video
+        clock starts at 0 there (the offset ``measure-video --recording`` must find).
+    duration_s : float or None
+        Video length [s]; default: until the recording ends.
+    marker_hues_deg : tuple of float
+        Hue of each wheel's marker [deg] (OpenCV hue x 2), cycled.
+    mirror : bool
+        Film the wheels from the other side: positive wheel speed turns clockwise in the image.
+    noise_std : float
+        Sensor noise, standard deviation [grey levels of 255].
+    exposure : float
+        Shutter open for this fraction of the frame interval (0: no motion blur).
+    lighting_drift : float
+        Relative amplitude of a slow brightness change (0.2: +-20 %).
+    tilt_deg : float
+        Oblique view: angle between the wheel axis and the camera axis [deg].
+    tilt_axis_deg : float
+        Direction in the image of the axis the wheel is tilted about [deg].
+    jpeg_quality : int or None
+        Extra JPEG compression of each frame (1..100), on top of the codec's.
+    distractors : int
+        Saturated objects off the wheels: every second one moves on a straight line.
+    occlusions_s : tuple of (start, end)
+        Video-time intervals [s] when a grey card hides the wheels.
+    seed : int
+        Seed of the noise and of the distractors' placement.
+    """
+
+    width_px: int = 320
+    height_px: int = 240
+    fps: float = 30.0
+    wheels: tuple[int, ...] = (1,)
+    camera_start_s: float = 0.0
+    duration_s: float | None = None
+    marker_hues_deg: tuple[float, ...] = (120.0, 0.0, 240.0, 60.0)
+    mirror: bool = False
+    noise_std: float = 0.0
+    exposure: float = 0.0
+    lighting_drift: float = 0.0
+    tilt_deg: float = 0.0
+    tilt_axis_deg: float = 0.0
+    jpeg_quality: int | None = None
+    distractors: int = 0
+    occlusions_s: tuple[tuple[float, float], ...] = ()
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.width_px < 64 or self.height_px < 48:
+            raise VideoError("frame size must be at least 64x48 px")
+        if not self.fps > 0:
+            raise VideoError(f"fps must be > 0, got {self.fps}")
+        if not self.wheels or any(w not in (1, 2, 3, 4) for w in self.wheels):
+            raise VideoError(f"wheels must be numbers 1..4, got {self.wheels}")
+        if not 0.0 <= self.exposure <= 1.0:
+            raise VideoError(f"exposure must be within 0..1, got {self.exposure}")
+        if not 0.0 <= self.tilt_deg < 80.0:
+            raise VideoError(f"tilt must be within 0..80 deg, got {self.tilt_deg}")
+        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
+            raise VideoError(f"JPEG quality must be within 1..100, got {self.jpeg_quality}")
+
+
+@dataclass(frozen=True)
+class WheelPlacement:
+    """Where a wheel is drawn: centre ``(cx_px, cy_px)``, rim radius, and its ROI."""
+
+    wheel: int
+    cx_px: float
+    cy_px: float
+    radius_px: float
+    roi: tuple[int, int, int, int]
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """A rendered video and its truth.
+
+    Attributes
+    ----------
+    path : Path
+    frame_t_s : ndarray, shape (N,)
+        Video time of each frame [s] (0 at the first frame).
+    recording_t_s : ndarray, shape (N,)
+        Recording time of each frame [s].
+    wheel_rpm : ndarray, shape (N, W)
+        True speed of each shown wheel at each frame [rpm].
+    angle_turns : ndarray, shape (N, W)
+        True wheel angle, as the recording's sign convention counts it [turns].
+    placements : tuple of WheelPlacement
+    settings : RenderSettings
+    """
+
+    path: Path
+    frame_t_s: np.ndarray
+    recording_t_s: np.ndarray
+    wheel_rpm: np.ndarray
+    angle_turns: np.ndarray
+    placements: tuple[WheelPlacement, ...]
+    settings: RenderSettings
+
+
+def wheel_turns(t_s: np.ndarray, rpm: np.ndarray, t_query) -> np.ndarray:
+    """Exact integral of a piecewise-linear speed from ``t_s[0]`` to each query time [turns].
+
+    Outside the samples the speed is held at the first/last value.
+    """
+    t = np.asarray(t_s, dtype=float)
+    w = np.asarray(rpm, dtype=float) / 60.0
+    q = np.atleast_1d(np.asarray(t_query, dtype=float))
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(t))])
+    i = np.clip(np.searchsorted(t, q, side="right") - 1, 0, len(t) - 1)
+    j = np.minimum(i + 1, len(t) - 1)
+    dt_seg = t[j] - t[i]
+    slope = np.where(dt_seg > 0, (w[j] - w[i]) / np.where(dt_seg > 0, dt_seg, 1.0), 0.0)
+    h = q - t[i]
+    inside = (q >= t[0]) & (q <= t[-1])
+    part = np.where(inside, w[i] * h + 0.5 * slope * h * h, w[i] * h)
+    before = q < t[0]
+    return np.where(before, w[0] * (q - t[0]), cum[i] + part)
+
+
+def wheel_placements(settings: RenderSettings) -> tuple[WheelPlacement, ...]:
+    """The wheels side by side, each centred in its share of the frame."""
+    n = len(settings.wheels)
+    cell_w = settings.width_px / n
+    r = 0.38 * min(cell_w, settings.height_px)
+    out = []
+    for k, wheel in enumerate(settings.wheels):
+        cx = cell_w * (k + 0.5)
+        cy = settings.height_px / 2.0
+        x0 = int(max(0, math.floor(cx - 1.25 * r)))
+        y0 = int(max(0, math.floor(cy - 1.25 * r)))
+        x1 = int(min(settings.width_px, math.ceil(cx + 1.25 * r)))
+        y1 = int(min(settings.height_px, math.ceil(cy + 1.25 * r)))
+        out.append(WheelPlacement(wheel, cx, cy, r, (x0, y0, x1 - x0, y1 - y0)))
+    return tuple(out)
+
+
+def _hue_bgr(hue_deg: float, value: float = 235.0) -> tuple[float, float, float]:
+    import colorsys
+
+    r, g, b = colorsys.hsv_to_rgb((hue_deg % 360.0) / 360.0, 1.0, value / 255.0)
+    return (b * 255.0, g * 255.0, r * 255.0)
+
+
+class _Scene:
+    """Static parts of the picture and the drawing of one frame (pure given its inputs)."""
+
+    def __init__(self, settings: RenderSettings) -> None:
+        import cv2
+
+        self.s = settings
+        self.places = wheel_placements(settings)
+        h, w = settings.height_px, settings.width_px
+        tilt = math.radians(settings.tilt_deg)
+        a = math.radians(settings.tilt_axis_deg)
+        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        # The wheel plane seen obliquely: squashed across the tilt axis (an affine view).
+        self.view = rot @ np.diag([1.0, math.cos(tilt)]) @ rot.T
+        self.minor = math.cos(tilt)
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        bg = 118.0 + 25.0 * (xx / w) - 12.0 * (yy / h)
+        self.background = np.repeat(bg[:, :, None], 3, axis=2)
+        rng = np.random.default_rng(settings.seed + 7919)
+        self.static_blobs: list[tuple[float, float, float, tuple]] = []
+        self.moving_blobs: list[tuple[np.ndarray, np.ndarray, float, tuple]] = []
+        for k in range(settings.distractors):
+            size = float(rng.uniform(0.03, 0.06) * min(w, h))
+            colour = _hue_bgr(float(rng.uniform(0, 360)), 220.0)
+            p0 = self._free_point(rng, size)
+            if k % 2 == 0:
+                self.static_blobs.append((p0[0], p0[1], size, colour))
+            else:
+                p1 = self._free_point(rng, size)
+                self.moving_blobs.append((p0, p1, size, colour))
+        for x, y, size, colour in self.static_blobs:
+            cv2.rectangle(self.background, (int(x - size), int(y - size)),
+                          (int(x + size), int(y + size)), colour, -1)
+        self.background = self.background.astype(np.float32)
+
+    def _free_point(self, rng, size: float) -> np.ndarray:
+        """A point whose blob stays clear of every wheel (moving blobs: both ends clear)."""
+        w, h = self.s.width_px, self.s.height_px
+        for _ in range(500):
+            p = rng.uniform([size, size], [w - size, h - size])
+            if all(math.hypot(p[0] - pl.cx_px, p[1] - pl.cy_px) > 1.15 * pl.radius_px + 2 * size
+                   for pl in self.places):
+                return p
+        return np.array([size, size])
+
+    def _pt(self, cx: float, cy: float, u: float, v: float) -> tuple[int, int]:
+        x, y = self.view @ np.array([u, v])
+        return (round((cx + x) * _SCALE), round((cy + y) * _SCALE))
+
+    def draw(self, t_video_s: float, angles_rad: list[np.ndarray], rng) -> np.ndarray:
+        """One BGR frame; ``angles_rad[k]`` are wheel k's angles over the exposure [rad]."""
+        import cv2
+
+        s = self.s
+        frame = self.background.copy()
+        for (p0, p1, size, colour) in self.moving_blobs:
+            f = 0.5 - 0.5 * math.cos(2 * math.pi * t_video_s / 3.0)
+            p = p0 + f * (p1 - p0)
+            cv2.circle(frame, (round(p[0] * _SCALE), round(p[1] * _SCALE)), round(size * _SCALE),
+                       colour, -1, cv2.LINE_AA, _SHIFT)
+        axis_deg = s.tilt_axis_deg
+        for k, pl in enumerate(self.places):
+            c = (round(pl.cx_px * _SCALE), round(pl.cy_px * _SCALE))
+            r = pl.radius_px
+            for rr, grey in ((r * 1.08, 38.0), (r * 0.9, 96.0), (r * 0.2, 70.0)):
+                cv2.ellipse(frame, c, (round(rr * _SCALE), round(rr * self.minor * _SCALE)),
+                            axis_deg, 0, 360, (grey, grey, grey), -1, cv2.LINE_AA, _SHIFT)
+            mid = float(angles_rad[k][len(angles_rad[k]) // 2])
+            for j in range(5):
+                a = mid + j * 2 * math.pi / 5
+                p = self._pt(pl.cx_px, pl.cy_px, 0.85 * r * math.cos(a), -0.85 * r * math.sin(a))
+                cv2.line(frame, c, p, (150.0, 150.0, 150.0), max(1, round(r * 0.05)),
+                         cv2.LINE_AA, _SHIFT)
+            self._marker(frame, pl, angles_rad[k], _hue_bgr(s.marker_hues_deg[
+                k % len(s.marker_hues_deg)]))
+        for t0, t1 in s.occlusions_s:
+            if t0 <= t_video_s < t1:
+                for pl in self.places:
+                    x, y, w, h = pl.roi
+                    cv2.rectangle(frame, (x, y), (x + w, y + h), (128.0, 126.0, 124.0), -1)
+        if s.lighting_drift:
+            frame *= 1.0 + s.lighting_drift * math.sin(2 * math.pi * t_video_s / 4.0)
+        if s.noise_std:
+            frame += rng.normal(0.0, s.noise_std, frame.shape).astype(np.float32)
+        out = np.clip(frame, 0, 255).astype(np.uint8)
+        if s.jpeg_quality is not None:
+            _ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(s.jpeg_quality)])
+            out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        return out
+
+    def _marker(self, frame: np.ndarray, pl: WheelPlacement, angles: np.ndarray,
+                colour: tuple) -> None:
+        """The dot, smeared over the exposure's angles (alpha-blended in the wheel's box)."""
+        import cv2
+
+        x, y, w, h = pl.roi
+        r = pl.radius_px
+        size = 0.09 * r
+        alpha = np.zeros((h, w), np.float32)
+        layer = np.zeros((h, w), np.uint8)
+        for a in angles:
+            layer[:] = 0
+            cu, cv = self._pt(pl.cx_px - x, pl.cy_px - y, 0.7 * r * math.cos(a),
+                              -0.7 * r * math.sin(a))
+            cv2.ellipse(layer, (cu, cv), (round(size * _SCALE), round(size * self.minor * _SCALE)),
+                        self.s.tilt_axis_deg, 0, 360, 255, -1, cv2.LINE_AA, _SHIFT)
+            alpha += layer
+        alpha *= 1.0 / (255.0 * len(angles))
+        box = frame[y:y + h, x:x + w]
+        box *= (1.0 - alpha)[:, :, None]
+        box += alpha[:, :, None] * np.array(colour, np.float32)
+
+
+def frame_schedule(rec: Recording, settings: RenderSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Video times and recording times of the frames to render [s]."""
+    t0 = float(rec.t_s[0]) + settings.camera_start_s
+    end = float(rec.t_s[-1]) if settings.duration_s is None else t0 + settings.duration_s
+    n = math.floor((end - t0) * settings.fps + 1e-9) + 1
+    if n < 2:
+        raise VideoError("nothing to render: the recording ends before the camera starts")
+    tv = np.arange(n) / settings.fps
+    return tv, t0 + tv
+
+
+def _wheel_columns(rec: Recording, wheels: tuple[int, ...]) -> list[np.ndarray]:
+    cols = []
+    for wheel in wheels:
+        col = rec.wheel_rpm[:, wheel - 1]
+        if len(rec) < 2 or not np.isfinite(col).all():
+            raise VideoError(f"the recording has no complete {WHEEL_COLUMNS[wheel - 1]} column "
+                             "to render (make one with `mecanum-hil simulate`)")
+        cols.append(col)
+    return cols
+
+
+def wheel_truth(rec: Recording, settings: RenderSettings, t_rec_s: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """True wheel speeds [rpm] and angles [turns] of the shown wheels at recording times."""
+    rpm = np.empty((t_rec_s.size, len(settings.wheels)))
+    turns = np.empty_like(rpm)
+    for k, col in enumerate(_wheel_columns(rec, settings.wheels)):
+        rpm[:, k] = np.interp(t_rec_s, rec.t_s, col)
+        turns[:, k] = wheel_turns(rec.t_s, col, t_rec_s)
+    return rpm, turns
+
+
+def render_frames(rec: Recording, settings: RenderSettings) -> Iterator[np.ndarray]:
+    """The frames of :func:`render_video`, one BGR uint8 array each."""
+    tv, tr = frame_schedule(rec, settings)
+    scene = _Scene(settings)
+    rng = np.random.default_rng(settings.seed)
+    sub = 9 if settings.exposure > 0 else 1
+    half = 0.5 * settings.exposure / settings.fps
+    offsets = np.linspace(-half, half, sub)
+    sign = -1.0 if settings.mirror else 1.0
+    phases = [0.3 + 1.7 * k for k in range(len(settings.wheels))]
+    cols = _wheel_columns(rec, settings.wheels)
+    for i in range(tv.size):
+        angles = [phases[k] + sign * 2 * math.pi * wheel_turns(rec.t_s, col, tr[i] + offsets)
+                  for k, col in enumerate(cols)]
+        yield scene.draw(float(tv[i]), angles, rng)
+
+
+def render_video(rec: Recording, path: str | Path, settings: RenderSettings | None = None,
+                 progress=None) -> RenderResult:
+    """Render the wheels of a recording to a video file (codec by extension, see
+    :func:`~mecanum_hil.vision.video.fourcc_for`) and return the truth.
+
+    Parameters
+    ----------
+    rec : Recording
+        Needs the shown wheels' columns filled.
+    path : str or Path
+        ``.mp4`` (mp4v) or ``.avi`` (MJPG).
+    settings : RenderSettings, optional
+    progress : callable, optional
+        Called as ``progress(done, total)`` after each frame.
+    """
+    s = settings or RenderSettings()
+    fourcc_for(path)
+    tv, tr = frame_schedule(rec, s)
+    rpm, turns = wheel_truth(rec, s, tr)
+    with VideoWriter(path, s.fps, (s.width_px, s.height_px)) as writer:
+        for i, frame in enumerate(render_frames(rec, s)):
+            writer.write(frame)
+            if progress is not None:
+                progress(i + 1, tv.size)
+    return RenderResult(Path(path), tv, tr, rpm, turns, wheel_placements(s), s)

@@ -1,0 +1,186 @@
+"""Video files in and out through OpenCV (the I/O edge of the vision stage).
+
+Everything OpenCV can decode is read; frame times come from the container's timestamps when it
+has usable ones, else from the nominal frame rate. ``cv2`` errors and failures become
+:class:`~mecanum_hil.errors.VideoError` here.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import VideoError
+
+#: Codec chosen by file extension; both write and read back with opencv-python-headless.
+FOURCC_BY_SUFFIX = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG",
+                    ".mkv": "MJPG"}
+
+#: Relative spread of frame intervals above which a video counts as variable frame rate.
+VARIABLE_RATE_TOLERANCE = 0.02
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What the container says about a video.
+
+    Attributes
+    ----------
+    path : str
+    fps_nominal : float
+        Frame rate the container declares [1/s]; NaN when it declares none.
+    frame_count : int
+        Frames the container declares (0 when unknown; may be wrong for a truncated file).
+    width_px, height_px : int
+        Frame size [px].
+    """
+
+    path: str
+    fps_nominal: float
+    frame_count: int
+    width_px: int
+    height_px: int
+
+
+def open_video(path: str | Path):
+    """Open a video for reading; return ``(capture, VideoInfo)``.
+
+    Raises
+    ------
+    VideoError
+        The file is missing, or OpenCV cannot open or decode its first frame.
+    """
+    import cv2
+
+    p = Path(path)
+    if not p.exists():
+        raise VideoError(f"{p}: file not found")
+    if p.is_dir():
+        raise VideoError(f"{p}: is a folder, not a video")
+    try:
+        cap = cv2.VideoCapture(str(p))
+    except cv2.error as err:
+        raise VideoError(f"{p}: OpenCV cannot open it: {err}") from err
+    if not cap.isOpened():
+        raise VideoError(f"{p}: not a video OpenCV can decode (corrupt, truncated or unknown "
+                         "format)")
+    fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+    info = VideoInfo(str(p), fps if math.isfinite(fps) and 0.5 < fps < 10000 else math.nan,
+                     max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)),
+                     int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                     int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+    return cap, info
+
+
+def iter_frames(cap) -> Iterator[tuple[int, float, np.ndarray]]:
+    """Yield ``(index, timestamp [s] or NaN, BGR frame)`` until the video ends."""
+    import cv2
+
+    index = 0
+    while True:
+        try:
+            ok, frame = cap.read()
+        except cv2.error as err:
+            raise VideoError(f"decoding failed at frame {index}: {err}") from err
+        if not ok or frame is None:
+            return
+        t_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+        t_s = t_ms / 1000.0 if t_ms is not None and math.isfinite(t_ms) else math.nan
+        yield index, t_s, frame
+        index += 1
+
+
+@dataclass(frozen=True)
+class FrameTiming:
+    """Frame times and how they were obtained.
+
+    Attributes
+    ----------
+    t_s : ndarray, shape (N,)
+        Time of each frame from the first one [s].
+    fps : float
+        Mean frame rate [1/s].
+    source : str
+        ``"timestamps"`` (container) or ``"nominal"`` (index / declared frame rate).
+    variable : bool
+        Whether the intervals vary more than :data:`VARIABLE_RATE_TOLERANCE`.
+    """
+
+    t_s: np.ndarray
+    fps: float
+    source: str
+    variable: bool
+
+
+def frame_times(stamps_s: np.ndarray, fps_nominal: float, fps_override: float | None = None,
+                source: str = "video") -> FrameTiming:
+    """Frame times from container timestamps, or from the frame rate when those are unusable.
+
+    Container timestamps are used when they are finite and strictly increasing; a video whose
+    intervals vary is flagged ``variable`` (its timestamps are still used: the speed estimator
+    takes uneven spacing). ``fps_override`` replaces both.
+
+    Raises
+    ------
+    VideoError
+        No usable timestamps and no frame rate (give ``--fps``).
+    """
+    n = len(stamps_s)
+    if fps_override is not None:
+        if not fps_override > 0:
+            raise VideoError(f"--fps must be > 0, got {fps_override}")
+        return FrameTiming(np.arange(n) / fps_override, float(fps_override), "override", False)
+    st = np.asarray(stamps_s, dtype=float)
+    if n >= 2 and np.isfinite(st).all() and (np.diff(st) > 0).all():
+        t = st - st[0]
+        d = np.diff(t)
+        med = float(np.median(d))
+        variable = bool(np.max(np.abs(d - med)) > VARIABLE_RATE_TOLERANCE * med)
+        return FrameTiming(t, float((n - 1) / t[-1]), "timestamps", variable)
+    if math.isfinite(fps_nominal) and fps_nominal > 0:
+        return FrameTiming(np.arange(n) / fps_nominal, float(fps_nominal), "nominal", False)
+    raise VideoError(f"{source}: no frame rate and no usable frame timestamps; give --fps")
+
+
+def fourcc_for(path: str | Path) -> str:
+    """The codec used to write a file of this extension (``.mp4`` -> mp4v, ``.avi`` -> MJPG)."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in FOURCC_BY_SUFFIX:
+        raise VideoError(f"{path}: unsupported video extension '{suffix}' "
+                         f"(use one of {', '.join(sorted(FOURCC_BY_SUFFIX))})")
+    return FOURCC_BY_SUFFIX[suffix]
+
+
+class VideoWriter:
+    """Write BGR frames to a video file; the codec follows the extension (:func:`fourcc_for`)."""
+
+    def __init__(self, path: str | Path, fps: float, size_px: tuple[int, int]) -> None:
+        import cv2
+
+        self.path = Path(path)
+        fourcc = fourcc_for(self.path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*fourcc),
+                                       float(fps), (int(size_px[0]), int(size_px[1])))
+        if not self._writer.isOpened():
+            raise VideoError(f"{self.path}: OpenCV cannot write {fourcc} video here")
+        self.frames = 0
+
+    def write(self, frame: np.ndarray) -> None:
+        """Append one BGR uint8 frame."""
+        self._writer.write(frame)
+        self.frames += 1
+
+    def close(self) -> None:
+        """Finish the file."""
+        self._writer.release()
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
