@@ -69,7 +69,7 @@ def main() -> None:
     args = ap.parse_args()
 
     cal, robot = Calibration(), RobotProfile()
-    t = np.arange(int(round(args.seconds * args.rate)) + 1) / args.rate
+    t = np.arange(round(args.seconds * args.rate) + 1) / args.rate
     cmd = commands(args.robots, t.size, args.rate)
     steps = args.robots * (t.size - 1)
     simulate_batch(cmd[:2, :10], t[:10], cal)  # compile (cached on disk after the first run)
