@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -255,8 +256,30 @@ def prepare(recordings: Sequence[Recording], robot: RobotProfile,
     return out
 
 
+@contextmanager
+def few_threads(work: float):
+    """Run numba's parallel loops on one thread when the work is small.
+
+    ``work`` is roughly the number of wheel-steps to simulate. Waking a thread pool costs more
+    than a few thousand steps take, and on a loaded machine a parallel launch waits for the
+    busiest core, so small batches (a Jacobian) run faster serially.
+    """
+    import numba
+
+    if work >= 200_000:
+        yield
+        return
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
 def _simulate(p: _Prepared, calibs: Sequence[Calibration], robot: RobotProfile):
-    traj = simulate_batch(p.commands, p.t_s, list(calibs), robot, initial_pose=p.pose0)
+    with few_threads(len(calibs) * p.t_s.size * 4):
+        traj = simulate_batch(p.commands, p.t_s, list(calibs), robot, initial_pose=p.pose0)
     return traj.wheel_rpm, traj.pose
 
 
@@ -385,8 +408,15 @@ def _start(data, calibration, robot, free, x0, lower, upper) -> dict[str, float]
         axes = [START_GRID[n] if n in grid_names else (getattr(base, n),) for n in _COEFFICIENTS]
         pts = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
         pts = pts[(pts[:, 0] + pts[:, 1] > 0) & (pts[:, 2] > 0)]
-        calibs = [base.with_coefficients(*pt) for pt in pts]
-        best = pts[int(np.argmin(_sse_of(data, calibs, robot)))]
+        if base.effects.nonlinear:
+            sse = _sse_of(data, [base.with_coefficients(*pt) for pt in pts], robot)
+        else:
+            from .grid import evaluate_points, grid_data
+
+            g = grid_data(data, base, robot)
+            with few_threads(pts.shape[0] * g.target_rpm.size):
+                sse = evaluate_points(g, pts)
+        best = pts[int(np.argmin(sse))]
         for i, n in enumerate(_COEFFICIENTS):
             if n in grid_names:
                 start[n] = float(best[i])
