@@ -11,7 +11,8 @@ import sys
 import typer
 
 from ..errors import MecanumHILError
-from . import demo, simulate
+from . import demo, measure_video, render_video, simulate
+from . import fit as fit_cmd
 
 app = typer.Typer(
     name="mecanum-hil",
@@ -32,6 +33,9 @@ def _root(
 
 app.command("simulate")(simulate.command)
 app.command("demo")(demo.command)
+app.command("fit")(fit_cmd.command)
+app.command("measure-video")(measure_video.command)
+app.command("render-video")(render_video.command)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,133 @@
+"""Fit recordings on disk: read them, fit, write the calibration and the report plot (the edge).
+
+:func:`fit_files` is what ``mecanum-hil fit`` and the demo call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import MecanumHILError
+from ..io.recording import Recording, read_recording
+from ..model.calibration import Calibration, save_calibration
+from ..model.robot import RobotProfile
+from ..model.simulate import DEFAULT_POSE, simulate
+from .fit import FitResult, fit
+
+
+@dataclass(frozen=True)
+class FitOutput:
+    """A fit and the files written for it."""
+
+    result: FitResult
+    calibration_path: Path
+    report_path: Path | None
+
+
+def plot_fit(result: FitResult, recordings: Sequence[Recording], robot: RobotProfile,
+             path: str | Path, labels: Sequence[str] | None = None) -> Path:
+    """Measured (dots) against fitted (lines) wheel speeds, one panel per recording.
+
+    Parameters
+    ----------
+    result : FitResult
+        The fit; its calibration drives the model.
+    recordings : sequence of Recording
+        The recordings that were fitted.
+    robot : RobotProfile
+        Geometry for the kinematics.
+    path : str or Path
+        PNG to write.
+    labels : sequence of str, optional
+        Panel titles (default: the fit's data sources).
+    """
+    from ..plots import _pyplot
+
+    plt = _pyplot()
+    cal = result.calibration
+    labels = list(labels or cal.info.get("sources", []))
+    per = list(cal.info.get("fit_percent_per_recording", []))
+    n = len(recordings)
+    ncols = min(n, 3)
+    nrows = (n + ncols - 1) // ncols
+    fig, axes = plt.subplots(nrows, ncols, figsize=(5.4 * ncols, 3.9 * nrows), squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, rec in enumerate(recordings):
+        ax = axes[k // ncols, k % ncols]
+        first = rec.pose[0]
+        pose0 = first if np.isfinite(first).all() else DEFAULT_POSE
+        model = simulate(rec.commands, rec.t_s, cal, robot, initial_pose=pose0).wheel_rpm[0]
+        for i in range(4):
+            meas = rec.wheel_rpm[:, i]
+            if not np.isfinite(meas).any():
+                continue
+            ax.plot(rec.t_s, meas, ".", ms=2.5, color=colours[i], alpha=0.6,
+                    label=f"wheel {i + 1} measured")
+            ax.plot(rec.t_s, model[:, i], "-", lw=1.3, color=colours[i],
+                    label=f"wheel {i + 1} fitted")
+        title = labels[k] if k < len(labels) else f"recording {k + 1}"
+        if k < len(per):
+            title = f"{Path(title).name}: fit {per[k]:.1f} %"
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("wheel speed [rpm]")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=6)
+    for k in range(n, nrows * ncols):
+        axes[k // ncols, k % ncols].set_visible(False)
+    fig.suptitle(f"fit ({result.method}): A={cal.A:.4g} B={cal.B:.4g} C={cal.C:.4g}, "
+                 f"RMSE {result.rmse_rpm:.3g} rpm, fit {result.fit_percent:.1f} %", fontsize=10)
+    fig.tight_layout()
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(p, dpi=110)
+    except OSError as err:
+        raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
+    finally:
+        plt.close(fig)
+    return p
+
+
+def fit_files(paths: Sequence[str | Path], out: str | Path, robot: RobotProfile,
+              method: str = "lsq", calibration: Calibration | None = None,
+              report: str | Path | None = None, **grid_options) -> FitOutput:
+    """Fit recordings (CSV files) and write the calibration TOML and a report PNG.
+
+    Nothing is written when the fit fails.
+
+    Parameters
+    ----------
+    paths : sequence of str or Path
+        Recording CSV files.
+    out : str or Path
+        Calibration TOML to write (readable by every ``--calibration``).
+    robot : RobotProfile
+        Geometry for the kinematics.
+    method : {"lsq", "paper-grid"}
+        Fitting method.
+    calibration : Calibration, optional
+        Effects held fixed during the fit.
+    report : str or Path, optional
+        Report PNG to write; ``None`` writes none.
+    **grid_options
+        Grid settings for ``paper-grid`` (see :func:`mecanum_hil.identify.grid.paper_grid`).
+
+    Returns
+    -------
+    FitOutput
+    """
+    recordings = [read_recording(p) for p in paths]
+    sources = [str(p) for p in paths]
+    result = fit(recordings, robot, method, calibration, sources=sources, **grid_options)
+    header = (f"Written by mecanum-hil fit ({result.method}) from {len(sources)} recording(s).\n"
+              f"Fit {result.fit_percent:.2f} %, RMSE {result.rmse_rpm:.4g} rpm over "
+              f"{result.n_samples} wheel samples.")
+    cal_path = save_calibration(result.calibration, out, header=header)
+    report_path = (plot_fit(result, recordings, robot, report, sources)
+                   if report is not None else None)
+    return FitOutput(result, cal_path, report_path)
