@@ -253,3 +253,38 @@ def _method(opts: MeasureOptions, timing: FrameTiming) -> str:
               "aruco": "ArUco marker orientation"}[opts.marker.kind]
     return (f"{marker}, angle on the path mapped to a circle, unwrapped; speed = slope of a local "
             f"quadratic regression over {2 * h + 1} frames")
+
+
+def align_with_recording(measurement: VideoMeasurement, rec: Recording, calibration=None,
+                         robot=None) -> tuple[Recording, VideoMeasurement]:
+    """Find the clock offset against a recording and merge the measurement into it.
+
+    The offset comes from the first measured wheel (see :mod:`~mecanum_hil.vision.align`);
+    every measured wheel is merged. Returns ``(merged recording, measurement with the offset in
+    its summary and metadata)``.
+    """
+    from .align import estimate_offset, merge, reference_speed
+
+    wheels = [w["wheel"] for w in measurement.summary["wheels"]]
+    meas = measurement.recording
+    ref, ref_name = reference_speed(rec, wheels[0], calibration, robot)
+    al = estimate_offset(meas.t_s, meas.wheel_rpm[:, wheels[0] - 1], rec.t_s, ref)
+    warnings = list(measurement.warnings)
+    if al.correlation < 0:
+        warnings.append(f"the video sees wheel {wheels[0]} turn against the {ref_name} "
+                        f"(correlation {al.correlation:.2f}): film it from the other side or "
+                        "pass --invert")
+    if al.method != "cross-correlation":
+        warnings.append(f"the speeds correlate weakly ({al.correlation:.2f}): offset from the "
+                        "motion onsets only")
+    info = {**al.as_dict(), "reference": ref_name}
+    merged = rec
+    for w in wheels:
+        merged = merge(merged, meas.t_s, meas.wheel_rpm[:, w - 1], w, al.offset_s,
+                       {"video_alignment": info, "video_measurement": dict(meas.metadata)})
+    summary = {**measurement.summary, "offset_s": info["offset_s"], "alignment": info,
+               "warnings": warnings}
+    new_meas = VideoMeasurement(
+        meas.with_values(metadata={**dict(meas.metadata), "offset_s": info["offset_s"],
+                                   "alignment": info}), summary, tuple(warnings))
+    return merged, new_meas

@@ -1,0 +1,98 @@
+"""``mecanum-hil measure-video``: wheel speed from a camera video of wheel markers."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ._options import CalibrationOpt, JsonOpt, OutOpt, RobotOpt
+
+
+def command(
+    video: Annotated[Path, typer.Argument(help="Video file (anything OpenCV decodes).")],
+    out: OutOpt,
+    wheel: Annotated[int, typer.Option(
+        "--wheel", min=1, max=4, help="Wheel column to fill (1 FL, 2 FR, 3 RL, 4 RR).")] = 1,
+    roi: Annotated[list[str] | None, typer.Option(
+        "--roi", help="Search region [N:]x,y,w,h [px]; one per wheel for several wheels.",
+        metavar="[N:]X,Y,W,H")] = None,
+    marker: Annotated[str, typer.Option(
+        "--marker", help="auto (any saturated dot) or aruco.")] = "auto",
+    marker_hsv: Annotated[str | None, typer.Option(
+        "--marker-hsv", help="Pin the dot's colour: OpenCV HSV box H,S,V:H,S,V (H 0..179).",
+        metavar="H,S,V:H,S,V")] = None,
+    invert: Annotated[bool, typer.Option(
+        "--invert", help="Count clockwise in the image as positive.")] = False,
+    fps: Annotated[float | None, typer.Option(
+        "--fps", help="Frame rate to use instead of the video's timestamps [1/s].")] = None,
+    window_s: Annotated[float, typer.Option(
+        "--window", help="Speed regression window [s].")] = 0.1,
+    min_found: Annotated[float, typer.Option(
+        "--min-found", help="Smallest share of frames with the marker (0..1).")] = 0.5,
+    recording: Annotated[Path | None, typer.Option(
+        "--recording", help="Recording from `record` to align with and merge into.")] = None,
+    merged: Annotated[Path | None, typer.Option(
+        "--merged", help="Merged recording to write (default: OUT stem + '.merged.csv').")] = None,
+    calibration: CalibrationOpt = "paper",
+    robot: RobotOpt = "tdam-stm",
+    as_json: JsonOpt = False,
+) -> None:
+    """Measure wheel speed from a video of wheel markers; write a recording."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from ..errors import VideoError
+    from ..io.recording import read_recording, write_recording
+    from ..vision.detect import MarkerSpec, parse_hsv, parse_roi
+    from ..vision.measure import MeasureOptions, align_with_recording, measure_video
+
+    if marker not in ("auto", "aruco"):
+        raise VideoError(f"--marker must be auto or aruco, got '{marker}'")
+    if marker_hsv is not None and marker == "aruco":
+        raise VideoError("--marker-hsv pins a dot's colour; it does not go with --marker aruco")
+    spec = parse_hsv(marker_hsv) if marker_hsv is not None else MarkerSpec(marker)
+    rois = tuple(parse_roi(r, wheel) for r in roi) if roi else ((wheel, None),)
+    opts = MeasureOptions(rois=rois, marker=spec, invert=invert, fps=fps, window_s=window_s,
+                          min_found=min_found)
+    rec = read_recording(recording) if recording is not None else None
+    err_console = Console(stderr=True)
+    with Progress(TextColumn("measuring {task.fields[name]}"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),
+                  console=err_console, transient=True) as bar:
+        task = bar.add_task("measure", total=None, name=video.name)
+
+        def progress(done: int, total: int) -> None:
+            if done % 10 == 0 or done == total:
+                bar.update(task, completed=done, total=total or None)
+
+        result = measure_video(video, opts, progress)
+    merged_path = None
+    if rec is not None:
+        from ..model import load_calibration, load_robot_profile
+
+        merged_rec, result = align_with_recording(result, rec, load_calibration(calibration),
+                                                  load_robot_profile(robot))
+        merged_path = merged or out.with_name(out.stem + ".merged.csv")
+        write_recording(merged_rec, merged_path)
+    write_recording(result.recording, out)
+    summary = {**result.summary, "out": str(out),
+               "merged": None if merged_path is None else str(merged_path)}
+    for w in result.warnings:
+        err_console.print(f"warning: {w}", markup=False, highlight=False)
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2))
+        return
+    typer.echo(f"{video}: {summary['frames']} frames, {summary['fps']:g} fps "
+               f"({summary['timing']}), {summary['duration_s']:.2f} s")
+    for w in summary["wheels"]:
+        mean = "-" if w["mean_rpm"] is None else f"{w['mean_rpm']:.2f}"
+        typer.echo(f"  wheel {w['wheel']}: marker found in {100 * w['found_fraction']:.1f}% of "
+                   f"frames, mean {mean} rpm, max |{w['max_abs_rpm']}| rpm")
+    if summary.get("alignment"):
+        a = summary["alignment"]
+        typer.echo(f"  offset: recording time = video time + {a['offset_s']:.4f} s "
+                   f"({a['method']}, correlation {a['correlation']:.3f})")
+    typer.echo(f"wrote {out}" + (f" and {merged_path}" if merged_path else ""))
