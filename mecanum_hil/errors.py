@@ -37,6 +37,12 @@ class LinkError(MecanumHILError):
     """The link to the robot controller failed (port missing or lost, bus error, timeout)."""
 
 
+class LinkLostError(LinkError):
+    """The link went away mid-run (port gone, controller silent or dead)."""
+
+    exit_code = 4
+
+
 class ProtocolError(LinkError):
     """The controller spoke the wire protocol wrongly (version mismatch, bad hello)."""
 

@@ -13,6 +13,7 @@ import typer
 from ..errors import MecanumHILError
 from . import demo, measure_video, render_video, simulate
 from . import fit as fit_cmd
+from . import record, sim_robot
 
 app = typer.Typer(
     name="mecanum-hil",
@@ -36,6 +37,8 @@ app.command("demo")(demo.command)
 app.command("fit")(fit_cmd.command)
 app.command("measure-video")(measure_video.command)
 app.command("render-video")(render_video.command)
+app.command("record")(record.command)
+app.command("sim-robot")(sim_robot.command)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,86 @@
+"""``mecanum-hil sim-robot``: the simulated controller, serving the wire protocol."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ._options import CalibrationOpt, RobotOpt
+
+
+def command(
+    serial: Annotated[bool, typer.Option(
+        "--serial", help="Serve the framed serial protocol on a new pseudo-terminal; its path "
+                         "is the first line of output.")] = False,
+    can: Annotated[str | None, typer.Option(
+        "--can", metavar="INTERFACE:CHANNEL",
+        help="Serve the CAN protocol on a python-can bus (socketcan:can0, virtual:x, ...).")
+    ] = None,
+    slcan: Annotated[bool, typer.Option(
+        "--slcan", help="Play an SLCAN (Lawicel) USB-CAN adapter on a new pseudo-terminal; "
+                        "its path is the first line of output.")] = False,
+    calibration: CalibrationOpt = "paper",
+    robot: RobotOpt = "tdam-stm",
+    effects: Annotated[Path | None, typer.Option(
+        "--effects", help="TOML file of extra effects, noise and timed faults "
+                          "(docs/link.md).")] = None,
+    telemetry_rate_hz: Annotated[float, typer.Option(
+        "--telemetry-rate", help="Telemetry rate [Hz]; 0 sends none.")] = 100.0,
+    internal_rate_hz: Annotated[float, typer.Option(
+        "--internal-rate", help="Rate of the model's internal tick [Hz].")] = 1000.0,
+    duration_s: Annotated[float | None, typer.Option(
+        "--duration", help="Stop after this long [s] (default: until killed).")] = None,
+    protocol_version: Annotated[int, typer.Option(
+        "--protocol-version", hidden=True,
+        help="Protocol version to claim (tests of a version mismatch).")] = 1,
+    quiet: Annotated[bool, typer.Option("--quiet", help="No event log on stderr.")] = False,
+) -> None:
+    """Run the simulated robot controller until stopped (SIGTERM or Ctrl-C)."""
+    import os
+    import signal
+    import sys
+
+    from ..errors import ConfigError
+
+    if serial + slcan + (can is not None) != 1:
+        raise ConfigError("give exactly one of --serial, --slcan and --can INTERFACE:CHANNEL")
+    if telemetry_rate_hz < 0 or internal_rate_hz <= 0:
+        raise ConfigError("--telemetry-rate must be >= 0 and --internal-rate > 0")
+    # one robot per process: spare the machine's cores (set before numba is imported)
+    from ..link.sim_process import SINGLE_THREAD_ENV
+
+    for key, value in SINGLE_THREAD_ENV.items():
+        os.environ.setdefault(key, value)
+
+    from ..link.effects_file import load_sim_effects
+    from ..link.simulated import ControllerModel, SimulatedController, open_controller_end
+    from ..model import load_calibration, load_robot_profile
+
+    cal = load_calibration(calibration)
+    rob = load_robot_profile(robot)
+    sim_fx = load_sim_effects(effects) if effects is not None else None
+    model = ControllerModel(cal, rob, sim_fx, rate_hz=internal_rate_hz)
+    model.wheel_rpm(0)  # compile/load the simulator before announcing readiness
+
+    def log(line: str) -> None:
+        if not quiet:
+            print(f"sim-robot: {line}", file=sys.stderr, flush=True)
+
+    kind = "serial" if serial else "slcan" if slcan else "can"
+    transport, where, keep = open_controller_end(kind, can)
+    ctrl = SimulatedController(transport, model, telemetry_rate_hz, version=protocol_version,
+                               log=log)
+    signal.signal(signal.SIGTERM, lambda signum, frame: ctrl.stop_event.set())
+    print(where, flush=True)
+    log(f"serving on {where} ({kind}); calibration {cal.source}"
+        + (f", effects {sim_fx.source}" if sim_fx else ""))
+    try:
+        ctrl.serve(duration_s)
+    finally:
+        transport.close()
+        for fd in keep:
+            os.close(fd)
+        log(f"stopped; {ctrl.commands_received} commands, {ctrl.stops_received} stops, "
+            f"{transport.stats.sent} frames sent, {model.calls} model calls")

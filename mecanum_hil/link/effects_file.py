@@ -1,0 +1,139 @@
+"""The simulated controller's effects file (TOML): the truth that differs from the model.
+
+Layout (every table optional)::
+
+    [effects.dead_time]            # the same [effects.<name>] tables as calibration files,
+    dead_time_s = 0.04             # replacing the calibration's effect of that name
+    [effects.wheel_gain]
+    gains = [1.0, 1.0, 1.0, 0.9]
+
+    [noise]
+    wheel_rpm_std = 0.5            # Gaussian measurement noise on reported wheel speeds [rpm]
+    seed = 1                       # noise seed (default 0: runs are repeatable)
+
+    [[faults]]                     # time-triggered faults, in controller time [s]
+    at_s = 5.0
+    [faults.effects.wheel_gain]    # effects switched on (or changed) at at_s
+    gains = [1.0, 0.0, 1.0, 1.0]   # wheel 2 stalls
+
+    [[faults]]
+    at_s = 8.0
+    estop = true                   # the emergency stop is pressed at 8 s
+
+The file is read only by the simulated controller, never by fitting or diagnosis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from ..io.toml_config import TableReader, load_toml
+from ..model.calibration import EFFECTS, Effects, read_effects_table
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A change of the simulated robot at a controller time.
+
+    Attributes
+    ----------
+    at_s : float
+        Controller time at which the fault appears [s] (the clock restarts at each HELLO).
+    effects : Mapping[str, dict]
+        Effect name -> parameters switched on at ``at_s`` (replacing that effect).
+    estop : bool
+        Whether the emergency stop is pressed at ``at_s`` (wheels held at zero from then on).
+    """
+
+    at_s: float
+    effects: dict[str, dict[str, Any]] = field(default_factory=dict)
+    estop: bool = False
+
+    def apply(self, effects: Effects) -> Effects:
+        """``effects`` with this fault's effects switched on."""
+        return apply_effect_params(effects, self.effects)
+
+
+@dataclass(frozen=True)
+class SimEffects:
+    """Everything an effects file sets.
+
+    Attributes
+    ----------
+    effects : Mapping[str, dict]
+        Effects that replace the calibration's from the start, by name.
+    wheel_rpm_std : float
+        Standard deviation of the Gaussian noise on reported wheel speeds [rpm].
+    seed : int
+        Seed of the noise generator.
+    faults : tuple of Fault
+        Time-triggered faults, sorted by ``at_s``.
+    source : str
+        File the settings came from.
+    """
+
+    effects: dict[str, dict[str, Any]] = field(default_factory=dict)
+    wheel_rpm_std: float = 0.0
+    seed: int = 0
+    faults: tuple[Fault, ...] = ()
+    source: str = "<none>"
+
+    def initial_effects(self, base: Effects) -> Effects:
+        """The calibration's effects with this file's effects switched on."""
+        return apply_effect_params(base, self.effects)
+
+
+def apply_effect_params(effects: Effects, named: dict[str, dict[str, Any]]) -> Effects:
+    """``effects`` with the named effects' parameters replaced."""
+    values: dict[str, Any] = {}
+    for params in named.values():
+        for key, value in params.items():
+            values[key] = tuple(value) if isinstance(value, list) else value
+    return replace(effects, **values)
+
+
+def _named_effects(table: Any, source: str, prefix: str) -> dict[str, dict[str, Any]]:
+    parsed = read_effects_table(table, f"{source} [{prefix}]")
+    return {name: {p: getattr(parsed, p) for p in EFFECTS[name].parameters} for name in table}
+
+
+def load_sim_effects(path: str | Path) -> SimEffects:
+    """Read an effects file (layout in the module docstring).
+
+    Raises
+    ------
+    ConfigError
+        For a missing file, bad TOML, an unknown table or key, or a value out of range; the
+        message names the file and key.
+    """
+    src = str(path)
+    doc = TableReader(load_toml(path), src)
+    doc.reject_unknown({"effects", "noise", "faults"})
+    effects = _named_effects(doc.table["effects"], src, "effects") if "effects" in doc.table \
+        else {}
+    std, seed = 0.0, 0
+    noise = doc.sub("noise", required=False)
+    if noise is not None:
+        noise.reject_unknown({"wheel_rpm_std", "seed"})
+        std = noise.number("wheel_rpm_std", 0.0, minimum=0.0)
+        seed = int(noise.number("seed", 0.0, minimum=0.0))
+    faults = []
+    raw = doc.table.get("faults", [])
+    if not isinstance(raw, list):
+        raise doc.fail("faults", "must be an array of tables ([[faults]])")
+    for i, table in enumerate(raw):
+        f = TableReader(table, src, f"faults[{i}]")
+        f.reject_unknown({"at_s", "effects", "estop"})
+        at_s = f.number("at_s", minimum=0.0)
+        estop = table.get("estop", False)
+        if not isinstance(estop, bool):
+            raise f.fail("estop", f"must be true or false, got {estop!r}")
+        fx = _named_effects(table["effects"], src, f"faults[{i}].effects") \
+            if "effects" in table else {}
+        if not fx and not estop:
+            raise f.fail("at_s", "fault changes nothing: give [faults.effects.<name>] or estop")
+        faults.append(Fault(at_s, fx, estop))
+    faults.sort(key=lambda fault: fault.at_s)
+    return SimEffects(effects, std, seed, tuple(faults), src)

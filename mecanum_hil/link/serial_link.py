@@ -1,0 +1,171 @@
+"""The serial transport: COBS frames with CRC over anything pyserial opens, or a raw fd.
+
+Writes never block: a frame the operating system cannot take at once waits in a small
+output buffer that is pushed on every later send/receive; when that buffer overflows the
+frame is dropped and counted (``send_errors``) rather than stalling the caller. A blocking
+writer deadlocked on bursts when a pseudo-terminal's buffer filled on these machines.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import select
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from ..errors import LinkError, LinkLostError
+from .protocol import Command, Message, StreamDecoder, encode
+from .transport import Transport
+
+#: Largest amount of unsent output kept before frames are dropped [bytes].
+MAX_PENDING_BYTES = 16384
+
+
+class SerialTransport(Transport):
+    """Framed protocol over a serial port (``/dev/ttyUSB0``, ``loop://``, ``socket://...``).
+
+    Parameters
+    ----------
+    port : str, optional
+        Anything :func:`serial.serial_for_url` opens.
+    baudrate : int
+        Line rate [bit/s] (ignored by pseudo-terminals, which carry bytes at memory speed).
+    fd : int, optional
+        Instead of ``port``: an open file descriptor (e.g. a pseudo-terminal's master side),
+        used as it is and closed with the transport.
+    """
+
+    name = "serial"
+    seq_modulus = 1 << 16
+
+    def __init__(self, port: str | None = None, baudrate: int = 1_000_000,
+                 fd: int | None = None) -> None:
+        super().__init__()
+        if (port is None) == (fd is None):
+            raise LinkError("serial transport: give exactly one of port and fd")
+        self.port = port if port is not None else f"fd {fd}"
+        self._ser = None
+        self._decoder = StreamDecoder()
+        self._inbox: deque[Message] = deque()
+        self._out = bytearray()
+        if fd is not None:
+            os.set_blocking(fd, False)
+            self._fd: int | None = fd
+            return
+        import serial
+
+        try:
+            # pyserial flushes the input at open: bytes sent before are lost (hence HELLO)
+            self._ser = serial.serial_for_url(port, baudrate=int(baudrate), timeout=0,
+                                              write_timeout=0)
+        except (serial.SerialException, ValueError, OSError) as err:
+            raise LinkError(f"{port}: cannot open serial port: {err}") from err
+        try:
+            self._fd = self._ser.fileno()
+        except Exception:  # loop:// and some URL handlers have no descriptor: poll them
+            self._fd = None
+
+    @classmethod
+    def from_options(cls, port: str | None = None, baudrate: Any = 1_000_000,
+                     **extra: Any) -> SerialTransport:
+        if port is None:
+            raise LinkError("the serial transport needs --port PORT")
+        if extra:
+            raise TypeError(f"unknown options: {', '.join(sorted(extra))}")
+        return cls(port=port, baudrate=int(baudrate))
+
+    def wire_command(self, n_rpm: float, omega_dps: float, theta_deg: float) -> Command:
+        f32 = np.float32
+        return Command(float(f32(n_rpm)), float(f32(omega_dps)), float(f32(theta_deg)))
+
+    # -- hooks -------------------------------------------------------------------------------
+    def _send(self, msg: Message) -> None:
+        frame = encode(msg)
+        self._flush_out()
+        if len(self._out) + len(frame) > MAX_PENDING_BYTES:
+            raise LinkError(f"{self.port}: output buffer full, the other side does not read")
+        self._out += frame
+        self._flush_out()
+
+    def _flush_out(self) -> None:
+        if not self._out:
+            return
+        try:
+            if self._fd is not None:
+                n = os.write(self._fd, self._out)
+            else:
+                n = self._ser.write(bytes(self._out)) or 0
+        except BlockingIOError:
+            return
+        except OSError as err:
+            raise LinkLostError(f"{self.port}: link lost while writing: {err}") from err
+        except Exception as err:  # serial.SerialException (not imported when fd-based)
+            raise LinkLostError(f"{self.port}: link lost while writing: {err}") from err
+        del self._out[:n]
+
+    def _read_available(self, timeout_s: float) -> bytes:
+        if self._fd is None:
+            try:
+                data = self._ser.read(4096)
+            except Exception as err:
+                raise LinkLostError(f"{self.port}: link lost while reading: {err}") from err
+            if not data and timeout_s > 0:
+                time.sleep(min(timeout_s, 0.0005))
+            return data
+        try:
+            ready, _, _ = select.select([self._fd], [], [], timeout_s)
+        except (OSError, ValueError) as err:
+            raise LinkLostError(f"{self.port}: link lost: {err}") from err
+        if not ready:
+            return b""
+        try:
+            data = os.read(self._fd, 65536)
+        except BlockingIOError:
+            return b""
+        except OSError as err:
+            # EIO: the other side of a pseudo-terminal closed; ENXIO/ENODEV: USB unplugged
+            if err.errno in (errno.EIO, errno.ENXIO, errno.ENODEV, errno.EBADF):
+                raise LinkLostError(f"{self.port}: link lost (the device went away)") from err
+            raise LinkLostError(f"{self.port}: link lost while reading: {err}") from err
+        if not data:
+            raise LinkLostError(f"{self.port}: link lost (end of file)")
+        return data
+
+    def _recv(self, timeout_s: float) -> Message | None:
+        deadline = time.monotonic() + timeout_s
+        while not self._inbox:
+            self._flush_out()
+            remaining = deadline - time.monotonic()
+            data = self._read_available(max(0.0, remaining))
+            if data:
+                self._inbox.extend(self._decoder.feed(data))
+                self._sync_counts()
+            if not self._inbox and remaining <= 0:
+                return None
+        return self._inbox.popleft()
+
+    def _sync_counts(self) -> None:
+        c = self._decoder.counts
+        s = self.stats
+        s.crc_errors, s.malformed, s.unknown_types = c.crc, c.malformed, c.unknown_type
+        s.version_errors, s.garbage_bytes = c.version, c.garbage_bytes
+
+    def _close(self) -> None:
+        try:
+            self._flush_out()
+        except LinkError:
+            pass
+        if self._ser is not None:
+            try:
+                self._ser.close()
+            except Exception:  # closing a port that vanished must not mask the real error
+                pass
+        elif self._fd is not None:
+            try:
+                os.close(self._fd)
+            except OSError:
+                pass

@@ -1,0 +1,534 @@
+"""The record session: a command stream out, telemetry in, a recording on disk, safely.
+
+:func:`run_record_session` sends commands at a fixed rate over any
+:class:`~mecanum_hil.link.transport.Transport`, writes commands as sent and telemetry as
+received into a recording (incrementally, flushed at least every 0.2 s), and on every way out
+(normal end, Ctrl-C, SIGTERM, exception, lost link, an observer's stop request) sends STOP
+(best effort) and closes the recording. The result's ``exit_code`` says which way it ended:
+
+====================  =====  ===========================================================
+reason                code   meaning
+====================  =====  ===========================================================
+``completed``         0      the whole profile was sent
+``error``             1      an exception (the error's own exit code when it is ours)
+``observer_stop``     3      an observer (shadow mode) asked to stop
+``link_lost``         4      the port vanished, or the controller fell silent
+``interrupted``       130    Ctrl-C
+``terminated``        143    SIGTERM
+====================  =====  ===========================================================
+
+Observers (shadow mode) see every telemetry sample on their own thread, so a slow observer
+never delays a command; see :class:`TelemetryObserver`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from .. import __version__
+from ..errors import ConfigError, LinkError, LinkLostError, MecanumHILError, ProtocolError
+from ..io.recording import RecordingWriter
+from ..model.robot import RobotProfile
+from .protocol import (
+    PROTOCOL_VERSION,
+    WATCHDOG_S,
+    ErrorMsg,
+    Hello,
+    HelloAck,
+    Ping,
+    Pong,
+    Stop,
+    Telemetry,
+)
+from .transport import Transport
+
+#: Exit code of each way a session can end.
+EXIT_CODES = {"completed": 0, "error": 1, "observer_stop": 3, "link_lost": 4,
+              "interrupted": 130, "terminated": 143}
+
+#: Extra columns of a recording made by a session, after the pinned ones.
+EXTRA_COLUMNS = ("event", "seq", "controller_time_s", "status")
+
+
+@runtime_checkable
+class TelemetryObserver(Protocol):
+    """Something that watches the telemetry of a running session (e.g. shadow mode).
+
+    ``on_telemetry`` is called on the session's observer thread, in order, once per telemetry
+    sample: ``t_s`` host receive time since the first command [s], ``commands`` the
+    ``(n [rpm], omega [deg/s], theta [deg])`` in force as sent, shape (3,), ``wheel_rpm`` the
+    reported wheel speeds 1..4 [rpm], shape (4,). It must not keep the arrays (they are not
+    reused, but copying is cheap). The session reads ``stop_requested`` before every command;
+    once it is true the session sends STOP and ends with reason ``observer_stop`` (exit 3).
+    An exception raised by an observer ends the session with reason ``error``.
+    """
+
+    stop_requested: bool
+
+    def on_telemetry(self, t_s: float, commands: np.ndarray, wheel_rpm: np.ndarray) -> None:
+        """See the class docstring."""
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Settings of a record session.
+
+    Attributes
+    ----------
+    connect_timeout_s : float
+        How long HELLO is repeated (every 0.1 s) before giving up [s].
+    link_timeout_s : float
+        Telemetry silence after which the link counts as lost (when the controller announced
+        telemetry) [s].
+    ping_rate_hz : float
+        Rate of PING frames for the round-trip latency [Hz]; 0 for none.
+    tail_s : float
+        Telemetry kept after the STOP at the end of a completed profile [s].
+    max_send_failures : int
+        Consecutive failed sends after which the link counts as lost.
+    handle_sigterm : bool
+        Turn SIGTERM into a clean stop (main thread only).
+    observer_queue : int
+        Samples buffered for observers before the oldest are dropped (and counted).
+    """
+
+    connect_timeout_s: float = 2.0
+    link_timeout_s: float = 0.5
+    ping_rate_hz: float = 5.0
+    tail_s: float = 0.2
+    max_send_failures: int = 5
+    handle_sigterm: bool = True
+    observer_queue: int = 10000
+
+
+@dataclass(frozen=True)
+class RecordResult:
+    """How a session ended and what it counted.
+
+    Attributes
+    ----------
+    reason : str
+        One of :data:`EXIT_CODES`.
+    exit_code : int
+        Process exit code for ``reason``.
+    path : Path
+        The recording written.
+    rows : int
+        Rows in the recording.
+    commands_sent, telemetry_received : int
+        Command frames sent and telemetry samples recorded.
+    duration_s : float
+        Time from the first command to the end [s].
+    stats : dict
+        The transport's counters (:class:`~mecanum_hil.link.transport.LinkStats`).
+    latency_ms : dict
+        ``rtt_*`` PING round trip and ``ack_*`` command-to-acknowledgement latency
+        percentiles (``p50``, ``p90``, ``p99``, ``max``, ``n``) [ms].
+    message : str
+        The error's text for ``error``/``link_lost``, else empty.
+    observer_dropped : int
+        Telemetry samples observers did not see because they lagged.
+    controller : str
+        Name the controller gave in HELLO_ACK.
+    """
+
+    reason: str
+    exit_code: int
+    path: Path
+    rows: int
+    commands_sent: int
+    telemetry_received: int
+    duration_s: float
+    stats: dict[str, int]
+    latency_ms: dict[str, float]
+    message: str = ""
+    observer_dropped: int = 0
+    controller: str = ""
+    error: BaseException | None = field(default=None, compare=False, repr=False)
+
+
+class SessionTerminated(BaseException):
+    """Raised inside the session by its SIGTERM handler (like ``KeyboardInterrupt``)."""
+
+
+def percentiles_ms(samples_s: Sequence[float], prefix: str) -> dict[str, float]:
+    """``p50``, ``p90``, ``p99``, ``max`` [ms] and ``n`` of latency samples [s]."""
+    out: dict[str, float] = {f"{prefix}_n": float(len(samples_s))}
+    if len(samples_s):
+        arr = np.asarray(samples_s) * 1e3
+        for q in (50, 90, 99):
+            out[f"{prefix}_p{q}"] = float(np.percentile(arr, q))
+        out[f"{prefix}_max"] = float(arr.max())
+    return out
+
+
+class _ObserverPump:
+    """Feeds observers on their own thread so they never slow the command stream."""
+
+    def __init__(self, observers: Sequence[TelemetryObserver], maxlen: int) -> None:
+        self.observers = list(observers)
+        self._queue: deque = deque(maxlen=maxlen)
+        self._event = threading.Event()
+        self._done = False
+        self.dropped = 0
+        self.error: BaseException | None = None
+        self._thread = None
+        if self.observers:
+            self._thread = threading.Thread(target=self._run, name="telemetry-observers",
+                                            daemon=True)
+            self._thread.start()
+
+    def push(self, t_s: float, commands: np.ndarray, wheels: np.ndarray) -> None:
+        if self._thread is None:
+            return
+        if len(self._queue) == self._queue.maxlen:
+            self.dropped += 1
+        self._queue.append((t_s, commands, wheels))
+        self._event.set()
+
+    @property
+    def stop_requested(self) -> bool:
+        return any(getattr(o, "stop_requested", False) for o in self.observers)
+
+    def _run(self) -> None:
+        while True:
+            self._event.wait(0.05)
+            self._event.clear()
+            while self._queue:
+                t_s, cmd, wheels = self._queue.popleft()
+                for obs in self.observers:
+                    try:
+                        obs.on_telemetry(t_s, cmd, wheels)
+                    except Exception as err:  # reported by the session, which then stops
+                        self.error = err
+                        return
+            if self._done:
+                return
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        if self._thread is not None:
+            self._done = True
+            self._event.set()
+            self._thread.join(timeout_s)
+
+
+class _Session:
+    def __init__(self, transport: Transport, t_s: np.ndarray, commands: np.ndarray,
+                 writer: RecordingWriter, config: SessionConfig,
+                 observers: Sequence[TelemetryObserver],
+                 progress: Callable[[float, float, dict[str, Any]], None] | None) -> None:
+        self.tr = transport
+        self.t_s = t_s
+        self.commands = commands
+        self.writer = writer
+        self.config = config
+        self.pump = _ObserverPump(observers, config.observer_queue)
+        self.progress = progress
+        self.t0: float | None = None
+        self.last_t = -math.inf
+        self.cmd_in_force = np.full(3, np.nan)
+        self.commands_sent = 0
+        self.telemetry = 0
+        self.telemetry_rate_hz = 0
+        self.last_rx = time.perf_counter()
+        self.send_failures = 0
+        self.controller = ""
+        self._ping_token = 0
+        self._pings: dict[int, float] = {}
+        self._acks: dict[int, float] = {}
+        self.rtt: list[float] = []
+        self.ack: list[float] = []
+        self._ctrl_wrap = 0
+        self._ctrl_last = None
+        self._last_progress = 0.0
+
+    # -- rows --------------------------------------------------------------------------------
+    def _row_time(self, now: float) -> float:
+        # six decimals on disk: rows closer than 1 us would not increase there
+        t = round(max(now - self.t0, self.last_t + 1e-6), 6)
+        if t <= self.last_t:
+            t = round(self.last_t + 1e-6, 6)
+        self.last_t = t
+        return t
+
+    def _controller_time_s(self, time_us: int) -> float:
+        if self._ctrl_last is not None and time_us < self._ctrl_last - (1 << 31):
+            self._ctrl_wrap += 1 << 32
+        self._ctrl_last = time_us
+        return (time_us + self._ctrl_wrap) * 1e-6
+
+    # -- receiving ---------------------------------------------------------------------------
+    def handle(self, msg, now: float) -> None:
+        self.last_rx = now
+        if isinstance(msg, Telemetry):
+            if msg.ack_seq in self._acks:
+                self.ack.append(now - self._acks.pop(msg.ack_seq))
+            ctrl_t = self._controller_time_s(msg.time_us)
+            if self.t0 is None:
+                return  # before the first command: nothing is in force yet
+            self.telemetry += 1
+            wheels = np.array(msg.wheel_rpm, dtype=float)
+            t = self._row_time(now)
+            self.writer.write(t, self.cmd_in_force, wheels,
+                              extra=("tlm", msg.seq, f"{ctrl_t:.6f}", msg.status))
+            self.pump.push(t, self.cmd_in_force.copy(), wheels)
+        elif isinstance(msg, Pong):
+            sent = self._pings.pop(msg.token, None)
+            if sent is not None:
+                self.rtt.append(now - sent)
+        elif isinstance(msg, ErrorMsg):
+            raise ProtocolError(f"{self.tr.port}: the controller reported error {msg.code}: "
+                                f"{msg.text or '(no text)'}")
+
+    def pump_until(self, deadline: float) -> None:
+        while True:
+            now = time.perf_counter()
+            remaining = deadline - now
+            if remaining <= 0:
+                break
+            msg = self.tr.recv(remaining)
+            now = time.perf_counter()
+            if msg is not None:
+                self.handle(msg, now)
+            elif self.telemetry_rate_hz > 0 and now - self.last_rx > self.config.link_timeout_s:
+                raise LinkLostError(
+                    f"{self.tr.port}: link lost: no frame from the controller for "
+                    f"{now - self.last_rx:.2f} s")
+        self._report_progress()
+
+    def _report_progress(self) -> None:
+        if self.progress is None or self.t0 is None:
+            return
+        now = time.perf_counter()
+        if now - self._last_progress >= 0.1:
+            self._last_progress = now
+            self.progress(now - self.t0, float(self.t_s[-1]),
+                          {**self.tr.stats.as_dict(), "telemetry": self.telemetry})
+
+    # -- sending -----------------------------------------------------------------------------
+    def send(self, msg):
+        try:
+            sent = self.tr.send(msg)
+        except LinkLostError:
+            raise
+        except LinkError as err:
+            self.send_failures += 1
+            if self.send_failures >= self.config.max_send_failures:
+                raise LinkLostError(f"{self.tr.port}: link lost: {self.send_failures} sends in "
+                                    f"a row failed ({err})") from err
+            return None
+        self.send_failures = 0
+        return sent
+
+    def handshake(self) -> None:
+        deadline = time.perf_counter() + self.config.connect_timeout_s
+        while time.perf_counter() < deadline:
+            self.send(Hello(PROTOCOL_VERSION))
+            until = min(deadline, time.perf_counter() + 0.1)
+            while (now := time.perf_counter()) < until:
+                msg = self.tr.recv(until - now)
+                if isinstance(msg, HelloAck):
+                    if msg.version != PROTOCOL_VERSION:
+                        raise ProtocolError(
+                            f"{self.tr.port}: the controller speaks protocol version "
+                            f"{msg.version}, this host speaks {PROTOCOL_VERSION}")
+                    self.telemetry_rate_hz = msg.telemetry_rate_hz
+                    self.controller = msg.name
+                    self.tr.restart_sequences()
+                    self.tr.stats.lost = 0  # gaps before the session are not the session's
+                    self.last_rx = time.perf_counter()
+                    return
+                if isinstance(msg, ErrorMsg):
+                    raise ProtocolError(f"{self.tr.port}: the controller refused HELLO "
+                                        f"(error {msg.code}: {msg.text or 'no text'})")
+        raise LinkError(f"{self.tr.port}: no answer to HELLO within "
+                        f"{self.config.connect_timeout_s:g} s (is the controller running, "
+                        "is it the right port?)")
+
+    def run(self) -> None:
+        self.handshake()
+        ping_period = 1.0 / self.config.ping_rate_hz if self.config.ping_rate_hz > 0 else math.inf
+        self.t0 = time.perf_counter()
+        next_ping = self.t0
+        for i in range(len(self.t_s)):
+            self.pump_until(self.t0 + float(self.t_s[i]))
+            if self.pump.error is not None:
+                raise MecanumHILError(f"observer failed: {type(self.pump.error).__name__}: "
+                                      f"{self.pump.error}") from self.pump.error
+            if self.pump.stop_requested:
+                raise _ObserverStopError()
+            wire = self.tr.wire_command(*self.commands[i])
+            now = time.perf_counter()
+            sent = self.send(wire)
+            if sent is not None:
+                self.commands_sent += 1
+                self._acks[sent.seq] = now
+                if len(self._acks) > 64:
+                    self._acks.pop(next(iter(self._acks)))
+            self.cmd_in_force = np.array([wire.n_rpm, wire.omega_dps, wire.theta_deg])
+            self.writer.write(self._row_time(now), self.cmd_in_force,
+                              extra=("cmd", "" if sent is None else sent.seq, "", ""))
+            if now >= next_ping:
+                self._ping_token = (self._ping_token + 1) & 0xFFFFFFFF
+                if self.send(Ping(self._ping_token)) is not None:
+                    self._pings[self._ping_token] = time.perf_counter()
+                next_ping += ping_period
+
+    def stop(self, keep_receiving_s: float) -> None:
+        """Send STOP (best effort, never raises) and record it, then keep the tail."""
+        sent = None
+        for _ in range(2):
+            try:
+                sent = self.tr.send(Stop())
+                break
+            except Exception:  # best effort: the link may be gone
+                continue
+        if self.t0 is not None:
+            now = time.perf_counter()
+            theta = self.cmd_in_force[2] if np.isfinite(self.cmd_in_force[2]) else 90.0
+            self.cmd_in_force = np.array([0.0, 0.0, theta])
+            try:
+                self.writer.write(self._row_time(now), self.cmd_in_force,
+                                  extra=("stop", "" if sent is None else sent.seq, "", ""))
+                if keep_receiving_s > 0 and sent is not None:
+                    self.pump_until(now + keep_receiving_s)
+            except Exception:  # the tail is a courtesy; the recording is already complete
+                pass
+
+
+class _ObserverStopError(Exception):
+    pass
+
+
+def run_record_session(
+    transport: Transport,
+    t_s,
+    commands,
+    out: str | Path,
+    robot: RobotProfile,
+    *,
+    config: SessionConfig | None = None,
+    observers: Sequence[TelemetryObserver] = (),
+    metadata: dict[str, Any] | None = None,
+    progress: Callable[[float, float, dict[str, Any]], None] | None = None,
+) -> RecordResult:
+    """Send ``commands`` at times ``t_s`` over ``transport`` and record everything.
+
+    Parameters
+    ----------
+    transport : Transport
+        Open link to the controller (not closed here).
+    t_s : array_like, shape (T,)
+        Send times from the first command [s], increasing.
+    commands : array_like, shape (T, 3)
+        ``(n [rpm], omega [deg/s], theta [deg])`` to send at ``t_s``.
+    out : str or Path
+        Recording to write (CSV + JSON sidecar).
+    robot : RobotProfile
+        Limits every command is checked against before the first byte is sent.
+    config : SessionConfig, optional
+    observers : sequence of TelemetryObserver
+        Called with every telemetry sample on a separate thread (shadow mode).
+    metadata : dict, optional
+        Added to the recording's sidecar.
+    progress : callable, optional
+        ``progress(elapsed_s, total_s, counters)``, at most every 0.1 s.
+
+    Returns
+    -------
+    RecordResult
+        Never raises for a way out in the table of the module docstring except bad input:
+
+    Raises
+    ------
+    LimitError
+        A command exceeds the robot's limits (nothing was sent).
+    ConfigError
+        Times that do not increase, or gaps longer than the controller's watchdog.
+    """
+    config = config or SessionConfig()
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    cmd = np.asarray(commands, dtype=float).reshape(-1, 3)
+    if t.size == 0 or t.size != cmd.shape[0]:
+        raise ConfigError(f"{t.size} send times for {cmd.shape[0]} commands")
+    if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+        raise ConfigError("command times must be finite and increasing")
+    if t.size > 1 and np.diff(t).max() >= WATCHDOG_S:
+        raise ConfigError(f"commands are {np.diff(t).max():.3f} s apart somewhere: the "
+                          f"controller's watchdog stops the wheels after {WATCHDOG_S:g} s; use "
+                          "a command rate of at least 5 Hz")
+    robot.check_commands(cmd, "commands to send")
+    t = t - t[0]
+    meta = {
+        "source": "mecanum-hil record",
+        "tool_version": __version__,
+        "transport": transport.name,
+        "port": str(getattr(transport, "port", "")),
+        "protocol_version": PROTOCOL_VERSION,
+        "robot_profile": robot.source,
+        "started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "columns": {"t_s": "host time since the first command",
+                    "controller_time_s": "controller clock of a telemetry row",
+                    "event": "cmd: command sent, tlm: telemetry received, stop: STOP sent"},
+        **(metadata or {}),
+    }
+    writer = RecordingWriter(out, EXTRA_COLUMNS, meta)
+    sess = _Session(transport, t, cmd, writer, config, observers, progress)
+    reason, message, error = "completed", "", None
+    old_handler = None
+    if config.handle_sigterm and threading.current_thread() is threading.main_thread():
+        def _on_sigterm(signum, frame):
+            raise SessionTerminated()
+        old_handler = signal.signal(signal.SIGTERM, _on_sigterm)
+    tail = 0.0
+    try:
+        try:
+            sess.run()
+            tail = config.tail_s
+        except _ObserverStopError:
+            reason = "observer_stop"
+        except LinkLostError as err:
+            reason, message, error = "link_lost", str(err), err
+        except KeyboardInterrupt:
+            reason = "interrupted"
+        except SessionTerminated:
+            reason = "terminated"
+        except Exception as err:
+            reason, message, error = "error", str(err), err
+        # every way out: STOP first, then the recording is closed cleanly
+        try:
+            sess.stop(tail)
+        except (KeyboardInterrupt, SessionTerminated):
+            pass
+    finally:
+        if old_handler is not None:
+            signal.signal(signal.SIGTERM, old_handler)
+        sess.pump.close()
+        duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
+        latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
+        result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
+                       "link_stats": transport.stats.as_dict(), "latency_ms": latency,
+                       "controller": sess.controller,
+                       "telemetry_rate_hz": sess.telemetry_rate_hz}
+        if message:
+            result_meta["end_message"] = message
+        writer.close(result_meta)
+    if sess.pump.error is not None and reason == "error" and error is None:
+        error = sess.pump.error
+    exit_code = EXIT_CODES[reason]
+    if reason == "error" and isinstance(error, MecanumHILError):
+        exit_code = error.exit_code
+    return RecordResult(reason, exit_code, Path(out), writer.rows, sess.commands_sent,
+                        sess.telemetry, duration, transport.stats.as_dict(), latency, message,
+                        sess.pump.dropped, sess.controller, error)

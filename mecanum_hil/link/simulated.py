@@ -1,0 +1,366 @@
+"""The simulated controller: the project's model behind the wire protocol.
+
+:class:`ControllerModel` is the robot: it runs :func:`mecanum_hil.model.simulate` on a fixed
+internal tick (default 1 kHz), continuing each piece exactly from the previous piece's
+``final_state``. Commands take effect at the first tick after they arrive, delayed by the
+effects' dead time through the model's own schedule of pending commands (the simulator's
+``dead_time`` is exact within one call, but a controller stepping in real time must delay
+its inputs itself, so the calibration is simulated with ``dead_time_s = 0``).
+
+To keep up with 1 kHz telemetry the model simulates ahead: one call covers the next
+``lookahead`` ticks under the commands known so far, and telemetry reads from it until a
+command changes the future (then one more call, from the last anchor, recomputes it).
+
+:class:`SimulatedController` is the controller's firmware: a loop that answers HELLO and
+PING, takes COMMAND/STOP/HEARTBEAT, runs the 250 ms watchdog, and sends telemetry at its rate
+through any :class:`~mecanum_hil.link.transport.Transport`.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from bisect import bisect_right
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+
+from ..errors import LinkError, LinkLostError
+from ..model.calibration import Calibration
+from ..model.robot import RobotProfile
+from ..model.simulate import DEFAULT_POSE, simulate
+from .effects_file import Fault, SimEffects
+from .protocol import (
+    PROTOCOL_VERSION,
+    WATCHDOG_S,
+    Command,
+    ErrorCode,
+    ErrorMsg,
+    Heartbeat,
+    Hello,
+    HelloAck,
+    Ping,
+    Pong,
+    Status,
+    Stop,
+    Telemetry,
+)
+from .transport import Transport
+
+_ZERO = (0.0, 0.0, 0.0)
+
+
+class ControllerModel:
+    """The simulated robot on a fixed tick: commands in at ticks, wheel speeds out at ticks.
+
+    Parameters
+    ----------
+    calibration : Calibration
+        Coefficients and effects of the simulated truth.
+    robot : RobotProfile
+        Geometry.
+    sim_effects : SimEffects, optional
+        Effects switched on at start, noise, and the fault schedule.
+    rate_hz : float
+        Internal tick rate [Hz].
+    lookahead : int
+        Ticks simulated ahead per call.
+    """
+
+    def __init__(self, calibration: Calibration, robot: RobotProfile,
+                 sim_effects: SimEffects | None = None, rate_hz: float = 1000.0,
+                 lookahead: int = 100) -> None:
+        self.sim_effects = sim_effects or SimEffects()
+        self.base = calibration
+        self.robot = robot
+        self.rate_hz = float(rate_hz)
+        self.dt_s = 1.0 / self.rate_hz
+        self.lookahead = int(lookahead)
+        self.calls = 0
+        self._rng = np.random.default_rng(self.sim_effects.seed)
+        self._state = np.zeros((1, 12))
+        self._pose = np.array(DEFAULT_POSE, dtype=float)
+        self._anchor_cmd = _ZERO
+        self.restart()
+
+    # -- timeline ----------------------------------------------------------------------------
+    def restart(self) -> None:
+        """Restart the clock at tick 0 (at HELLO); the robot keeps moving as it was."""
+        self.anchor = 0
+        self._sched_ticks: list[int] = []
+        self._sched_cmds: list[tuple[float, float, float]] = []
+        self.effects = self.sim_effects.initial_effects(self.base.effects)
+        self._faults = list(self.sim_effects.faults)
+        self.estop = False
+        self._invalidate()
+
+    @property
+    def dead_time_ticks(self) -> int:
+        """The current dead time in whole ticks."""
+        return round(self.effects.dead_time_s * self.rate_hz)
+
+    def _invalidate(self, from_tick: int | None = None) -> None:
+        if from_tick is None:
+            self._cache_end = self.anchor - 1
+            self._wheels = np.zeros((0, 4))
+        else:
+            self._cache_end = min(self._cache_end, from_tick)
+
+    def command_at(self, tick: int) -> tuple[float, float, float]:
+        """The command in force at the drive at ``tick`` (after the dead time)."""
+        i = bisect_right(self._sched_ticks, tick) - 1
+        return self._sched_cmds[i] if i >= 0 else self._anchor_cmd
+
+    def set_command(self, tick: int, command, delayed: bool = True) -> None:
+        """A command received at ``tick``; in force from ``tick`` plus the dead time.
+
+        A stop from the e-stop or the watchdog goes through the same path (``delayed``) unless
+        told otherwise.
+        """
+        cmd = tuple(float(c) for c in command)
+        if self.estop and cmd != _ZERO:
+            return
+        eff = max(tick + (self.dead_time_ticks if delayed else 0), self.anchor)
+        # a later command supersedes pending ones that would act at or after it
+        while self._sched_ticks and self._sched_ticks[-1] >= eff:
+            self._sched_ticks.pop()
+            self._sched_cmds.pop()
+            self._invalidate(eff)
+        if self.command_at(eff) == cmd:
+            return
+        self._sched_ticks.append(eff)
+        self._sched_cmds.append(cmd)
+        self._invalidate(eff)
+
+    def _calibration(self) -> Calibration:
+        # the dead time is applied by the schedule, so the simulator must not add it again
+        return replace(self.base, effects=replace(self.effects, dead_time_s=0.0))
+
+    def _simulate(self, end: int):
+        ticks = np.arange(self.anchor, end + 1)
+        idx = np.searchsorted(self._sched_ticks, ticks, side="right") - 1
+        table = np.array([self._anchor_cmd, *self._sched_cmds], dtype=float)
+        cmds = table[idx + 1]
+        self.calls += 1
+        return simulate(cmds, ticks * self.dt_s, self._calibration(), self.robot,
+                        initial_state=self._state, initial_pose=self._pose)
+
+    def _move_anchor(self, tick: int) -> None:
+        if tick > self.anchor:
+            traj = self._simulate(tick)
+            self._state = traj.final_state.copy()
+            self._pose = traj.pose[0, -1].copy()
+        self._anchor_cmd = self.command_at(tick)
+        keep = bisect_right(self._sched_ticks, tick)
+        del self._sched_ticks[:keep]
+        del self._sched_cmds[:keep]
+        self.anchor = tick
+        self._invalidate()
+
+    def _apply_due_faults(self, tick: int) -> None:
+        while self._faults:
+            fault: Fault = self._faults[0]
+            fault_tick = math.ceil(fault.at_s * self.rate_hz - 1e-9)
+            if fault_tick > tick:
+                return
+            self._faults.pop(0)
+            self._move_anchor(max(fault_tick, self.anchor))
+            self.effects = fault.apply(self.effects)
+            if fault.estop:
+                self.set_command(self.anchor, _ZERO, delayed=False)
+                self.estop = True
+
+    def wheel_rpm(self, tick: int) -> np.ndarray:
+        """The true wheel speeds at ``tick`` (no noise) [rpm]."""
+        if tick < self.anchor:
+            raise ValueError(f"tick {tick} is before the model's anchor {self.anchor}")
+        self._apply_due_faults(tick)
+        if tick > self._cache_end:
+            if tick - self.anchor > 2 * self.lookahead:
+                self._move_anchor(tick)
+            traj = self._simulate(tick + self.lookahead)
+            self._wheels = traj.wheel_rpm[0]
+            self._cache_end = tick + self.lookahead
+        return self._wheels[tick - self.anchor]
+
+    def measured_rpm(self, tick: int) -> np.ndarray:
+        """Wheel speeds at ``tick`` as the controller reports them (with noise) [rpm]."""
+        w = self.wheel_rpm(tick)
+        std = self.sim_effects.wheel_rpm_std
+        return w + self._rng.normal(0.0, std, 4) if std > 0 else w.copy()
+
+
+class SimulatedController:
+    """The simulated controller's firmware loop on a transport.
+
+    Parameters
+    ----------
+    transport : Transport
+        The controller's end of the link.
+    model : ControllerModel
+        The simulated robot.
+    telemetry_rate_hz : float
+        Telemetry rate [Hz]; 0 sends none.
+    name : str
+        Name sent in HELLO_ACK.
+    version : int
+        Protocol version the controller speaks (another value lets tests exercise a mismatch).
+    log : callable, optional
+        Called with one line per notable event (HELLO, STOP, watchdog).
+    """
+
+    def __init__(self, transport: Transport, model: ControllerModel,
+                 telemetry_rate_hz: float = 100.0, name: str = "mecanum-hil sim-robot",
+                 version: int = PROTOCOL_VERSION,
+                 log: Callable[[str], None] | None = None) -> None:
+        self.transport = transport
+        self.model = model
+        self.telemetry_rate_hz = float(telemetry_rate_hz)
+        self.name = name
+        self.version = version
+        self.log = log or (lambda line: None)
+        self.stop_event = threading.Event()
+        self.connected = False
+        self.status = 0
+        self.ack_seq = 0
+        self.stops_received = 0
+        self.commands_received = 0
+        self._t0 = time.monotonic()
+        self._last_valid = -math.inf
+
+    def now_s(self) -> float:
+        """Controller time since the last HELLO [s]."""
+        return time.monotonic() - self._t0
+
+    def _tick_now(self, rounding=math.floor) -> int:
+        return max(int(rounding(self.now_s() * self.model.rate_hz - 1e-9)), self.model.anchor)
+
+    def handle(self, msg) -> None:
+        """Act on one received message."""
+        if isinstance(msg, Hello):
+            if msg.version != self.version:
+                self.transport.send(ErrorMsg(ErrorCode.VERSION_MISMATCH,
+                                             f"controller speaks version {self.version}"))
+                self.log(f"HELLO of protocol version {msg.version} refused")
+                return
+            self.transport.restart_sequences()
+            self._t0 = time.monotonic()
+            self.model.restart()
+            self.connected = True
+            self.status = Status.STOPPED
+            self.model.set_command(0, _ZERO)
+            self._last_valid = 0.0
+            self.transport.send(HelloAck(self.version, int(self.telemetry_rate_hz),
+                                         int(WATCHDOG_S * 1000), self.name))
+            self.log("HELLO: session started")
+            return
+        if isinstance(msg, Ping):
+            self.transport.send(Pong(msg.token))
+            return
+        if not isinstance(msg, Command | Stop | Heartbeat):
+            return  # a controller ignores controller-side messages
+        self.ack_seq = msg.seq
+        self._last_valid = self.now_s()
+        if self.status & Status.WATCHDOG:
+            self.status &= ~Status.WATCHDOG
+        if isinstance(msg, Command):
+            self.commands_received += 1
+            self.status &= ~Status.STOPPED
+            self.model.set_command(self._tick_now(math.ceil),
+                                   (msg.n_rpm, msg.omega_dps, msg.theta_deg))
+        elif isinstance(msg, Stop):
+            self.stops_received += 1
+            self.status |= Status.STOPPED
+            self.model.set_command(self._tick_now(math.ceil), _ZERO)
+            self.log("STOP received")
+
+    def _check_watchdog(self) -> None:
+        if self.connected and not self.status & Status.WATCHDOG and \
+                self.now_s() - self._last_valid > WATCHDOG_S:
+            self.status |= Status.WATCHDOG
+            self.model.set_command(self._tick_now(math.ceil), _ZERO)
+            self.log("watchdog: no command for 250 ms, wheels stopped")
+
+    def send_telemetry(self) -> None:
+        """Send one telemetry sample for the current tick."""
+        tick = self._tick_now()
+        wheels = self.model.measured_rpm(tick)
+        status = self.status | (Status.ESTOP if self.model.estop else 0)
+        self.transport.send(Telemetry(round(tick * self.model.dt_s * 1e6),
+                                      tuple(float(w) for w in wheels), int(status),
+                                      self.ack_seq))
+
+    def serve(self, duration_s: float | None = None) -> None:
+        """Serve until :attr:`stop_event` is set (or ``duration_s`` passed) [s].
+
+        A lost link ends the loop with :class:`~mecanum_hil.errors.LinkLostError`; a frame the
+        transport cannot send is dropped (a controller never stalls on its output).
+        """
+        end = math.inf if duration_s is None else time.monotonic() + duration_s
+        period = 1.0 / self.telemetry_rate_hz if self.telemetry_rate_hz > 0 else math.inf
+        next_tx = time.monotonic()
+        while not self.stop_event.is_set() and time.monotonic() < end:
+            now = time.monotonic()
+            wait = min(next_tx - now, 0.02) if self.connected else 0.02
+            try:
+                msg = self.transport.recv(max(0.0, wait))
+                if msg is not None:
+                    self.handle(msg)
+                self._check_watchdog()
+                if self.connected and time.monotonic() >= next_tx:
+                    self.send_telemetry()
+                    next_tx += period
+                    if next_tx < time.monotonic() - 10 * period:
+                        next_tx = time.monotonic()  # fell far behind: skip, do not burst
+            except LinkLostError:
+                raise
+            except LinkError as err:
+                self.log(f"dropped a frame: {err}")
+
+
+def open_controller_end(kind: str, can_spec: str | None = None):
+    """Open the controller's end of a link for ``sim-robot``.
+
+    Parameters
+    ----------
+    kind : str
+        ``"serial"`` (a new pseudo-terminal, framed protocol), ``"slcan"`` (a new
+        pseudo-terminal playing an SLCAN adapter) or ``"can"`` (a python-can bus).
+    can_spec : str, optional
+        ``INTERFACE:CHANNEL`` for ``"can"`` (``virtual:bench``, ``socketcan:can0``).
+
+    Returns
+    -------
+    transport : Transport
+    where : str
+        The device path (serial, slcan) or ``INTERFACE:CHANNEL``.
+    keep : list
+        Objects to keep alive (the slave descriptor) and close with :func:`os.close`.
+    """
+    import os
+    import tty
+
+    if kind in ("serial", "slcan"):
+        master, slave = os.openpty()
+        # raw at once: with the default line discipline the pty would echo our own telemetry
+        tty.setraw(slave)
+        path = os.ttyname(slave)
+        if kind == "serial":
+            from .serial_link import SerialTransport
+
+            return SerialTransport(fd=master), path, [slave]
+        from .slcan_adapter import SlcanAdapterTransport
+
+        return SlcanAdapterTransport(master), path, [slave]
+    if kind == "can":
+        from ..errors import ConfigError
+        from .can_link import CanTransport
+
+        if not can_spec or ":" not in can_spec:
+            raise ConfigError(f"--can needs INTERFACE:CHANNEL (e.g. socketcan:can0), "
+                              f"got {can_spec!r}")
+        interface, channel = can_spec.split(":", 1)
+        return CanTransport(interface=interface, channel=channel), can_spec, []
+    raise ValueError(f"unknown controller link kind {kind!r}")

@@ -1,0 +1,212 @@
+"""The robot-link seam: one small abstract base, backends by name, an entry-point group.
+
+Following python-can's ``BusABC``: a backend implements three protected hooks
+(:meth:`Transport._send`, :meth:`Transport._recv`, :meth:`Transport._close`); the base does
+the shared work (sequence numbers, loss counting, statistics, error wrapping). Backends are
+found by name in :data:`TRANSPORTS` (``"module:Class"``, imported lazily) and in the
+entry-point group ``mecanum_hil.transports``, so a controller of another make plugs in from
+its own package::
+
+    [project.entry-points."mecanum_hil.transports"]
+    acme = "acme_robot.link:AcmeTransport"
+
+Both ends of a link use the same classes: the host (``record``) and the simulated controller
+(``sim-robot``) send and receive :mod:`~mecanum_hil.link.protocol` messages through them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import import_module, metadata
+from typing import Any, ClassVar
+
+from ..errors import ConfigError, LinkError
+from .protocol import Command, Message
+
+#: Entry-point group through which other packages add transports.
+ENTRY_POINT_GROUP = "mecanum_hil.transports"
+
+#: Built-in transports by name.
+TRANSPORTS: dict[str, str] = {
+    "serial": "mecanum_hil.link.serial_link:SerialTransport",
+    "can": "mecanum_hil.link.can_link:CanTransport",
+}
+
+
+@dataclass
+class LinkStats:
+    """Counters of one end of a link [frames] (mutable: the stateful shell)."""
+
+    sent: int = 0
+    received: int = 0
+    lost: int = 0
+    crc_errors: int = 0
+    malformed: int = 0
+    unknown_types: int = 0
+    version_errors: int = 0
+    bus_errors: int = 0
+    send_errors: int = 0
+    garbage_bytes: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        """The counters by name."""
+        return dataclasses.asdict(self)
+
+
+class Transport(ABC):
+    """One end of a link to a robot controller (or, for the simulator, to a host).
+
+    Subclasses set :attr:`name` and :attr:`seq_modulus` and implement the three hooks.
+    """
+
+    #: Registry name of the backend.
+    name: ClassVar[str] = "abstract"
+    #: Sequence numbers run modulo this (2**16 on serial, 2**8 on CAN).
+    seq_modulus: ClassVar[int] = 1 << 16
+
+    def __init__(self) -> None:
+        self.stats = LinkStats()
+        self._tx_seq = 0
+        self._rx_expected: int | None = None
+        self._closed = False
+
+    # -- the hooks a backend implements ------------------------------------------------------
+    @abstractmethod
+    def _send(self, msg: Message) -> None:
+        """Put one message on the wire; raise :class:`LinkError` on failure."""
+
+    @abstractmethod
+    def _recv(self, timeout_s: float) -> Message | None:
+        """The next valid message, waiting at most ``timeout_s`` [s]; ``None`` on timeout.
+
+        Count dropped input in :attr:`stats`; raise :class:`LinkLostError` when the link is gone.
+        """
+
+    @abstractmethod
+    def _close(self) -> None:
+        """Release the port or bus."""
+
+    # -- shared logic ------------------------------------------------------------------------
+    @classmethod
+    def from_options(cls, **options: Any) -> Transport:
+        """Build the transport from command-line options (``port``, ``channel``, ...)."""
+        return cls(**options)
+
+    def wire_command(self, n_rpm: float, omega_dps: float, theta_deg: float) -> Command:
+        """The command exactly as this transport's encoding will carry it (quantised)."""
+        return Command(float(n_rpm), float(omega_dps), float(theta_deg))
+
+    def send(self, msg: Message) -> Message:
+        """Send ``msg`` with the next sequence number; return it as sent.
+
+        Raises
+        ------
+        LinkError
+            When the backend cannot send (counted in ``stats.send_errors``).
+        """
+        msg = dataclasses.replace(msg, seq=self._tx_seq)
+        try:
+            self._send(msg)
+        except LinkError:
+            self.stats.send_errors += 1
+            raise
+        self._tx_seq = (self._tx_seq + 1) % self.seq_modulus
+        self.stats.sent += 1
+        return msg
+
+    def recv(self, timeout_s: float = 0.0) -> Message | None:
+        """The next valid message within ``timeout_s`` [s], or ``None``; counts sequence gaps."""
+        msg = self._recv(max(0.0, timeout_s))
+        if msg is None:
+            return None
+        self.stats.received += 1
+        expected = self._rx_expected
+        if expected is not None:
+            gap = (msg.seq - expected) % self.seq_modulus
+            # a jump backwards (a restarted peer, a duplicate) is not a loss: resynchronise
+            if gap < self.seq_modulus // 2:
+                self.stats.lost += gap
+        self._rx_expected = (msg.seq + 1) % self.seq_modulus
+        return msg
+
+    def restart_sequences(self) -> None:
+        """Start both directions' sequence numbering afresh (at HELLO)."""
+        self._tx_seq = 0
+        self._rx_expected = None
+
+    def close(self) -> None:
+        """Close the link (idempotent)."""
+        if not self._closed:
+            self._closed = True
+            self._close()
+
+    def __enter__(self) -> Transport:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _entry_points() -> dict[str, metadata.EntryPoint]:
+    return {ep.name: ep for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)}
+
+
+def available_transports() -> dict[str, str]:
+    """Every transport name with where it comes from (``module:Class``)."""
+    names = dict(TRANSPORTS)
+    for name, ep in _entry_points().items():
+        names.setdefault(name, ep.value)
+    return names
+
+
+def transport_class(name: str) -> type[Transport]:
+    """The transport class registered as ``name`` (built-in first, then entry points)."""
+    if name in TRANSPORTS:
+        module, _, attr = TRANSPORTS[name].partition(":")
+        return getattr(import_module(module), attr)
+    eps = _entry_points()
+    if name not in eps:
+        raise ConfigError(f"unknown transport '{name}' (available: "
+                          f"{', '.join(sorted(available_transports()))})")
+    try:
+        cls = eps[name].load()
+    except Exception as err:  # a third-party plug-in can fail in any way
+        raise ConfigError(f"transport '{name}' ({eps[name].value}) cannot be loaded: "
+                          f"{err}") from err
+    if not (isinstance(cls, type) and issubclass(cls, Transport)):
+        raise ConfigError(f"transport '{name}' ({eps[name].value}) is not a Transport subclass")
+    return cls
+
+
+def open_transport(name: str, options: Mapping[str, Any] | None = None) -> Transport:
+    """Open the transport ``name`` with ``options`` (unset ones dropped).
+
+    Raises
+    ------
+    ConfigError
+        For an unknown name or options the backend does not take.
+    LinkError
+        When the port or bus cannot be opened.
+    """
+    cls = transport_class(name)
+    opts = {k: v for k, v in (options or {}).items() if v is not None}
+    try:
+        return cls.from_options(**opts)
+    except TypeError as err:
+        raise ConfigError(f"transport '{name}': {err}") from err
+
+
+def parse_option_value(text: str) -> Any:
+    """A ``--link-option KEY=VALUE`` value: int, float, true/false, or the text itself."""
+    low = text.strip().lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for conv in (int, float):
+        try:
+            return conv(text)
+        except ValueError:
+            pass
+    return text
