@@ -16,8 +16,9 @@ from ..errors import LimitError
 from ..model import Calibration, RobotProfile, load_calibration, load_robot_profile
 from ..model.stepper import DEFAULT_MAX_SUBSTEP_S, BatchStepper
 from ..units import RPM_TO_RAD_S
+from . import _kernels
 from .randomisation import CoefficientRanges
-from .task import ReachTask, wrap_deg
+from .task import ReachTask
 
 #: Names and units of the observation vector's entries, in order.
 OBSERVATION_LAYOUT = (
@@ -56,7 +57,8 @@ class BatchCore:
                  control_period_s: float = 0.02, task: ReachTask | None = None,
                  randomize: bool = False,
                  coefficient_ranges: Mapping[str, tuple[float, float]] | None = None,
-                 max_substep_s: float = DEFAULT_MAX_SUBSTEP_S) -> None:
+                 max_substep_s: float = DEFAULT_MAX_SUBSTEP_S,
+                 num_threads: int | None = 1) -> None:
         self.calibration = as_calibration(calibration)
         self.robot = as_robot(robot)
         self.task = task or ReachTask()
@@ -64,7 +66,7 @@ class BatchCore:
         self.ranges = (CoefficientRanges.from_calibration(self.calibration, coefficient_ranges)
                        if randomize else None)
         self.stepper = BatchStepper(n, self.control_period_s, self.calibration, self.robot,
-                                    max_substep_s=max_substep_s)
+                                    max_substep_s=max_substep_s, num_threads=num_threads)
         self.n = n
         self.episode_steps = max(1, round(self.task.episode_s / self.control_period_s))
         nmax = self.robot.wheel_speed_max_rpm
@@ -75,6 +77,7 @@ class BatchCore:
         self.commands = np.zeros((n, 3))
         self._potential = np.zeros(n)
         self.success = np.zeros(n, dtype=bool)
+        self._task_params = self.task.kernel_parameters()
         eff = self.calibration.effects
         r = self.robot.wheel_radius_m
         # forward kinematics with slip, straight to (m/s, m/s, deg/s)
@@ -82,8 +85,21 @@ class BatchCore:
             np.array([eff.efficiency[0] * RPM_TO_RAD_S * r, eff.efficiency[1] * RPM_TO_RAD_S * r,
                       eff.efficiency[2] * 6.0 / self.robot.k]))
 
-    def reset_robots(self, index: np.ndarray, rngs: Sequence[np.random.Generator]) -> None:
-        """Start new episodes for the robots in ``index``, drawing from their generators."""
+    def _evaluate(self, pose, state, targets):
+        m = pose.shape[0]
+        obs = np.empty((m, OBS_SIZE))
+        potential = np.empty(m)
+        success = np.empty(m, dtype=bool)
+        left = np.empty(m, dtype=bool)
+        _kernels.evaluate(pose, state, targets, self._fk, self._task_params, obs, potential,
+                          success, left)
+        return obs, potential, success, left
+
+    def reset_robots(self, index: np.ndarray, rngs: Sequence[np.random.Generator]) -> np.ndarray:
+        """Start new episodes for the robots in ``index``, drawing from their generators.
+
+        Returns their first observations, shape (len(index), 13).
+        """
         m = len(index)
         coeffs = np.empty((m, 3)) if self.ranges is not None else None
         targets = np.empty((m, 3))
@@ -97,9 +113,11 @@ class BatchCore:
         self.targets[index] = targets
         self.steps[index] = 0
         self.commands[index] = 0.0
-        pose = self.stepper.pose[index]
-        _, _, dist, dphi = self.task.errors(pose, targets)
-        self._potential[index] = self.task.potential(dist, dphi)
+        self.success[index] = False
+        obs, potential, _, _ = self._evaluate(self.stepper.pose[index],
+                                              self.stepper.state[index], targets)
+        self._potential[index] = potential
+        return obs
 
     def limit(self, actions) -> np.ndarray:
         """Commands actually sent: actions clipped to the box, then kept within the wheel limit.
@@ -109,50 +127,34 @@ class BatchCore:
         by the same factor so that it equals the limit (direction and the ratio of translation to
         turning kept). No command beyond the limit is ever sent.
         """
-        a = np.asarray(actions, dtype=float).reshape(self.n, 3)
-        if not np.isfinite(a).all():
+        a = np.ascontiguousarray(actions, dtype=float)
+        if a.shape != (self.n, 3):
+            a = np.ascontiguousarray(a.reshape(self.n, 3))
+        cmd = np.empty((self.n, 3))
+        if not _kernels.limit_actions(a, self.action_low, self.action_high,
+                                      self.robot.k / 6.0, self.robot.wheel_speed_max_rpm, cmd):
             raise LimitError("action contains NaN or infinite values")
-        cmd = np.clip(a, self.action_low, self.action_high)
-        peak = np.abs(cmd[:, 0]) + self.robot.k / 6.0 * np.abs(cmd[:, 1])
-        scale = np.minimum(1.0, self.robot.wheel_speed_max_rpm / np.maximum(peak, 1e-300))
-        cmd[:, 0] *= scale
-        cmd[:, 1] *= scale
         return cmd
 
     def step(self, actions):
-        """Advance every robot one control period; ``(reward, terminated, truncated)`` (N,)."""
+        """Advance every robot one control period.
+
+        Returns
+        -------
+        obs : (N, 13);  reward : (N,);  terminated, truncated : (N,) bool
+            Fresh arrays (not overwritten by later steps).
+        """
         cmd = self.limit(actions)
         self.commands = cmd
-        self.stepper.step(cmd)
-        self.steps += 1
-        pose = self.stepper.pose
-        _, _, dist, dphi = self.task.errors(pose, self.targets)
-        pot = self.task.potential(dist, dphi)
-        success, left = self.task.outcome(pose, dist, dphi)
+        st = self.stepper
+        st.step(cmd)
+        obs, potential, success, left = self._evaluate(st.pose, st.state, self.targets)
+        reward = np.empty(self.n)
+        terminated = np.empty(self.n, dtype=bool)
+        truncated = np.empty(self.n, dtype=bool)
         t = self.task
-        reward = (pot - self._potential - t.time_cost_per_s * self.control_period_s
-                  + t.success_bonus * success - t.leave_penalty * left)
-        self._potential = pot
+        _kernels.reward_and_ends(potential, self._potential, success, left, self.steps,
+                                 self.episode_steps, t.time_cost_per_s * self.control_period_s,
+                                 t.success_bonus, t.leave_penalty, reward, terminated, truncated)
         self.success = success
-        terminated = success | left
-        truncated = (self.steps >= self.episode_steps) & ~terminated
-        return reward, terminated, truncated
-
-    def observe(self, index=None) -> np.ndarray:
-        """Observations (N, 13) (or of the robots in ``index``); layout in OBSERVATION_LAYOUT."""
-        idx = slice(None) if index is None else index
-        pose = self.stepper.pose[idx]
-        wheels = self.stepper.wheel_rpm[idx]
-        target = self.targets[idx]
-        out = np.empty((pose.shape[0], OBS_SIZE))
-        out[:, 0:2] = pose[:, 0:2]
-        out[:, 2] = wrap_deg(pose[:, 2])
-        out[:, 3:6] = wheels @ self._fk
-        out[:, 6:10] = wheels
-        phi = np.deg2rad(pose[:, 2])
-        c, s = np.cos(phi), np.sin(phi)
-        dx, dy, _, dphi = self.task.errors(pose, target)
-        out[:, 10] = c * dx + s * dy
-        out[:, 11] = c * dy - s * dx
-        out[:, 12] = dphi
-        return out
+        return obs, reward, terminated, truncated

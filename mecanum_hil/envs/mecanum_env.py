@@ -101,12 +101,12 @@ class MecanumHILEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Start an episode: robot at the task's start pose at rest, a new target drawn."""
         super().reset(seed=seed)
-        self.core.reset_robots(_ONE, [self.np_random])
-        return self.core.observe()[0], self._info()
+        obs = self.core.reset_robots(_ONE, [self.np_random])
+        return obs[0], self._info()
 
     def step(self, action):
         """Hold ``action`` for one control period."""
-        reward, terminated, truncated = self.core.step(np.asarray(action, dtype=float)[None])
-        obs = self.core.observe()[0]
-        return (obs, float(reward[0]), bool(terminated[0]), bool(truncated[0]),
+        obs, reward, terminated, truncated = self.core.step(
+            np.asarray(action, dtype=float).reshape(1, 3))
+        return (obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]),
                 self._info(bool(self.core.success[0])))

@@ -83,37 +83,9 @@ class ReachTask:
         return np.array([x0 + dist * np.cos(bearing), y0 + dist * np.sin(bearing),
                          -180.0 + 360.0 * u[2]])
 
-    def errors(self, pose: np.ndarray, target: np.ndarray):
-        """World-frame position error, distance [m] and wrapped heading error [deg].
-
-        Parameters
-        ----------
-        pose, target : ndarray, shape (N, 3)
-            ``(X [m], Y [m], phi [deg])``.
-
-        Returns
-        -------
-        dx, dy, distance, dphi : ndarray, shape (N,)
-            ``target - pose`` in world axes [m], its length [m], and the heading error wrapped
-            to ``[-180, 180)`` [deg].
-        """
-        dx = target[:, 0] - pose[:, 0]
-        dy = target[:, 1] - pose[:, 1]
-        return dx, dy, np.hypot(dx, dy), wrap_deg(target[:, 2] - pose[:, 2])
-
-    def potential(self, distance: np.ndarray, dphi: np.ndarray) -> np.ndarray:
-        """Shaping potential (larger is closer to the target) [-]."""
-        return -(distance / self.position_scale_m + np.abs(dphi) / self.heading_scale_deg)
-
-    def outcome(self, pose: np.ndarray, distance: np.ndarray, dphi: np.ndarray):
-        """``(success, left_arena)`` boolean arrays of shape (N,)."""
-        success = (distance < self.position_tolerance_m) & (
-            np.abs(dphi) < self.heading_tolerance_deg)
+    def kernel_parameters(self) -> np.ndarray:
+        """The parameters the compiled evaluation reads (``mecanum_hil.envs._kernels``)."""
         x0, y0, _ = self.start_pose
-        left = np.hypot(pose[:, 0] - x0, pose[:, 1] - y0) > self.arena_radius_m
-        return success, left & ~success
-
-
-def wrap_deg(angle_deg):
-    """Angle wrapped to ``[-180, 180)`` [deg]."""
-    return np.mod(np.asarray(angle_deg) + 180.0, 360.0) - 180.0
+        return np.array([x0, y0, self.position_scale_m, self.heading_scale_deg,
+                         self.position_tolerance_m, self.heading_tolerance_deg,
+                         self.arena_radius_m], dtype=float)

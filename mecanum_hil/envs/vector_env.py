@@ -37,6 +37,9 @@ class MecanumHILVectorEnv(VectorEnv):
     calibration, robot, control_period_s, task, randomize, coefficient_ranges, max_substep_s
         As for :class:`~mecanum_hil.envs.MecanumHILEnv`; with ``randomize`` every robot draws
         its own coefficients at each of its resets.
+    num_threads : int, optional
+        Threads of the compiled step (default 1, see
+        :class:`~mecanum_hil.model.stepper.BatchStepper`; ``None`` for numba's default).
     """
 
     metadata: ClassVar[dict[str, Any]] = {
@@ -47,7 +50,7 @@ class MecanumHILVectorEnv(VectorEnv):
                  control_period_s: float = 0.02, task: ReachTask | None = None,
                  randomize: bool = False,
                  coefficient_ranges: Mapping[str, tuple[float, float]] | None = None,
-                 max_substep_s: float = DEFAULT_MAX_SUBSTEP_S,
+                 max_substep_s: float = DEFAULT_MAX_SUBSTEP_S, num_threads: int | None = 1,
                  render_mode: str | None = None) -> None:
         if render_mode is not None:
             raise ValueError(f"render_mode {render_mode!r} is not supported (none is)")
@@ -57,7 +60,8 @@ class MecanumHILVectorEnv(VectorEnv):
         self.render_mode = None
         self.core = BatchCore(self.num_envs, calibration, robot,
                               control_period_s=control_period_s, task=task, randomize=randomize,
-                              coefficient_ranges=coefficient_ranges, max_substep_s=max_substep_s)
+                              coefficient_ranges=coefficient_ranges, max_substep_s=max_substep_s,
+                              num_threads=num_threads)
         self.single_action_space = spaces.Box(self.core.action_low, self.core.action_high,
                                               dtype=np.float64)
         self.single_observation_space = observation_space()
@@ -97,20 +101,20 @@ class MecanumHILVectorEnv(VectorEnv):
             if len(seeds) != self.num_envs:
                 raise ConfigError(f"{len(seeds)} seeds for {self.num_envs} robots")
             self._rngs = [seeding.np_random(s)[0] for s in seeds]
-        self.core.reset_robots(self._all, self._rngs)
+        obs = self.core.reset_robots(self._all, self._rngs)
         self._autoreset[:] = False
-        return self.core.observe(), {}
+        return obs, {}
 
     def step(self, actions):
         """Hold one action per robot for one control period (next-step autoreset)."""
         if self._rngs is None:
             raise ConfigError("call reset() before step()")
-        reward, terminated, truncated = self.core.step(actions)
+        obs, reward, terminated, truncated = self.core.step(actions)
         if self._autoreset.any():
             idx = np.flatnonzero(self._autoreset)
-            self.core.reset_robots(idx, [self._rngs[i] for i in idx])
+            obs[idx] = self.core.reset_robots(idx, [self._rngs[i] for i in idx])
             reward[idx] = 0.0
             terminated[idx] = False
             truncated[idx] = False
         self._autoreset = terminated | truncated
-        return self.core.observe(), reward, terminated, truncated, {}
+        return obs, reward, terminated, truncated, {}

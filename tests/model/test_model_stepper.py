@@ -1,0 +1,92 @@
+"""The array stepper reproduces one long simulate() call, period by period."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mecanum_hil.errors import ConfigError
+from mecanum_hil.model import Calibration, Effects, simulate
+from mecanum_hil.model.motor import discretise
+from mecanum_hil.model.stepper import BatchStepper, discretise_many, step_plan, step_tables
+
+EFFECTS = {
+    "linear": Effects(),
+    "dead_time_whole_periods": Effects(dead_time_s=0.04),
+    "dead_time_split": Effects(dead_time_s=0.033),
+    "all_effects": Effects(dead_time_s=0.013, top_speed_rpm=90.0, rate_limit_rpm_per_s=300.0,
+                           deadband_rpm=3.0, gains=(1.0, 0.9, 1.0, 1.1),
+                           efficiency=(0.9, 0.8, 0.95)),
+}
+
+
+def _commands(rng, T):
+    return np.column_stack([rng.uniform(0, 80, T), rng.uniform(-40, 40, T),
+                            rng.uniform(-180, 180, T)])
+
+
+def test_compiled_discretisation_matches_scipy():
+    co = np.array([[14.7, 16.1, 303.0], [1.0, 0.0, 5.0], [40.0, 2.0, 900.0]])
+    h = np.array([0.02, 0.001, 0.37])
+    ref = discretise(co[:, 0:1], co[:, 1:2], co[:, 2:3], h[None, :])
+    np.testing.assert_allclose(discretise_many(co, h), ref, rtol=1e-12, atol=1e-12)
+
+
+def test_tables_follow_each_robots_coefficients():
+    co = np.array([[14.7, 16.1, 303.0], [20.0, 10.0, 200.0], [14.7, 16.1, 303.0]])
+    tables = step_tables(co, [0.02])
+    assert tables.shape == (3, 1, 11)
+    np.testing.assert_array_equal(tables[0], tables[2])
+    np.testing.assert_allclose(tables[1, 0], discretise(20.0, 10.0, 200.0, 0.02), atol=1e-12)
+
+
+def test_step_plan_splits_at_the_delayed_command_change():
+    plan = step_plan(0.02, Effects(dead_time_s=0.033))
+    assert plan.delay_periods == 1
+    np.testing.assert_allclose(plan.piece_s, [0.013, 0.007])
+    assert step_plan(0.02, Effects(dead_time_s=0.04)).piece_s.size == 1
+    with pytest.raises(ConfigError):
+        step_plan(0.0, Effects())
+
+
+@pytest.mark.parametrize("name", sorted(EFFECTS))
+def test_stepping_equals_one_simulate_call(name):
+    rng = np.random.default_rng(7)
+    T, h = 120, 0.02
+    cmd = _commands(rng, T)
+    cal = Calibration(effects=EFFECTS[name])
+    ref = simulate(cmd, np.arange(T) * h, cal, initial_pose=(0.5, -1.0, 30.0))
+    st = BatchStepper(1, h, cal)
+    st.reset(pose=(0.5, -1.0, 30.0))
+    poses, wheels = [st.pose[0].copy()], [st.wheel_rpm[0].copy()]
+    for k in range(T - 1):
+        st.step(cmd[k][None])
+        poses.append(st.pose[0].copy())
+        wheels.append(st.wheel_rpm[0].copy())
+    np.testing.assert_allclose(poses, ref.pose[0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(wheels, ref.wheel_rpm[0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(st.state[0], ref.final_state[0], rtol=0, atol=1e-9)
+
+
+def test_robots_with_their_own_coefficients_equal_separate_simulations():
+    rng = np.random.default_rng(3)
+    T, h = 60, 0.02
+    cmd = np.stack([_commands(rng, T) for _ in range(3)])
+    co = np.array([[14.7, 16.1, 303.0], [20.0, 10.0, 200.0], [5.0, 30.0, 500.0]])
+    eff = EFFECTS["dead_time_split"]
+    st = BatchStepper(3, h, Calibration(effects=eff))
+    st.set_coefficients(co)
+    st.reset()
+    for k in range(T - 1):
+        st.step(cmd[:, k])
+    for i in range(3):
+        cal = Calibration(*co[i], effects=eff)
+        ref = simulate(cmd[i], np.arange(T) * h, cal)
+        np.testing.assert_allclose(st.pose[i], ref.pose[0, -1], atol=1e-9)
+        np.testing.assert_allclose(st.state[i], ref.final_state[0], atol=1e-9)
+
+
+def test_unstable_coefficients_are_refused():
+    st = BatchStepper(2, 0.02, Calibration())
+    with pytest.raises(ConfigError):
+        st.set_coefficients([1.0, 1.0, -5.0], index=[1])
