@@ -70,6 +70,16 @@ START_GRID: dict[str, tuple[float, ...]] = {
     "C": (1.0, 10.0, 100.0, 1e3, 1e4, 1e5, 1e6),
 }
 
+#: Finer logarithmic grid used when the compiled grid kernel applies (linear model).
+FINE_START_GRID: dict[str, np.ndarray] = {
+    "A": np.concatenate([[0.0], np.logspace(-1, 3.5, 19)]),
+    "B": np.concatenate([[0.0], np.logspace(-1, 3, 13)]),
+    "C": np.logspace(0, 6, 19),
+}
+
+#: Number of grid minima least squares starts from (the best result is kept).
+START_COUNT = 3
+
 #: Largest condition number of the column-scaled Jacobian for which intervals are trusted.
 MAX_CONDITION = 1e8
 
@@ -394,8 +404,28 @@ def _data_start_values(data: Sequence[_Prepared]) -> dict[str, float]:
     return {"top_speed_rpm": max(1.25 * peak, 1.0), "rate_limit_rpm_per_s": max(slope, 1.0)}
 
 
-def _start(data, calibration, robot, free, x0, lower, upper) -> dict[str, float]:
-    """Starting values: given ones, else a coarse grid for A, B, C and a scan for dead time."""
+def _local_minima(sse: np.ndarray, count: int) -> np.ndarray:
+    """Flat indices of up to ``count`` grid points lower than their axis neighbours, best first."""
+    is_min = np.isfinite(sse)
+    for ax in range(sse.ndim):
+        if sse.shape[ax] == 1:
+            continue
+        pad = [(0, 0)] * sse.ndim
+        pad[ax] = (1, 1)
+        padded = np.pad(sse, pad, constant_values=np.inf)
+        lo = np.take(padded, np.arange(0, sse.shape[ax]), axis=ax)
+        hi = np.take(padded, np.arange(2, sse.shape[ax] + 2), axis=ax)
+        is_min &= (sse <= lo) & (sse <= hi)
+    idx = np.flatnonzero(is_min.ravel())
+    if idx.size == 0:
+        idx = np.array([int(np.argmin(np.where(np.isfinite(sse), sse, np.inf)))])
+    return idx[np.argsort(sse.ravel()[idx], kind="stable")][:count]
+
+
+def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, float]]:
+    """Starting points: given values, else the best local minima of a logarithmic grid over the
+    free coefficients (the compiled grid kernel for a linear model), a scan for dead time, and
+    data-based values for top speed and rate limit."""
     given = dict(x0 or {})
     start = {n: given.get(n, parameter_value(calibration, n)) for n in free}
     defaults = _data_start_values(data)
@@ -404,29 +434,40 @@ def _start(data, calibration, robot, free, x0, lower, upper) -> dict[str, float]
             start[n] = defaults.get(n, 1.0)
     base = with_parameters(calibration, {n: v for n, v in start.items() if n not in _COEFFICIENTS})
     grid_names = [n for n in _COEFFICIENTS if n in free and n not in given]
+    starts = [dict(start)]
     if grid_names:
-        axes = [START_GRID[n] if n in grid_names else (getattr(base, n),) for n in _COEFFICIENTS]
+        linear = not base.effects.nonlinear
+        spec = FINE_START_GRID if linear else START_GRID
+        axes = [np.asarray(spec[n] if n in grid_names else (getattr(base, n),), dtype=float)
+                for n in _COEFFICIENTS]
         pts = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
-        pts = pts[(pts[:, 0] + pts[:, 1] > 0) & (pts[:, 2] > 0)]
-        if base.effects.nonlinear:
-            sse = _sse_of(data, [base.with_coefficients(*pt) for pt in pts], robot)
-        else:
+        ok = (pts[:, 0] + pts[:, 1] > 0) & (pts[:, 2] > 0)
+        sse = np.full(pts.shape[0], np.inf)
+        if linear:
             from .grid import evaluate_points, grid_data
 
             g = grid_data(data, base, robot)
             with few_threads(pts.shape[0] * g.target_rpm.size):
-                sse = evaluate_points(g, pts)
-        best = pts[int(np.argmin(sse))]
-        for i, n in enumerate(_COEFFICIENTS):
-            if n in grid_names:
-                start[n] = float(best[i])
-        base = with_parameters(base, {n: start[n] for n in _COEFFICIENTS if n in free})
+                sse[ok] = evaluate_points(g, pts[ok])
+        else:
+            sse[ok] = _sse_of(data, [base.with_coefficients(*pt) for pt in pts[ok]], robot)
+        starts = []
+        for flat in _local_minima(sse.reshape([a.size for a in axes]), START_COUNT):
+            s = dict(start)
+            for i, n in enumerate(_COEFFICIENTS):
+                if n in grid_names:
+                    s[n] = float(pts[flat, i])
+            starts.append(s)
     if "dead_time_s" in free and "dead_time_s" not in given:
+        base = with_parameters(base, {n: starts[0][n] for n in _COEFFICIENTS if n in free})
         span = min(float(np.median([p.t_s[-1] - p.t_s[0] for p in data])) / 4.0, 0.5)
         cands = np.unique(np.concatenate([[start["dead_time_s"]], np.linspace(0.0, span, 26)]))
         calibs = [with_parameters(base, {"dead_time_s": c}) for c in cands]
-        start["dead_time_s"] = float(cands[int(np.argmin(_sse_of(data, calibs, robot)))])
-    return {n: float(np.clip(start[n], lower[i], upper[i])) for i, n in enumerate(free)}
+        best = float(cands[int(np.argmin(_sse_of(data, calibs, robot)))])
+        for s in starts:
+            s["dead_time_s"] = best
+    return [{n: float(np.clip(s[n], lower[i], upper[i])) for i, n in enumerate(free)}
+            for s in starts]
 
 
 def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free: Sequence[str]):
@@ -496,7 +537,8 @@ def finish(data, calibration, robot, free, x, method, *, J=None, r=None, pose_we
     warnings = list(extra_warnings) + warnings
     if lower is not None and upper is not None:
         for i, name in enumerate(free):
-            if x[i] <= lower[i] or x[i] >= upper[i]:
+            tol = 1e-6 * max(1.0, abs(x[i]))
+            if x[i] <= lower[i] + tol or x[i] >= upper[i] - tol:
                 warnings.append(f"{name} = {x[i]:.6g} is on its bound; its interval assumes an "
                                 "interior optimum")
     params = {n: float(v) for n, v in zip(free, x, strict=True)}
@@ -593,19 +635,25 @@ def fit_parameters(
         raise FitError(f"pose_weight must be a finite number >= 0, got {pose_weight!r}")
     data = prepare(recordings, robot, sources)
     lo, hi = _bounds(free, bounds)
-    start = _start(data, calibration, robot, free, x0, lo, hi)
     problem = _Problem(data, calibration, robot, free, lo, hi, pose_weight)
-    x_start = np.array([start[n] for n in free])
-    try:
-        sol = least_squares(problem.fun, x_start, jac=problem.jac, bounds=(lo, hi),
-                            x_scale="jac", method="trf", max_nfev=200 * len(free))
-    except FitError:
-        raise
-    except (ValueError, np.linalg.LinAlgError) as err:
-        raise FitError(f"least squares failed: {err}") from err
-    if sol.status <= 0 or not np.isfinite(sol.cost):
-        raise FitError(f"least squares did not converge: {sol.message}")
-    x = sol.x
+    best = None
+    failures = []
+    for start in _starts(data, calibration, robot, free, x0, lo, hi):
+        x_start = np.array([start[n] for n in free])
+        try:
+            sol = least_squares(problem.fun, x_start, jac=problem.jac, bounds=(lo, hi),
+                                x_scale="jac", method="trf", max_nfev=200 * len(free))
+        except (ValueError, np.linalg.LinAlgError) as err:
+            failures.append(f"least squares failed: {err}")
+            continue
+        if sol.status <= 0 or not np.isfinite(sol.cost):
+            failures.append(f"least squares did not converge: {sol.message}")
+            continue
+        if best is None or sol.cost < best.cost:
+            best = sol
+    if best is None:
+        raise FitError(failures[0] if failures else "least squares did not converge")
+    x = best.x
     r, J = problem.fun(x), problem.jac(x)
     return finish(data, calibration, robot, free, x, "lsq", J=J, r=r, pose_weight=pose_weight,
                   lower=lo, upper=hi, info_extra={"evaluations": problem.nfev})
