@@ -61,7 +61,7 @@ class SerialTransport(Transport):
         try:
             # pyserial flushes the input at open: bytes sent before are lost (hence HELLO)
             self._ser = serial.serial_for_url(port, baudrate=int(baudrate), timeout=0,
-                                              write_timeout=0)
+                                              write_timeout=0.05)
         except (serial.SerialException, ValueError, OSError) as err:
             raise LinkError(f"{port}: cannot open serial port: {err}") from err
         try:
@@ -104,6 +104,8 @@ class SerialTransport(Transport):
         except OSError as err:
             raise LinkLostError(f"{self.port}: link lost while writing: {err}") from err
         except Exception as err:  # serial.SerialException (not imported when fd-based)
+            if type(err).__name__ == "SerialTimeoutException":
+                return  # nothing taken this time: stays pending (the fd path never blocks)
             raise LinkLostError(f"{self.port}: link lost while writing: {err}") from err
         del self._out[:n]
 
