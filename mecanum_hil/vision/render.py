@@ -216,7 +216,7 @@ class _Scene:
         for x, y, size, colour in self.static_blobs:
             cv2.rectangle(self.background, (int(x - size), int(y - size)),
                           (int(x + size), int(y + size)), colour, -1)
-        self.background = self.background.astype(np.float32)
+        self.background = np.clip(self.background + 0.5, 0, 255).astype(np.uint8)
 
     def _free_point(self, rng, size: float) -> np.ndarray:
         """A point whose blob stays clear of every wheel (moving blobs: both ends clear)."""
@@ -232,7 +232,7 @@ class _Scene:
         x, y = self.view @ np.array([u, v])
         return (round((cx + x) * _SCALE), round((cy + y) * _SCALE))
 
-    def draw(self, t_video_s: float, angles_rad: list[np.ndarray], rng) -> np.ndarray:
+    def draw(self, t_video_s: float, angles_rad: list[np.ndarray]) -> np.ndarray:
         """One BGR frame; ``angles_rad[k]`` are wheel k's angles over the exposure [rad]."""
         import cv2
 
@@ -247,53 +247,66 @@ class _Scene:
         for k, pl in enumerate(self.places):
             c = (round(pl.cx_px * _SCALE), round(pl.cy_px * _SCALE))
             r = pl.radius_px
-            for rr, grey in ((r * 1.08, 38.0), (r * 0.9, 96.0), (r * 0.2, 70.0)):
+            for rr, grey in ((r * 1.08, 38), (r * 0.9, 96), (r * 0.2, 70)):
                 cv2.ellipse(frame, c, (round(rr * _SCALE), round(rr * self.minor * _SCALE)),
                             axis_deg, 0, 360, (grey, grey, grey), -1, cv2.LINE_AA, _SHIFT)
             mid = float(angles_rad[k][len(angles_rad[k]) // 2])
             for j in range(5):
                 a = mid + j * 2 * math.pi / 5
                 p = self._pt(pl.cx_px, pl.cy_px, 0.85 * r * math.cos(a), -0.85 * r * math.sin(a))
-                cv2.line(frame, c, p, (150.0, 150.0, 150.0), max(1, round(r * 0.05)),
-                         cv2.LINE_AA, _SHIFT)
+                cv2.line(frame, c, p, (150, 150, 150), max(1, round(r * 0.05)), cv2.LINE_AA,
+                         _SHIFT)
             self._marker(frame, pl, angles_rad[k], _hue_bgr(s.marker_hues_deg[
                 k % len(s.marker_hues_deg)]))
         for t0, t1 in s.occlusions_s:
             if t0 <= t_video_s < t1:
                 for pl in self.places:
                     x, y, w, h = pl.roi
-                    cv2.rectangle(frame, (x, y), (x + w, y + h), (128.0, 126.0, 124.0), -1)
+                    cv2.rectangle(frame, (x, y), (x + w, y + h), (128, 126, 124), -1)
         if s.lighting_drift:
-            frame *= 1.0 + s.lighting_drift * math.sin(2 * math.pi * t_video_s / 4.0)
+            gain = 1.0 + s.lighting_drift * math.sin(2 * math.pi * t_video_s / 4.0)
+            frame = cv2.convertScaleAbs(frame, alpha=gain)
         if s.noise_std:
-            frame += rng.normal(0.0, s.noise_std, frame.shape).astype(np.float32)
-        out = np.clip(frame, 0, 255).astype(np.uint8)
+            # One plane of H x 3W: independent noise in each channel of each pixel.
+            noise = np.empty((frame.shape[0], frame.shape[1] * 3), np.int16)
+            cv2.randn(noise, 0.0, float(s.noise_std))
+            frame = cv2.add(frame, noise.reshape(frame.shape), dtype=cv2.CV_8U)
         if s.jpeg_quality is not None:
-            _ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(s.jpeg_quality)])
-            out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-        return out
+            _ok, buf = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(s.jpeg_quality)])
+            frame = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        return frame
 
     def _marker(self, frame: np.ndarray, pl: WheelPlacement, angles: np.ndarray,
                 colour: tuple) -> None:
-        """The dot, smeared over the exposure's angles (alpha-blended in the wheel's box)."""
+        """The dot, smeared over the exposure's angles (alpha-blended around its path)."""
         import cv2
 
-        x, y, w, h = pl.roi
         r = pl.radius_px
         size = 0.09 * r
-        alpha = np.zeros((h, w), np.float32)
-        layer = np.zeros((h, w), np.uint8)
-        for a in angles:
+        axes = (round(size * _SCALE), round(size * self.minor * _SCALE))
+        centres = [self._pt(pl.cx_px, pl.cy_px, 0.7 * r * math.cos(a), -0.7 * r * math.sin(a))
+                   for a in angles]
+        if len(centres) == 1:
+            cv2.ellipse(frame, centres[0], axes, self.s.tilt_axis_deg, 0, 360, colour, -1,
+                        cv2.LINE_AA, _SHIFT)
+            return
+        xy = np.array(centres, float) / _SCALE
+        h, w = frame.shape[:2]
+        x0, y0 = (np.floor(xy.min(axis=0) - size - 2)).astype(int).clip(0, [w - 1, h - 1])
+        x1, y1 = (np.ceil(xy.max(axis=0) + size + 3)).astype(int).clip(1, [w, h])
+        alpha = np.zeros((y1 - y0, x1 - x0), np.float32)
+        layer = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        off = np.array([x0, y0]) * _SCALE
+        for cx, cy in centres:
             layer[:] = 0
-            cu, cv = self._pt(pl.cx_px - x, pl.cy_px - y, 0.7 * r * math.cos(a),
-                              -0.7 * r * math.sin(a))
-            cv2.ellipse(layer, (cu, cv), (round(size * _SCALE), round(size * self.minor * _SCALE)),
-                        self.s.tilt_axis_deg, 0, 360, 255, -1, cv2.LINE_AA, _SHIFT)
+            cv2.ellipse(layer, (cx - int(off[0]), cy - int(off[1])), axes, self.s.tilt_axis_deg,
+                        0, 360, 255, -1, cv2.LINE_AA, _SHIFT)
             alpha += layer
-        alpha *= 1.0 / (255.0 * len(angles))
-        box = frame[y:y + h, x:x + w]
+        alpha *= 1.0 / (255.0 * len(centres))
+        box = frame[y0:y1, x0:x1].astype(np.float32)
         box *= (1.0 - alpha)[:, :, None]
         box += alpha[:, :, None] * np.array(colour, np.float32)
+        frame[y0:y1, x0:x1] = np.clip(box + 0.5, 0, 255).astype(np.uint8)
 
 
 def frame_schedule(rec: Recording, settings: RenderSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -333,7 +346,9 @@ def render_frames(rec: Recording, settings: RenderSettings) -> Iterator[np.ndarr
     """The frames of :func:`render_video`, one BGR uint8 array each."""
     tv, tr = frame_schedule(rec, settings)
     scene = _Scene(settings)
-    rng = np.random.default_rng(settings.seed)
+    import cv2
+
+    cv2.setRNGSeed(int(settings.seed))
     sub = 9 if settings.exposure > 0 else 1
     half = 0.5 * settings.exposure / settings.fps
     offsets = np.linspace(-half, half, sub)
@@ -343,7 +358,7 @@ def render_frames(rec: Recording, settings: RenderSettings) -> Iterator[np.ndarr
     for i in range(tv.size):
         angles = [phases[k] + sign * 2 * math.pi * wheel_turns(rec.t_s, col, tr[i] + offsets)
                   for k, col in enumerate(cols)]
-        yield scene.draw(float(tv[i]), angles, rng)
+        yield scene.draw(float(tv[i]), angles)
 
 
 def render_video(rec: Recording, path: str | Path, settings: RenderSettings | None = None,
