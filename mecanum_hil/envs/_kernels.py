@@ -18,7 +18,8 @@ TASK_WIDTH = 7
 
 @njit(cache=True, inline="always")
 def _wrap(a):
-    return (a + 180.0) % 360.0 - 180.0
+    # floor, not Python's float %, which numba implements with extra sign fix-ups
+    return a - 360.0 * math.floor((a + 180.0) / 360.0)
 
 
 @njit(cache=True)
@@ -75,11 +76,13 @@ def evaluate(pose, state, targets, fk, task, obs, potential, success, left):
         obs[i, 11] = c * dy - s * dx
         dphi = _wrap(targets[i, 2] - phid)
         obs[i, 12] = dphi
-        dist = math.hypot(dx, dy)
+        dist = math.sqrt(dx * dx + dy * dy)
         potential[i] = -(dist / task[POS_SCALE] + abs(dphi) / task[HEAD_SCALE])
         ok = dist < task[POS_TOL] and abs(dphi) < task[HEAD_TOL]
         success[i] = ok
-        left[i] = (not ok) and math.hypot(X - task[X0], Y - task[Y0]) > task[ARENA]
+        ox = X - task[X0]
+        oy = Y - task[Y0]
+        left[i] = (not ok) and ox * ox + oy * oy > task[ARENA] * task[ARENA]
 
 
 @njit(cache=True)
