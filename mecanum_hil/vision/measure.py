@@ -174,14 +174,8 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
     """
     opts = options or MeasureOptions()
     src = str(path)
-    if opts.marker.kind == "aruco":
-        from .aruco import ArucoDetector
-
-        def make(size):
-            return [ArucoDetector(roi, size) for _, roi in opts.rois]
-    else:
-        def make(size):
-            return [BlobDetector(opts.marker, roi, size) for _, roi in opts.rois]
+    def make(size):
+        return [BlobDetector(opts.marker, roi, size) for _, roi in opts.rois]
 
     info, stamps, per_wheel = scan_video(path, make, progress)
     n = stamps.size
@@ -200,19 +194,14 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
     wheels_summary = []
     for (wheel, roi), cands in zip(opts.rois, per_wheel, strict=True):
         where = f"{src}, wheel {wheel}"
-        if opts.marker.kind == "aruco":
-            from .aruco import aruco_angles
-
-            angle, geom = aruco_angles(cands, where)
-        else:
-            det = BlobDetector(opts.marker, roi, (info.width_px, info.height_px))
-            track, angle = _wheel_angles(cands, n, det, opts.seed, where)
-            geom = {"path": track.shape, "centre_px": [round(track.path.cx_px, 2),
-                                                       round(track.path.cy_px, 2)],
-                    "axes_px": [round(track.path.a_px, 2), round(track.path.b_px, 2)],
-                    "axis_angle_deg": round(track.path.angle_deg, 2),
-                    "view_tilt_deg": round(track.path.tilt_deg, 1),
-                    "path_coverage": round(track.coverage, 3)}
+        det = BlobDetector(opts.marker, roi, (info.width_px, info.height_px))
+        track, angle = _wheel_angles(cands, n, det, opts.seed, where)
+        geom = {"path": track.shape, "centre_px": [round(track.path.cx_px, 2),
+                                                   round(track.path.cy_px, 2)],
+                "axes_px": [round(track.path.a_px, 2), round(track.path.b_px, 2)],
+                "axis_angle_deg": round(track.path.angle_deg, 2),
+                "view_tilt_deg": round(track.path.tilt_deg, 1),
+                "path_coverage": round(track.coverage, 3)}
         found = np.isfinite(angle)
         share = float(found.mean())
         if share < opts.min_found:
@@ -249,8 +238,7 @@ def _method(opts: MeasureOptions, timing: FrameTiming) -> str:
     from .speed import half_window
 
     h = half_window(timing.fps, opts.window_s)
-    marker = {"auto": "saturated-blob centroid", "hsv": "HSV-blob centroid",
-              "aruco": "ArUco marker orientation"}[opts.marker.kind]
+    marker = {"auto": "saturated-blob centroid", "hsv": "HSV-blob centroid"}[opts.marker.kind]
     return (f"{marker}, angle on the path mapped to a circle, unwrapped; speed = slope of a local "
             f"quadratic regression over {2 * h + 1} frames")
 

@@ -1,0 +1,173 @@
+"""Bad input: one clear line and a non-zero exit where no trustworthy result exists."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from conftest import steady
+
+from mecanum_hil.cli import main
+from mecanum_hil.errors import VideoError
+from mecanum_hil.io.recording import read_recording, write_recording
+from mecanum_hil.vision import MeasureOptions, RenderSettings, measure_video, render_video
+from mecanum_hil.vision.video import VideoWriter, frame_times
+
+
+@pytest.fixture(scope="session")
+def good_video(tmp_path_factory):
+    path = tmp_path_factory.mktemp("vid") / "good.avi"
+    return render_video(steady(60.0, 2.0), path, RenderSettings(noise_std=2.0))
+
+
+def run_cli(args, capsys):
+    code = main(args)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def one_error_line(err: str) -> str:
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("error: ")
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def test_missing_file(tmp_path, capsys):
+    code, _, err = run_cli(["measure-video", str(tmp_path / "nope.mp4"), "--out",
+                            str(tmp_path / "o.csv")], capsys)
+    assert code == 1 and "file not found" in one_error_line(err)
+
+
+def test_undecodable_file(tmp_path, capsys):
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(bytes(np.random.default_rng(0).integers(0, 256, 4000, dtype=np.uint8)))
+    code, _, err = run_cli(["measure-video", str(junk), "--out", str(tmp_path / "o.csv")],
+                           capsys)
+    assert code == 1 and "OpenCV can decode" in one_error_line(err)
+
+
+def test_truncated_mp4_is_refused(tmp_path, capsys):
+    res = render_video(steady(60.0, 1.0), tmp_path / "t.mp4")
+    data = res.path.read_bytes()
+    res.path.write_bytes(data[: len(data) // 2])  # the index (moov) at the end is lost
+    code, _, err = run_cli(["measure-video", str(res.path), "--out", str(tmp_path / "o.csv")],
+                           capsys)
+    assert code == 1
+    one_error_line(err)
+
+
+def test_truncated_avi_measures_what_is_there_and_warns(tmp_path, good_video):
+    data = good_video.path.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    meas = measure_video(cut)
+    assert 0.4 * good_video.frame_t_s.size < len(meas.recording) < good_video.frame_t_s.size
+    assert any("truncated" in w for w in meas.warnings)
+    got = meas.recording.wheel_rpm[:, 0]
+    assert np.nanmean(got) == pytest.approx(60.0, abs=0.3)
+
+
+def test_no_marker(tmp_path, capsys):
+    path = tmp_path / "grey.avi"
+    with VideoWriter(path, 30.0, (160, 120)) as w:
+        for i in range(30):
+            w.write(np.full((120, 160, 3), 100 + i, np.uint8))
+    code, _, err = run_cli(["measure-video", str(path), "--out", str(tmp_path / "o.csv")], capsys)
+    assert code == 1 and "no marker" in one_error_line(err)
+
+
+def test_marker_that_does_not_move(tmp_path):
+    res = render_video(steady(0.0, 1.0), tmp_path / "still.avi")
+    with pytest.raises(VideoError, match=r"no saturated blob moves|does not move"):
+        measure_video(res.path)
+
+
+def test_marker_in_too_few_frames(tmp_path, capsys):
+    res = render_video(steady(60.0, 2.0), tmp_path / "hidden.avi",
+                       RenderSettings(occlusions_s=((0.6, 2.5),)))
+    code, _, err = run_cli(["measure-video", str(res.path), "--out", str(tmp_path / "o.csv")],
+                           capsys)
+    line = one_error_line(err)
+    assert code == 1 and "marker found in only 3" in line and "--min-found" in line
+    # A lower bar accepts it; the hidden frames stay empty.
+    meas = measure_video(res.path, MeasureOptions(min_found=0.25))
+    assert np.isnan(meas.recording.wheel_rpm[res.frame_t_s >= 0.6, 0]).all()
+
+
+def test_aliasing_is_reported_not_folded(tmp_path):
+    t = np.arange(0.0, 2.0 + 1e-9, 0.01)
+    rec = steady(0.0, 2.0).with_values(wheel_rpm=np.repeat((600.0 * t)[:, None], 4, 1))
+    res = render_video(rec, tmp_path / "fast.avi")  # 1200 rpm at 30 fps: > 0.5 turn/frame
+    with pytest.raises(VideoError, match="aliasing at t="):
+        measure_video(res.path)
+
+
+def test_missing_frame_rate():
+    with pytest.raises(VideoError, match="no frame rate"):
+        frame_times(np.full(10, np.nan), math.nan, source="v.mp4")
+    timing = frame_times(np.full(10, np.nan), math.nan, fps_override=25.0)
+    assert timing.t_s[-1] == pytest.approx(9 / 25.0)
+
+
+def test_variable_frame_rate_is_flagged_and_its_timestamps_used():
+    stamps = np.cumsum(np.r_[0.0, np.tile([1 / 30, 1 / 20], 10)])
+    timing = frame_times(stamps, 30.0)
+    assert timing.variable and timing.source == "timestamps"
+    np.testing.assert_allclose(timing.t_s, stamps - stamps[0])
+    assert not frame_times(np.arange(10) / 30.0, 30.0).variable
+
+
+def test_bad_options(tmp_path, good_video, capsys):
+    for extra in (["--roi", "1:10,10"], ["--marker-hsv", "1,2,3"], ["--marker", "aruco"],
+                  ["--roi", "1:400,400,50,50"]):
+        code, _, err = run_cli(["measure-video", str(good_video.path), "--out",
+                                str(tmp_path / "o.csv"), *extra], capsys)
+        assert code != 0
+        one_error_line(err)
+
+
+def test_cli_measure_json_and_merge(tmp_path, good_video, capsys):
+    rec_path = tmp_path / "rec.csv"
+    rec = steady(60.0, 2.0)
+    write_recording(rec, rec_path)
+    out = tmp_path / "m.csv"
+    code, stdout, _ = run_cli(["measure-video", str(good_video.path), "--out", str(out),
+                               "--recording", str(rec_path), "--json"], capsys)
+    assert code == 0
+    summary = json.loads(stdout)
+    for key in ("video", "frames", "fps", "duration_s", "timing", "variable_frame_rate",
+                "marker", "method", "wheels", "offset_s", "alignment", "warnings", "out",
+                "merged"):
+        assert key in summary
+    assert summary["frames"] == good_video.frame_t_s.size
+    assert summary["wheels"][0]["found_fraction"] == 1.0
+    measured = read_recording(out)
+    assert measured.metadata["source_video"] == str(good_video.path)
+    assert np.isnan(measured.wheel_rpm[:, 1:]).all() and np.isnan(measured.commands).all()
+    merged = read_recording(summary["merged"])
+    assert np.nanmean(merged.extra_numeric("wheel1_video_rpm")) == pytest.approx(60.0, abs=0.3)
+
+
+def test_cli_render_then_measure_several_wheels(tmp_path, paper, capsys):
+    rec_path = tmp_path / "turn.csv"
+    write_recording(paper("paper-turn"), rec_path)
+    video = tmp_path / "turn.mp4"
+    code, stdout, _ = run_cli(["render-video", "--recording", str(rec_path), "--out", str(video),
+                               "--wheels", "1,2", "--size", "400x200", "--duration", "3",
+                               "--truth", str(tmp_path / "truth.csv"), "--json"], capsys)
+    assert code == 0
+    rois = json.loads(stdout)["rois"]
+    args = ["measure-video", str(video), "--out", str(tmp_path / "m.csv")]
+    for wheel, (x, y, w, h) in rois.items():
+        args += ["--roi", f"{wheel}:{x},{y},{w},{h}"]
+    code, stdout, _ = run_cli(args, capsys)
+    assert code == 0 and "wheel 2: marker found in 100.0%" in stdout
+    got = read_recording(tmp_path / "m.csv").wheel_rpm
+    truth = read_recording(tmp_path / "truth.csv").wheel_rpm
+    for k in (0, 1):
+        assert np.sqrt(np.nanmean((got[:, k] - truth[:, k]) ** 2)) < 1.5
+    assert np.isnan(got[:, 2:]).all()
