@@ -1,0 +1,176 @@
+"""fit: least squares recovers known coefficients and effect parameters from generated data."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mecanum_hil.errors import FitError
+from mecanum_hil.identify.fit import (
+    PARAMETER_NAMES,
+    fit,
+    fit_parameters,
+    parameter_value,
+    residuals,
+    with_parameters,
+)
+from mecanum_hil.io.recording import Recording
+from mecanum_hil.model import Calibration, Effects, RobotProfile, simulate, uniform_time
+
+ROBOT = RobotProfile()
+TRUE = Calibration(A=27.0, B=8.5, C=610.0)  # not the paper's 14.7, 16.1, 303
+
+
+def step(n_rpm=60.0, duration_s=1.0, rate_hz=100.0, theta=90.0, omega=0.0):
+    t = uniform_time(duration_s, rate_hz)
+    cmd = np.zeros((t.size, 3))
+    cmd[:, 0], cmd[:, 1], cmd[:, 2] = n_rpm, omega, theta
+    return t, cmd
+
+
+def mixed():
+    """Ramp, strafe, turn and stop in one run (any commands, not only a step)."""
+    t = uniform_time(3.0, 100.0)
+    cmd = np.zeros((t.size, 3))
+    cmd[:, 2] = 90.0
+    cmd[:, 0] = np.clip(t * 80.0, 0.0, 50.0)
+    cmd[t >= 1.0, 2] = 0.0
+    cmd[(t >= 1.8), 1] = 40.0
+    cmd[t >= 2.5] = (0.0, 0.0, 90.0)
+    return t, cmd
+
+
+def measured(t, cmd, cal, noise_rpm=0.5, seed=0, wheels=(0, 1, 2, 3), pose=False):
+    traj = simulate(cmd, t, cal, ROBOT)
+    rng = np.random.default_rng(seed)
+    w = np.full((t.size, 4), np.nan)
+    for i in wheels:
+        w[:, i] = traj.wheel_rpm[0, :, i] + rng.normal(0.0, noise_rpm, t.size)
+    p = traj.pose[0].copy() if pose else np.full((t.size, 3), np.nan)
+    return Recording(t, cmd, w, p)
+
+
+def inside(ci, value):
+    return ci[0] <= value <= ci[1]
+
+
+def test_lsq_recovers_known_coefficients_within_their_intervals():
+    rec = measured(*step(), TRUE, seed=1)
+    res = fit([rec], ROBOT)
+    assert res.method == "lsq" and not res.warnings
+    for name in ("A", "B", "C"):
+        assert inside(res.ci95[name], getattr(TRUE, name)), (name, res.ci95[name])
+        # the interval is informative, not just wide
+        assert res.ci95[name][1] - res.ci95[name][0] < 0.3 * getattr(TRUE, name)
+    # residual spread matches the noise put in; fit percentage as MATLAB's compare defines it
+    assert res.rmse_rpm == pytest.approx(0.5, rel=0.15)
+    y = rec.wheel_rpm.ravel()
+    assert res.fit_percent == pytest.approx(
+        100 * (1 - math.sqrt(res.sse) / np.linalg.norm(y - y.mean())))
+    assert res.n_samples == y.size
+    cal = res.calibration
+    assert (cal.A, cal.B, cal.C) == (res.parameters["A"], res.parameters["B"], res.parameters["C"])
+    assert cal.info["method"] == "lsq" and cal.info["n_samples"] == y.size
+    assert set(cal.ci95) == {"A", "B", "C"}
+
+
+def test_lsq_on_several_recordings_with_mixed_commands_and_missing_wheels():
+    true = Calibration(A=6.0, B=3.0, C=150.0)
+    recs = [measured(*mixed(), true, seed=2, wheels=(0, 3)),
+            measured(*step(40.0, 1.5, 50.0, theta=30.0), true, seed=3, wheels=(1,))]
+    # empty values are skipped
+    recs[0].wheel_rpm[::7, 0] = np.nan
+    res = fit(recs, ROBOT, sources=["mixed.csv", "strafe.csv"])
+    for name in ("A", "B", "C"):
+        assert inside(res.ci95[name], getattr(true, name)), (name, res.ci95[name])
+    assert res.calibration.info["sources"] == ["mixed.csv", "strafe.csv"]
+    assert len(res.calibration.info["fit_percent_per_recording"]) == 2
+
+
+def test_lsq_sse_is_not_above_the_paper_grid_on_the_same_data():
+    rec = measured(*step(), TRUE, seed=4, noise_rpm=1.0)
+    grid = fit([rec], ROBOT, "paper-grid", a_grid=(0, 100, 1), b_grid=(5.5, 25.5, 0.1),
+               c_grid=(0, 1000, 2))
+    lsq = fit([rec], ROBOT)
+    assert lsq.sse <= grid.sse * (1 + 1e-12)
+    assert lsq.fit_percent >= grid.fit_percent - 1e-9
+    assert grid.method == "paper-grid"
+
+
+def test_dead_time_is_recoverable_as_a_free_parameter():
+    true = Calibration(A=20.0, B=10.0, C=500.0, effects=Effects(dead_time_s=0.037))
+    rec = measured(*step(50.0, 1.0, 200.0), true, seed=5, noise_rpm=0.3)
+    res = fit_parameters([rec], Calibration(), ROBOT, ("A", "B", "C", "dead_time_s"))
+    assert inside(res.ci95["dead_time_s"], 0.037), res.ci95["dead_time_s"]
+    assert res.parameters["dead_time_s"] == pytest.approx(0.037, abs=2e-3)
+    for name in ("A", "B", "C"):
+        assert res.parameters[name] == pytest.approx(getattr(true, name), rel=0.1)
+    assert res.calibration.effects.dead_time_s == res.parameters["dead_time_s"]
+
+
+def test_wheel_gain_and_slip_are_recoverable_with_others_fixed():
+    t, cmd = mixed()
+    true = TRUE.with_coefficients(*TRUE.coefficients)
+    true = with_parameters(true, {"gains[1]": 0.8, "efficiency[0]": 0.9})
+    rec = measured(t, cmd, true, seed=6, pose=True)
+    res = fit_parameters([rec], TRUE, ROBOT, ["gains[1]", "efficiency[0]"], pose_weight=1.0)
+    assert res.parameters["gains[1]"] == pytest.approx(0.8, abs=0.01)
+    assert res.parameters["efficiency[0]"] == pytest.approx(0.9, abs=0.01)
+    assert res.calibration.ci95["gains_1"][0] < 0.8 < res.calibration.ci95["gains_1"][1]
+    # without pose data the slip efficiency does not change any wheel speed
+    res = fit_parameters([rec], TRUE, ROBOT, ["gains[1]", "efficiency[0]"], pose_weight=0.0)
+    assert any("efficiency[0]" in w and "not identifiable" in w for w in res.warnings)
+
+
+def test_saturation_fits_through_the_substepped_simulator():
+    true = Calibration(A=27.0, B=8.5, C=610.0, effects=Effects(top_speed_rpm=70.0))
+    rec = measured(*step(90.0, 1.0, 100.0), true, seed=7, noise_rpm=0.3)
+    res = fit_parameters([rec], Calibration(A=27.0, B=8.5, C=610.0), ROBOT, ["top_speed_rpm"])
+    assert res.parameters["top_speed_rpm"] == pytest.approx(70.0, rel=0.02)
+
+
+def test_a_step_too_sparse_to_show_its_transient_is_flagged():
+    t = np.array([0.0, 2.0, 4.0, 6.0])
+    cmd = np.tile([60.0, 0.0, 90.0], (4, 1))
+    w = np.tile([0.0, 60.1, 59.9, 60.0], (4, 1)).T + np.array([0, 0.1, -0.1, 0.05])
+    rec = Recording(t, cmd, w, np.full((4, 3), np.nan))
+    res = fit([rec], ROBOT)
+    assert any("identif" in w for w in res.warnings), res.warnings
+
+
+def test_residuals_are_measured_minus_model_with_nan_where_not_measured():
+    t, cmd = step()
+    rec = measured(t, cmd, TRUE, noise_rpm=0.0, wheels=(0, 2))
+    res = residuals([rec], TRUE, ROBOT)
+    assert len(res) == 1 and res[0].shape == (t.size, 4)
+    assert np.isnan(res[0][:, [1, 3]]).all()
+    np.testing.assert_allclose(res[0][:, [0, 2]], 0.0, atol=1e-9)
+    other = residuals([rec], Calibration(), ROBOT)[0]
+    assert np.nanmax(np.abs(other)) > 1.0
+
+
+def test_with_parameters_substitutes_every_named_parameter():
+    values = {n: 0.5 + i for i, n in enumerate(PARAMETER_NAMES)}
+    cal = with_parameters(Calibration(ci95={"A": (1.0, 2.0)}), values)
+    for n, v in values.items():
+        assert parameter_value(cal, n) == v
+    assert cal.ci95 == {}
+    with pytest.raises(FitError, match="unknown parameter"):
+        with_parameters(cal, {"D": 1.0})
+
+
+def test_bad_input_is_a_fit_error():
+    t, cmd = step()
+    nothing = Recording(t, cmd, np.full((t.size, 4), np.nan), np.full((t.size, 3), np.nan))
+    with pytest.raises(FitError, match="no measured wheel speed"):
+        fit([nothing], ROBOT)
+    still = Recording(t, np.tile([0.0, 0.0, 90.0], (t.size, 1)), np.zeros((t.size, 4)),
+                      np.full((t.size, 3), np.nan))
+    with pytest.raises(FitError, match="no excitation"):
+        fit([still], ROBOT)
+    with pytest.raises(FitError, match="no recordings"):
+        fit([], ROBOT)
+    with pytest.raises(FitError, match="unknown method"):
+        fit([measured(t, cmd, TRUE)], ROBOT, "simplex")
+    with pytest.raises(FitError, match="paper-grid"):
+        fit([measured(t, cmd, TRUE)], ROBOT, "lsq", a_grid=(0, 10, 1))
