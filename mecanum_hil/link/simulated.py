@@ -298,6 +298,7 @@ class SimulatedController:
         A lost link ends the loop with :class:`~mecanum_hil.errors.LinkLostError`; a frame the
         transport cannot send is dropped (a controller never stalls on its output).
         """
+        self.model.wheel_rpm(self.model.anchor)  # load the compiled simulator before serving
         end = math.inf if duration_s is None else time.monotonic() + duration_s
         period = 1.0 / self.telemetry_rate_hz if self.telemetry_rate_hz > 0 else math.inf
         next_tx = time.monotonic()
@@ -309,7 +310,7 @@ class SimulatedController:
                 if msg is not None:
                     self.handle(msg)
                 self._check_watchdog()
-                if self.connected and time.monotonic() >= next_tx:
+                if self.connected and period < math.inf and time.monotonic() >= next_tx:
                     self.send_telemetry()
                     next_tx += period
                     if next_tx < time.monotonic() - 10 * period:

@@ -1,0 +1,229 @@
+"""The record session against controllers on real pseudo-terminals: damaged streams, gaps, a
+port that disappears, observers, every way out sends STOP and leaves a valid recording."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from mecanum_hil.errors import LimitError
+from mecanum_hil.io.recording import read_recording
+from mecanum_hil.link import protocol as proto
+from mecanum_hil.link.serial_link import SerialTransport
+from mecanum_hil.link.session import SessionConfig, run_record_session
+from mecanum_hil.link.simulated import ControllerModel, SimulatedController
+from mecanum_hil.model import Calibration, RobotProfile
+
+ROBOT = RobotProfile()
+FAST = SessionConfig(connect_timeout_s=1.0, link_timeout_s=0.3, tail_s=0.05)
+
+
+def _stream(duration_s=0.4, rate_hz=100.0, n_rpm=30.0):
+    t = np.arange(int(duration_s * rate_hz) + 1) / rate_hz
+    cmd = np.tile([n_rpm, 0.0, 90.0], (t.size, 1))
+    return t, cmd
+
+
+def _rows(rec, event):
+    return [i for i, e in enumerate(rec.extra["event"]) if e == event]
+
+
+def _garbage(i: int) -> bytes:
+    """Damage of every kind the issue lists, one kind per telemetry sample."""
+    good = proto.pack_frame(proto.Telemetry(1, (9.0,) * 4, 0, 0, 1))
+    kind = i % 6
+    if kind == 0:
+        return bytes(random.Random(i).getrandbits(8) for _ in range(37))  # random bytes
+    if kind == 1:
+        return proto.encode(proto.Stop())[:-3]  # truncated frame (no closing delimiter)
+    if kind == 2:
+        bad = good[:-1] + bytes([good[-1] ^ 0x5A])
+        return b"\x00" + proto.cobs_encode(bad) + b"\x00"  # bad CRC
+    if kind == 3:
+        frame = bytearray(good)
+        frame[1] = 0x77  # unknown type
+        frame[-2:] = proto.crc16(bytes(frame[:-2])).to_bytes(2, "little")
+        return b"\x00" + proto.cobs_encode(bytes(frame)) + b"\x00"
+    if kind == 4:
+        frame = bytearray(good)
+        frame[0] = 7  # wrong protocol version
+        frame[-2:] = proto.crc16(bytes(frame[:-2])).to_bytes(2, "little")
+        return b"\x00" + proto.cobs_encode(bytes(frame)) + b"\x00"
+    return b""
+
+
+def test_damaged_stream_is_counted_and_every_valid_sample_recorded(
+        pty_pair, scripted, host_serial, tmp_path):
+    p = pty_pair()
+    ctrl = scripted(p.master, telemetry=48, before=_garbage, skip=lambda i: i in (10, 30))
+    link = host_serial(p.path)
+    t, cmd = _stream(0.45)
+    res = run_record_session(link, t, cmd, tmp_path / "r.csv", ROBOT, config=FAST)
+    assert res.reason == "completed" and res.exit_code == 0
+    rec = read_recording(tmp_path / "r.csv")
+    tlm = _rows(rec, "tlm")
+    assert len(tlm) == 48 == res.telemetry_received
+    np.testing.assert_array_equal(rec.wheel_rpm[tlm], np.array(ctrl.sent_values))
+    s = res.stats
+    assert s["crc_errors"] == 8 and s["unknown_types"] == 8 and s["version_errors"] == 8
+    assert s["malformed"] >= 8 and s["lost"] == 2
+    # the controller saw every command, then the STOP
+    assert isinstance(ctrl.received[-1], proto.Stop)
+    assert sum(isinstance(m, proto.Command) for m in ctrl.received) == t.size
+    meta = json.loads((tmp_path / "r.json").read_text())
+    assert meta["end_reason"] == "completed" and meta["link_stats"]["lost"] == 2
+
+
+def test_port_disappearing_mid_run_keeps_what_was_received(pty_pair, scripted, host_serial,
+                                                           tmp_path):
+    p = pty_pair()
+
+    def vanish():
+        os.close(p.slave)  # nobody else holds the terminal: closing the master hangs it up
+        os.close(p.master)
+        p.master = p.slave = -1
+
+    # the port vanishes 50 ms after the 20th sample (the host reads continuously)
+    scripted(p.master, telemetry=20, then=lambda: threading.Timer(0.05, vanish).start())
+    link = host_serial(p.path)
+    t, cmd = _stream(3.0)
+    res = run_record_session(link, t, cmd, tmp_path / "r.csv", ROBOT, config=FAST)
+    assert res.reason == "link_lost" and res.exit_code == 4
+    assert "link lost" in res.message
+    assert res.duration_s < 2.0
+    rec = read_recording(tmp_path / "r.csv")
+    assert len(_rows(rec, "tlm")) == 20
+    assert rec.extra["event"][-1] == "stop"  # the STOP was attempted and recorded
+    assert json.loads((tmp_path / "r.json").read_text())["end_reason"] == "link_lost"
+
+
+class StopAfter:
+    """An observer that asks to stop after n samples; optionally slow."""
+
+    def __init__(self, n: int, delay_s: float = 0.0) -> None:
+        self.n = n
+        self.delay_s = delay_s
+        self.seen: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self.stop_requested = False
+        self.thread = None
+
+    def on_telemetry(self, t_s, commands, wheel_rpm):
+        self.thread = threading.current_thread()
+        self.seen.append((t_s, commands, wheel_rpm))
+        time.sleep(self.delay_s)
+        if len(self.seen) >= self.n:
+            self.stop_requested = True
+
+
+def test_observer_stop_request_ends_the_run_with_stop(pty_pair, scripted, host_serial, tmp_path):
+    p = pty_pair()
+    ctrl = scripted(p.master, telemetry=200)
+    obs = StopAfter(10)
+    t, cmd = _stream(3.0)
+    res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
+                             config=FAST, observers=[obs])
+    assert res.reason == "observer_stop" and res.exit_code == 3
+    assert obs.thread is not threading.main_thread()
+    assert res.duration_s < 1.5
+    t_obs, c_obs, w_obs = obs.seen[0]
+    assert t_obs >= 0
+    assert c_obs.shape == (3,) and w_obs.shape == (4,) and c_obs[0] == 30.0
+    time.sleep(0.05)
+    assert isinstance(ctrl.received[-1], proto.Stop)
+
+
+def test_a_slow_observer_never_delays_the_commands(pty_pair, scripted, host_serial, tmp_path):
+    p = pty_pair()
+    scripted(p.master, telemetry=100, period_s=0.004)
+    obs = StopAfter(10**9, delay_s=0.02)  # 5x slower than the telemetry
+    t, cmd = _stream(0.5)
+    res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
+                             config=FAST, observers=[obs])
+    assert res.reason == "completed"
+    rec = read_recording(tmp_path / "r.csv")
+    sent_at = rec.t_s[_rows(rec, "cmd")]
+    assert np.abs(sent_at - t).max() < 0.015  # on schedule despite the observer
+    assert len(obs.seen) + res.observer_dropped <= res.telemetry_received
+
+
+def test_an_observer_error_and_ctrl_c_both_send_stop(pty_pair, scripted, host_serial, tmp_path):
+    class Broken:
+        stop_requested = False
+
+        def on_telemetry(self, t_s, commands, wheel_rpm):
+            raise RuntimeError("monitor crashed")
+
+    p = pty_pair()
+    ctrl = scripted(p.master, telemetry=100)
+    t, cmd = _stream(2.0)
+    res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "a.csv", ROBOT,
+                             config=FAST, observers=[Broken()])
+    assert res.reason == "error" and res.exit_code == 1 and "monitor crashed" in res.message
+    time.sleep(0.05)
+    assert isinstance(ctrl.received[-1], proto.Stop)
+
+    def ctrl_c(elapsed, total, counts):
+        if elapsed > 0.2:
+            raise KeyboardInterrupt
+
+    q = pty_pair()
+    ctrl2 = scripted(q.master, telemetry=100)
+    res = run_record_session(host_serial(q.path), t, cmd, tmp_path / "b.csv", ROBOT,
+                             config=FAST, progress=ctrl_c)
+    assert res.reason == "interrupted" and res.exit_code == 130
+    time.sleep(0.05)
+    assert isinstance(ctrl2.received[-1], proto.Stop)
+    assert read_recording(tmp_path / "b.csv").extra["event"][-1] == "stop"
+
+
+def test_limits_are_checked_before_the_first_byte(pty_pair, host_serial, tmp_path):
+    p = pty_pair()
+    link = host_serial(p.path)
+    t, cmd = _stream(0.2, n_rpm=200.0)
+    with pytest.raises(LimitError, match="beyond the robot's limit"):
+        run_record_session(link, t, cmd, tmp_path / "r.csv", ROBOT, config=FAST)
+    os.set_blocking(p.master, False)
+    with pytest.raises(BlockingIOError):
+        os.read(p.master, 100)  # nothing was sent
+    assert not (tmp_path / "r.csv").exists()
+
+
+def test_wrong_version_and_silent_controller_are_errors(pty_pair, scripted, host_serial,
+                                                        tmp_path):
+    p = pty_pair()
+    scripted(p.master, hello_version=2)
+    t, cmd = _stream(0.2)
+    res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "a.csv", ROBOT, config=FAST)
+    assert res.reason == "error" and "protocol version 2" in res.message
+    q = pty_pair()  # nobody answers
+    res = run_record_session(host_serial(q.path), t, cmd, tmp_path / "b.csv", ROBOT,
+                             config=SessionConfig(connect_timeout_s=0.3))
+    assert res.reason == "error" and "no answer to HELLO" in res.message
+    assert len(read_recording(tmp_path / "b.csv")) == 0  # a valid, empty recording
+
+
+def test_controller_without_telemetry_gives_commands_only(pty_pair, host_serial, tmp_path):
+    p = pty_pair()
+    ctrl = SimulatedController(SerialTransport(fd=p.master),
+                               ControllerModel(Calibration(), ROBOT), telemetry_rate_hz=0)
+    ctrl.model.wheel_rpm(0)  # load the compiled simulator before the host connects
+    thread = threading.Thread(target=ctrl.serve, daemon=True)
+    thread.start()
+    try:
+        t, cmd = _stream(0.6)  # longer than the link timeout: silence is not a lost link
+        res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
+                                 config=FAST)
+    finally:
+        ctrl.stop_event.set()
+        thread.join(2)
+    assert res.reason == "completed" and res.telemetry_received == 0
+    rec = read_recording(tmp_path / "r.csv")
+    assert np.isnan(rec.wheel_rpm).all() and np.isfinite(rec.commands).all()
+    assert ctrl.commands_received == t.size
+    assert res.latency_ms["rtt_n"] >= 1  # PING still measures the round trip
