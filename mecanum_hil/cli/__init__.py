@@ -13,7 +13,7 @@ import typer
 from ..errors import MecanumHILError
 from . import demo, measure_video, render_video, simulate
 from . import fit as fit_cmd
-from . import record, sim_robot
+from . import record, shadow, sim_robot
 
 app = typer.Typer(
     name="mecanum-hil",
@@ -39,6 +39,7 @@ app.command("measure-video")(measure_video.command)
 app.command("render-video")(render_video.command)
 app.command("record")(record.command)
 app.command("sim-robot")(sim_robot.command)
+app.command("shadow")(shadow.command)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,154 @@
+"""``mecanum-hil shadow``: the model beside the robot; flags where the robot stops following it.
+
+Offline (``--replay REC.csv``) the monitor runs over a recording as if live; live
+(``--transport can``) it listens passively to a controller someone else commands.
+Exit code 0 without alarms, 3 with.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ._options import CalibrationOpt, JsonOpt, RobotOpt
+
+#: Exit code when the monitor raised at least one alarm.
+EXIT_ALARM = 3
+
+
+def build_config(noise_rpm: float | None, drift: float, threshold: float, warmup_s: float):
+    """The monitor settings from the command-line options (shared with ``record --shadow``)."""
+    from ..monitor import ShadowConfig
+
+    return ShadowConfig(drift_k=drift, threshold_h=threshold, warmup_s=warmup_s,
+                        noise_rpm=noise_rpm)
+
+
+def alarm_line(event: dict) -> str:
+    """One terminal line for an alarm or recovery event."""
+    if event["event"] == "alarm":
+        return (f"ALARM t={event['t_s']:.3f}s {event['channel']}: residual "
+                f"{event['residual']:+.3g} {event['unit']} (onset {event['onset_t_s']:.3f}s, "
+                f"noise {event['noise']:.3g} {event['unit']})")
+    return f"recovered t={event['t_s']:.3f}s {event['channel']}"
+
+
+NoiseOpt = Annotated[float | None, typer.Option(
+    "--noise-rpm", help="Wheel speed noise (1 sigma) [rpm]; default: estimated in the warm-up.")]
+DriftOpt = Annotated[float, typer.Option(
+    "--drift", help="CUSUM allowance k [noise sigmas].")]
+ThresholdOpt = Annotated[float, typer.Option(
+    "--threshold", help="CUSUM decision threshold h [noise sigmas].")]
+WarmupOpt = Annotated[float, typer.Option(
+    "--warmup", help="Initial window for the noise estimate [s].")]
+
+
+def command(
+    replay_path: Annotated[Path | None, typer.Option(
+        "--replay", help="Recording (CSV) to run the monitor over, as if live.",
+        metavar="REC.csv")] = None,
+    calibration: CalibrationOpt = "paper",
+    robot: RobotOpt = "tdam-stm",
+    json_out: JsonOpt = False,
+    events: Annotated[Path | None, typer.Option(
+        "--events", help="Event log (JSON lines); default: next to the recording, "
+        "REC.shadow.jsonl.")] = None,
+    no_events: Annotated[bool, typer.Option(
+        "--no-events", help="Write no event log.")] = False,
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="Replay: also write a PNG of measured against model, alarms marked.")
+    ] = None,
+    noise_rpm: NoiseOpt = None,
+    drift: DriftOpt = 1.0,
+    threshold: ThresholdOpt = 10.0,
+    warmup: WarmupOpt = 1.0,
+    transport: Annotated[str | None, typer.Option(
+        "--transport", help="Live: listen on a link passively (can).")] = None,
+    interface: Annotated[str, typer.Option(
+        "--interface", help="Live CAN: python-can interface (socketcan, slcan, virtual...).")
+    ] = "socketcan",
+    channel: Annotated[str | None, typer.Option(
+        "--channel", help="Live CAN: channel (can0, /dev/ttyACM0...).")] = None,
+    bitrate: Annotated[int | None, typer.Option(
+        "--bitrate", help="Live CAN: bitrate [bit/s].")] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", "-o", help="Live: also record what was heard (CSV); the event log goes next "
+        "to it.")] = None,
+    duration: Annotated[float | None, typer.Option(
+        "--duration", help="Live: stop listening after this long [s] (default: until Ctrl-C).")
+    ] = None,
+    on_divergence: Annotated[str, typer.Option(
+        "--on-divergence", help="Live: 'none' (only report) or 'stop' (send STOP on the bus at "
+        "the first alarm).")] = "none",
+) -> None:
+    """Run the model beside the robot and flag persistent divergence (exit 3 on alarms)."""
+    from ..errors import ConfigError
+
+    if (replay_path is None) == (transport is None):
+        raise ConfigError("give exactly one of --replay REC.csv and --transport can")
+    if on_divergence not in ("none", "stop"):
+        raise ConfigError(f"--on-divergence must be 'none' or 'stop', got '{on_divergence}'")
+    config = build_config(noise_rpm, drift, threshold, warmup)
+    if replay_path is not None:
+        n_alarms = _replay(replay_path, calibration, robot, config, json_out,
+                           None if no_events else events, no_events, plot)
+    else:
+        from ..monitor.live import listen_can
+
+        if transport != "can":
+            raise ConfigError(f"passive listening needs --transport can, got '{transport}' "
+                              "(on a serial link, use record --shadow)")
+        n_alarms = listen_can(interface, channel, bitrate, calibration, robot, config,
+                              out=out, events=None if no_events else events,
+                              duration_s=duration, stop_on_divergence=on_divergence == "stop",
+                              echo=typer.echo)
+    if n_alarms:
+        raise typer.Exit(EXIT_ALARM)
+
+
+def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
+            events: Path | None, no_events: bool, plot: Path | None) -> int:
+    import json
+
+    from ..io.recording import read_recording
+    from ..model import load_calibration, load_robot_profile
+    from ..monitor import replay
+    from ..monitor.eventlog import EventLog, event_log_path
+
+    rob = load_robot_profile(robot)
+    cal = load_calibration(calibration)
+    rec = read_recording(path)
+    listeners = []
+    if not json_out:
+        listeners.append(lambda e: typer.echo(alarm_line(e)) if e["event"] in (
+            "alarm", "recovered") else None)
+    log = None
+    if not no_events:
+        log = EventLog(events or event_log_path(path), cal, config,
+                       {"mode": "replay", "recording": str(path)})
+        listeners.insert(0, log)
+    try:
+        result = replay(rec, cal, rob, config, listeners=listeners, source=str(path))
+    finally:
+        if log is not None:
+            log.close()
+    if json_out:
+        typer.echo(json.dumps(result.summary()))
+    else:
+        noise = ", ".join(f"{k} {v:.3g}" for k, v in result.noise.items())
+        typer.echo(f"{path}: {result.samples} samples, {len(result.alarms)} alarm(s)"
+                   + (f", first at {result.first_alarm_t_s:.3f} s" if result.alarms else "")
+                   + (f"; noise {noise}" if noise else ""))
+        if log is not None:
+            typer.echo(f"wrote {log.path}")
+    if plot is not None:
+        from ..monitor.plot import plot_shadow
+        from ..prediction import predict
+
+        plot_shadow(rec, predict(rec, cal, rob, source=str(path)), result.alarms, plot,
+                    title=f"shadow replay: {path.name}")
+        if not json_out:
+            typer.echo(f"wrote {plot}")
+    return len(result.alarms)

@@ -1,0 +1,436 @@
+"""Compiled per-sample core of shadow mode (numba). No I/O: arrays in, state arrays updated.
+
+One call of :func:`monitor_step` handles one telemetry sample:
+
+1. advance the model exactly from the previous sample time to this one, with the commands in
+   force in between (a dead time splits the step at the delayed command changes; saturation and
+   rate limit sub-step it at most ``max_substep_s``, exactly as :mod:`mecanum_hil.model.simulate`
+   does, so the streamed prediction equals ``simulate`` on the same samples to rounding);
+2. form the residuals measured - predicted of every channel measured in this sample;
+3. update the noise estimate during warm-up, then the two-sided CUSUM of each channel, and write
+   alarm / recovery / noise events into ``events``.
+
+The discretisation of a step is the closed form of the 2x2 matrix exponential (real, repeated or
+complex poles), the same matrices :func:`mecanum_hil.model.motor.discretise` computes with
+``scipy.linalg.expm``; the closed form costs ~0.1 us, so irregular live sample times cost nothing
+extra. Everything per sample happens in this one compiled call: the Python caller only packs the
+sample into a row and looks at the returned event count.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..model._kernels import _exp_se2
+
+_RPM_S_TO_RAD = 2.0 * math.pi / 60.0
+
+#: Channels, in this order (recording column names).
+CHANNELS = ("wheel1_rpm", "wheel2_rpm", "wheel3_rpm", "wheel4_rpm", "x_m", "y_m", "phi_deg")
+N_CH = 7
+POSE0 = 4  # first pose channel
+
+# --- parameter vector ``pp`` -------------------------------------------------------------------
+P_A, P_B, P_C, P_K, P_R = 0, 1, 2, 3, 4
+P_DB = 5
+P_GAIN = 6  # 4 values
+P_TOP, P_RL = 10, 11
+P_EFF = 12  # 3 values
+P_DELAY, P_SUB = 15, 16
+P_DRIFT, P_THRESH, P_WARM, P_MINN, P_CLEAR, P_PWIN, P_FROM_MEAS = 17, 18, 19, 20, 21, 22, 23
+P_NOISE = 24  # 7 given noise levels (0 = estimate)
+P_FLOOR = 31  # 7 noise floors
+P_CMD0 = 38  # 3 values: command in force before the first sample (start from rest)
+P_TOL = 41  # timing tolerance [s]
+P_WIDTH = 42
+
+# --- float state ``fs`` ------------------------------------------------------------------------
+S_Y, S_Z, S_UE, S_TGT = 0, 4, 8, 12  # 4 values each
+S_CUR = 16  # delayed command in force (3)
+S_TPREV, S_TSTART = 22, 23
+S_PX, S_PY, S_PPHI = 24, 25, 26  # model pose, phi in rad
+S_TANCH, S_HAVE_ANCH = 27, 28
+S_PRED = 29  # predicted value of each channel at the last sample (7)
+S_MEAS = 36  # measured value (7)
+S_WIDTH = 43
+
+# --- per-channel state ``ch`` (N_CH, C_WIDTH) --------------------------------------------------
+C_SPOS, C_SNEG, C_SIGMA = 0, 1, 2
+C_SUMP, C_NP, C_ONP = 3, 4, 5  # residual sum, count, onset time of the positive run
+C_SUMN, C_NN, C_ONN = 6, 7, 8
+C_COUNT = 9  # residuals collected for the noise estimate
+C_DIVERGED, C_LASTX = 10, 11  # alarm latched, time of the last threshold crossing
+C_RESID = 12  # last residual
+C_WIDTH = 13
+
+# --- events ``ev`` (max rows, E_WIDTH) ---------------------------------------------------------
+EV_ALARM, EV_RECOVERED, EV_NOISE = 1.0, 2.0, 3.0
+E_KIND, E_CH, E_T, E_RESID, E_ONSET, E_DIR, E_STAT, E_SIGMA, E_PRED, E_MEAS = range(10)
+E_WIDTH = 10
+MAX_EVENTS = 2 * N_CH
+
+# --- command queue ``queue`` (capacity, 4): t_apply, n, omega, theta; ``qi`` = (head, count)
+
+
+@njit(cache=True)
+def discretise_step(A, B, C, h, out):
+    """Closed-form exact discretisation of one wheel over ``h`` seconds into ``out[:10]``.
+
+    Same layout as :func:`mecanum_hil.model.motor.discretise` (without the trailing ``h``):
+    ``a11 a12 a21 a22 b1 b2 cq1 cq2 dq exp(-B h)``.
+    """
+    apb = A + B
+    s = -0.5 * apb  # half the trace of M = [[-(A+B), C], [-1, 0]]
+    d2 = s * s - C
+    x = d2 * h * h
+    if abs(x) < 1e-4:
+        # series of cosh/cos and sinh/sin over d: smooth through the repeated-pole case
+        c = 1.0 + x / 2.0 * (1.0 + x / 12.0 * (1.0 + x / 30.0))
+        g = h * (1.0 + x / 6.0 * (1.0 + x / 20.0 * (1.0 + x / 42.0)))
+    elif d2 > 0:
+        d = math.sqrt(d2)
+        c = math.cosh(d * h)
+        g = math.sinh(d * h) / d
+    else:
+        w = math.sqrt(-d2)
+        c = math.cos(w * h)
+        g = math.sin(w * h) / w
+    es = math.exp(s * h)
+    # exp(M h) = e^{s h} (c I + g (M - s I))
+    a11 = es * (c + g * (-apb - s))
+    a12 = es * g * C
+    a21 = -es * g
+    a22 = es * (c - g * s)
+    # P1 = M^-1 (Ad - I), P2 = M^-1 (P1 - h I), M^-1 = [[0, -1], [1/C, -(A+B)/C]]
+    d11 = a11 - 1.0
+    d22 = a22 - 1.0
+    p11 = -a21
+    p12 = -d22
+    p21 = (d11 - apb * a21) / C
+    p22 = (a12 - apb * d22) / C
+    q11 = -p21
+    q12 = -(p22 - h)
+    out[0] = a11
+    out[1] = a12
+    out[2] = a21
+    out[3] = a22
+    out[4] = p11 * A + p12
+    out[5] = p21 * A + p22
+    out[6] = p11
+    out[7] = p12
+    out[8] = q11 * A + q12
+    out[9] = math.exp(-B * h)
+
+
+@njit(cache=True)
+def _set_targets(pp, fs):
+    n = fs[S_CUR]
+    th = math.radians(fs[S_CUR + 2])
+    s = math.sin(th)
+    c = math.cos(th)
+    v = n / (abs(s) + abs(c))
+    vx = v * s
+    vy = -v * c
+    kwz = pp[P_K] * fs[S_CUR + 1] / 6.0
+    fs[S_TGT + 0] = vx - vy - kwz
+    fs[S_TGT + 1] = vx + vy + kwz
+    fs[S_TGT + 2] = vx + vy - kwz
+    fs[S_TGT + 3] = vx - vy + kwz
+    for i in range(4):
+        if abs(fs[S_TGT + i]) < pp[P_DB]:
+            fs[S_TGT + i] = 0.0
+        fs[S_TGT + i] *= pp[P_GAIN + i]
+
+
+@njit(cache=True)
+def _advance_piece(pp, fs, h, tab, q):
+    """Advance wheels and model pose over ``h`` seconds with the targets in ``fs``."""
+    top = pp[P_TOP]
+    rl = pp[P_RL]
+    saturating = top < np.inf
+    ramping = rl < np.inf
+    nsub = 1
+    if saturating or ramping:
+        nsub = max(1, math.ceil(h / pp[P_SUB] - 1e-9))
+    hs = h / nsub
+    A = pp[P_A]
+    B = pp[P_B]
+    C = pp[P_C]
+    discretise_step(A, B, C, hs, tab)
+    drive_max = B * top
+    k = pp[P_K]
+    lin = _RPM_S_TO_RAD * pp[P_R]
+    for _ in range(nsub):
+        for i in range(4):
+            u = fs[S_TGT + i]
+            if ramping:
+                d = u - fs[S_UE + i]
+                lim = rl * hs
+                if d > lim:
+                    d = lim
+                elif d < -lim:
+                    d = -lim
+                # the ramp's mean over the sub-step, as the simulator holds it
+                u = fs[S_UE + i] + 0.5 * d
+                fs[S_UE + i] += d
+            else:
+                fs[S_UE + i] = u
+            yi = fs[S_Y + i]
+            zi = fs[S_Z + i]
+            if saturating:
+                drive = A * (u - yi) + C * zi
+                if drive > drive_max or drive < -drive_max:
+                    sg = 1.0 if drive > 0 else -1.0
+                    ys = sg * top
+                    if B > 0:
+                        fs[S_Y + i] = ys + (yi - ys) * tab[9]
+                        q[i] = ys * hs + (yi - ys) * (1.0 - tab[9]) / B
+                    else:
+                        q[i] = yi * hs
+                    # anti-windup, as in the simulator
+                    if sg * (u - yi) < 0:
+                        fs[S_Z + i] = zi + (u - yi) * hs
+                    continue
+            q[i] = tab[6] * yi + tab[7] * zi + tab[8] * u
+            fs[S_Y + i] = tab[0] * yi + tab[1] * zi + tab[4] * u
+            fs[S_Z + i] = tab[2] * yi + tab[3] * zi + tab[5] * u
+        bvx = 0.25 * (q[0] + q[1] + q[2] + q[3]) * pp[P_EFF]
+        bvy = 0.25 * (-q[0] + q[1] + q[2] - q[3]) * pp[P_EFF + 1]
+        bwz = 0.25 * (-q[0] + q[1] - q[2] + q[3]) / k * pp[P_EFF + 2]
+        a = bwz * _RPM_S_TO_RAD
+        so, co, _, _ = _exp_se2(a)
+        dxl = lin * (bvx * so - bvy * co)
+        dyl = lin * (bvx * co + bvy * so)
+        cph = math.cos(fs[S_PPHI])
+        sph = math.sin(fs[S_PPHI])
+        fs[S_PX] += cph * dxl - sph * dyl
+        fs[S_PY] += sph * dxl + cph * dyl
+        fs[S_PPHI] += a
+
+
+@njit(cache=True)
+def _advance(pp, fs, queue, qi, t, tab, q):
+    """Advance from the previous sample time to ``t``, splitting at delayed command changes."""
+    tcur = fs[S_TPREV]
+    eps = 1e-12 * max(1.0, abs(t))
+    cap = queue.shape[0]
+    while qi[1] > 0 and queue[qi[0], 0] <= t + eps:
+        ta = queue[qi[0], 0]
+        if ta > tcur + eps:
+            _advance_piece(pp, fs, ta - tcur, tab, q)
+            tcur = ta
+        for j in range(3):
+            fs[S_CUR + j] = queue[qi[0], 1 + j]
+        _set_targets(pp, fs)
+        qi[0] = (qi[0] + 1) % cap
+        qi[1] -= 1
+    if t > tcur + eps:
+        _advance_piece(pp, fs, t - tcur, tab, q)
+
+
+@njit(cache=True)
+def _cusum(pp, ch, c, r, t, ev, nev):
+    """Two-sided CUSUM of channel ``c`` on residual ``r``; returns the new event count."""
+    sig = ch[c, C_SIGMA]
+    z = r / sig
+    k = pp[P_DRIFT]
+    sp = ch[c, C_SPOS] + z - k
+    if sp > 0.0:
+        if ch[c, C_SPOS] == 0.0:
+            ch[c, C_SUMP] = 0.0
+            ch[c, C_NP] = 0.0
+            ch[c, C_ONP] = t
+        ch[c, C_SUMP] += r
+        ch[c, C_NP] += 1.0
+    else:
+        sp = 0.0
+    sn = ch[c, C_SNEG] - z - k
+    if sn > 0.0:
+        if ch[c, C_SNEG] == 0.0:
+            ch[c, C_SUMN] = 0.0
+            ch[c, C_NN] = 0.0
+            ch[c, C_ONN] = t
+        ch[c, C_SUMN] += r
+        ch[c, C_NN] += 1.0
+    else:
+        sn = 0.0
+    ch[c, C_SPOS] = sp
+    ch[c, C_SNEG] = sn
+    h = pp[P_THRESH]
+    if sp > h or sn > h:
+        pos = sp >= sn
+        if ch[c, C_DIVERGED] == 0.0:
+            ev[nev, E_KIND] = EV_ALARM
+            ev[nev, E_CH] = c
+            ev[nev, E_T] = t
+            # the CUSUM's own estimate of the shift: mean residual since the statistic left 0
+            ev[nev, E_RESID] = ch[c, C_SUMP] / ch[c, C_NP] if pos else ch[c, C_SUMN] / ch[c, C_NN]
+            ev[nev, E_ONSET] = ch[c, C_ONP] if pos else ch[c, C_ONN]
+            ev[nev, E_DIR] = 1.0 if pos else -1.0
+            ev[nev, E_STAT] = sp if pos else sn
+            ev[nev, E_SIGMA] = sig
+            nev += 1
+            ch[c, C_DIVERGED] = 1.0
+        ch[c, C_LASTX] = t
+        ch[c, C_SPOS] = 0.0
+        ch[c, C_SNEG] = 0.0
+    elif ch[c, C_DIVERGED] == 1.0 and t - ch[c, C_LASTX] >= pp[P_CLEAR]:
+        ch[c, C_DIVERGED] = 0.0
+        ev[nev, E_KIND] = EV_RECOVERED
+        ev[nev, E_CH] = c
+        ev[nev, E_T] = t
+        ev[nev, E_RESID] = r
+        ev[nev, E_ONSET] = ch[c, C_LASTX]
+        ev[nev, E_SIGMA] = sig
+        nev += 1
+    return nev
+
+
+@njit(cache=True)
+def _residual(pp, fs, ch, buf, c, r, t, ev, nev):
+    """Feed residual ``r`` of channel ``c``: noise estimation during warm-up, then the CUSUM."""
+    ch[c, C_RESID] = r
+    if ch[c, C_SIGMA] > 0.0:
+        return _cusum(pp, ch, c, r, t, ev, nev)
+    n = int(ch[c, C_COUNT])
+    buf[c, n] = r
+    n += 1
+    ch[c, C_COUNT] = n
+    if n >= buf.shape[1] or (n >= pp[P_MINN] and t - fs[S_TSTART] >= pp[P_WARM]):
+        x = buf[c, :n]
+        mad = np.median(np.abs(x - np.median(x)))
+        ch[c, C_SIGMA] = max(1.482602218505602 * mad, pp[P_FLOOR + c])
+        ev[nev, E_KIND] = EV_NOISE
+        ev[nev, E_CH] = c
+        ev[nev, E_T] = t
+        ev[nev, E_SIGMA] = ch[c, C_SIGMA]
+        nev += 1
+    return nev
+
+
+@njit(cache=True)
+def _slope(pp, fs, i):
+    """Rate of change of the model's wheel ``i`` now [rpm/s] (drive output minus the pole)."""
+    y = fs[S_Y + i]
+    drive = pp[P_A] * (fs[S_UE + i] - y) + pp[P_C] * fs[S_Z + i]
+    lim = pp[P_B] * pp[P_TOP]
+    if drive > lim:
+        drive = lim
+    elif drive < -lim:
+        drive = -lim
+    return drive - pp[P_B] * y
+
+
+@njit(cache=True)
+def _wrap_deg(a):
+    return (a + 180.0) % 360.0 - 180.0
+
+
+@njit(cache=True)
+def monitor_step(row, pp, fs, ch, buf, queue, qi, ev, tab, q):
+    """Process one sample ``row = (t, n, omega, theta, w1..w4, x, y, phi)``.
+
+    Returns the number of events written to ``ev`` (0 almost always).
+    """
+    t = row[0]
+    nev = 0
+    if math.isnan(fs[S_TPREV]):
+        fs[S_TSTART] = t
+        start_meas = pp[P_FROM_MEAS] > 0.0
+        for j in range(3):
+            c0 = row[1 + j] if start_meas and not math.isnan(row[1 + j]) else pp[P_CMD0 + j]
+            fs[S_CUR + j] = c0
+        _set_targets(pp, fs)
+        for i in range(4):
+            w = row[4 + i]
+            if start_meas and not math.isnan(w):
+                # steady state at the measured speed: drive A (u - y) + C z = B y with u = y
+                fs[S_Y + i] = w
+                fs[S_Z + i] = pp[P_B] * w / pp[P_C]
+                fs[S_UE + i] = w
+            else:
+                fs[S_Y + i] = 0.0
+                fs[S_Z + i] = 0.0
+                fs[S_UE + i] = 0.0
+        if not (math.isnan(row[8]) or math.isnan(row[9]) or math.isnan(row[10])):
+            fs[S_PX] = row[8]
+            fs[S_PY] = row[9]
+            fs[S_PPHI] = math.radians(row[10])
+        else:
+            fs[S_PX] = 0.0
+            fs[S_PY] = 0.0
+            fs[S_PPHI] = math.radians(90.0)
+    else:
+        _advance(pp, fs, queue, qi, t, tab, q)
+    fs[S_TPREV] = t
+    # queue this sample's command: it acts from t + dead time. Every sample gets an entry, also
+    # a repeated command, because the simulator cuts its grid at every delayed sample time and
+    # the pose integration (exact for a constant twist only) depends on where steps are cut.
+    if not (math.isnan(row[1]) or math.isnan(row[2]) or math.isnan(row[3])):
+        cap = queue.shape[0]
+        tail = (qi[0] + qi[1]) % cap
+        queue[tail, 0] = t + pp[P_DELAY]
+        for j in range(3):
+            queue[tail, 1 + j] = row[1 + j]
+        qi[1] += 1
+    for i in range(4):
+        fs[S_PRED + i] = fs[S_Y + i]
+        fs[S_MEAS + i] = row[4 + i]
+        if not math.isnan(row[4 + i]):
+            r = row[4 + i] - fs[S_Y + i]
+            if pp[P_TOL] > 0.0:
+                # a measurement the model reaches within +-tol seconds is consistent with it:
+                # shrink the residual by the model's slope times the tolerance (first order),
+                # so sub-millisecond clock and latency offsets do not read as divergence
+                slack = abs(_slope(pp, fs, i)) * pp[P_TOL]
+                r = r - slack if r > slack else (r + slack if r < -slack else 0.0)
+            nev = _residual(pp, fs, ch, buf, i, r, t, ev, nev)
+    fs[S_PRED + 4] = fs[S_PX]
+    fs[S_PRED + 5] = fs[S_PY]
+    fs[S_PRED + 6] = math.degrees(fs[S_PPHI])
+    for j in range(3):
+        fs[S_MEAS + 4 + j] = row[8 + j]
+    if not (math.isnan(row[8]) or math.isnan(row[9]) or math.isnan(row[10])):
+        if fs[S_HAVE_ANCH] == 0.0:
+            fs[S_HAVE_ANCH] = 1.0
+            fs[S_TANCH] = t
+            fs[S_PX] = row[8]
+            fs[S_PY] = row[9]
+            fs[S_PPHI] = math.radians(row[10])
+        elif t - fs[S_TANCH] >= pp[P_PWIN] * (1.0 - 1e-9):
+            # pose over a window, re-anchored on the measured pose: the open-loop model's
+            # dead-reckoning drift cannot build up, and the noise of a window's residual is
+            # that of two pose measurements whatever the window's length
+            nev = _residual(pp, fs, ch, buf, 4, row[8] - fs[S_PX], t, ev, nev)
+            nev = _residual(pp, fs, ch, buf, 5, row[9] - fs[S_PY], t, ev, nev)
+            nev = _residual(pp, fs, ch, buf, 6, _wrap_deg(row[10] - math.degrees(fs[S_PPHI])),
+                            t, ev, nev)
+            fs[S_TANCH] = t
+            fs[S_PX] = row[8]
+            fs[S_PY] = row[9]
+            fs[S_PPHI] = math.radians(row[10])
+    for e in range(nev):
+        c = int(ev[e, E_CH])
+        ev[e, E_PRED] = fs[S_PRED + c]
+        ev[e, E_MEAS] = fs[S_MEAS + c]
+    return nev
+
+
+@njit(cache=True)
+def monitor_run(rows, start, pp, fs, ch, buf, queue, qi, ev, tab, q):
+    """Run :func:`monitor_step` over ``rows[start:]``; stop after the first row with events.
+
+    Returns ``(next_row, n_events)``; ``next_row == len(rows)`` when all rows are done. The
+    replay uses this to handle events in Python exactly as a live monitor would, sample by sample.
+    """
+    n = rows.shape[0]
+    for r in range(start, n):
+        if qi[1] >= queue.shape[0]:
+            return r, -1  # the caller grows the command queue and resumes at this row
+        nev = monitor_step(rows[r], pp, fs, ch, buf, queue, qi, ev, tab, q)
+        if nev > 0:
+            return r + 1, nev
+    return n, 0

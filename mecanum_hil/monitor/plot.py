@@ -1,0 +1,71 @@
+"""PNG of a shadow run: measured wheel speeds against the model, alarms marked."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import MecanumHILError
+from ..io.recording import Recording
+
+
+def plot_shadow(measured: Recording, model: Recording, alarms: Sequence, path: str | Path,
+                title: str = "", fault_t_s: float | None = None) -> Path:
+    """Wheel speeds (measured dots, model lines) and residuals, one colour per wheel.
+
+    Parameters
+    ----------
+    measured, model : Recording
+        The run and the model's prediction for its commands (same ``t_s``).
+    alarms : sequence of Alarm
+        Drawn as vertical lines, labelled with their channel.
+    path : str or Path
+        PNG to write.
+    fault_t_s : float, optional
+        A known fault time (demo), drawn dashed.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_w, ax_r) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    t = measured.t_s
+    for i in range(4):
+        y = measured.wheel_rpm[:, i]
+        if not np.isfinite(y).any():
+            continue
+        ax_w.plot(t, y, ".", color=colours[i], ms=1.5, label=f"wheel {i + 1} measured")
+        ax_w.plot(model.t_s, model.wheel_rpm[:, i], "-", color=colours[i], lw=1.0,
+                  label=f"wheel {i + 1} model")
+        ax_r.plot(t, y - model.wheel_rpm[:, i], "-", color=colours[i], lw=0.7,
+                  label=f"wheel {i + 1}")
+    for ax in (ax_w, ax_r):
+        if fault_t_s is not None:
+            ax.axvline(fault_t_s, color="k", ls="--", lw=1.0)
+        for a in alarms:
+            ax.axvline(a.t_s, color="r", lw=1.0, alpha=0.7)
+        ax.grid(True, alpha=0.3)
+    for a in alarms[:8]:
+        ax_r.annotate(a.channel, (a.t_s, 0.0), rotation=90, fontsize=7, color="r",
+                      xytext=(2, 2), textcoords="offset points")
+    ax_w.set_ylabel("wheel speed [rpm]")
+    ax_w.legend(fontsize=6, ncol=4)
+    ax_r.set_ylabel("measured - model [rpm]")
+    ax_r.set_xlabel("t [s]")
+    ax_r.legend(fontsize=6, ncol=4)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(p, dpi=110)
+    except OSError as err:
+        raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
+    finally:
+        plt.close(fig)
+    return p

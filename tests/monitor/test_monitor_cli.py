@@ -1,0 +1,81 @@
+"""``mecanum-hil shadow --replay``: exact JSON, exit codes, event log, one-line errors."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from mecanum_hil.io.recording import write_recording
+from mecanum_hil.model import Calibration
+from mecanum_hil.monitor.scenarios import driving_commands, make_fault, simulate_run
+
+
+def cli(*args):
+    return subprocess.run([sys.executable, "-m", "mecanum_hil", *map(str, args)],
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("shadow")
+    t, cmd = driving_commands(14.0, 100.0)
+    cal = Calibration()
+    faulty = write_recording(simulate_run(t, cmd, cal, make_fault("stall", 10.0, wheel=3)),
+                             d / "faulty.csv")
+    nominal = write_recording(simulate_run(t, cmd, cal, None, seed=5), d / "nominal.csv")
+    return faulty, nominal
+
+
+def test_replay_json_with_alarm_exits_3_and_writes_the_event_log(runs, tmp_path):
+    faulty, _ = runs
+    r = cli("shadow", "--replay", faulty, "--json", "--plot", tmp_path / "p.png")
+    assert r.returncode == 3, r.stderr
+    out = json.loads(r.stdout)
+    assert list(out) == ["alarms", "first_alarm_t_s"]
+    assert all(list(a) == ["t_s", "channel", "residual"] for a in out["alarms"])
+    assert out["alarms"][0]["channel"] == "wheel3_rpm"
+    assert out["first_alarm_t_s"] == out["alarms"][0]["t_s"]
+    assert 10.0 <= out["first_alarm_t_s"] <= 10.3
+    log = faulty.with_name("faulty.shadow.jsonl")
+    events = [json.loads(line) for line in log.read_text().splitlines()]
+    assert events[0]["event"] == "start" and events[0]["calibration"].endswith("paper.toml")
+    assert [e["channel"] for e in events if e["event"] == "alarm"][0] == "wheel3_rpm"
+    assert events[-1]["event"] == "end"
+    assert (tmp_path / "p.png").stat().st_size > 10_000
+
+
+def test_replay_nominal_exits_0_with_null_first_alarm(runs, tmp_path):
+    _, nominal = runs
+    r = cli("shadow", "--replay", nominal, "--json", "--events", tmp_path / "ev.jsonl")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout) == {"alarms": [], "first_alarm_t_s": None}
+    assert (tmp_path / "ev.jsonl").exists()
+
+
+def test_replay_text_output_names_the_alarm(runs):
+    faulty, _ = runs
+    r = cli("shadow", "--replay", faulty, "--no-events", "--noise-rpm", "1.0")
+    assert r.returncode == 3
+    assert "ALARM" in r.stdout and "wheel3_rpm" in r.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--replay", "missing.csv"], "file not found"),
+    ([], "exactly one of --replay"),
+    (["--replay", "x.csv", "--on-divergence", "explode"], "--on-divergence"),
+])
+def test_bad_input_is_one_error_line(args, message, tmp_path):
+    r = cli("shadow", *args)
+    assert r.returncode == 1
+    assert r.stderr.startswith("error: ") and message in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_recording_without_measurements_is_refused(tmp_path):
+    t, cmd = driving_commands(2.0, 50.0)
+    rec = simulate_run(t, cmd, Calibration(), None)
+    path = write_recording(rec.with_values(wheel_rpm=rec.wheel_rpm * float("nan")),
+                           tmp_path / "empty.csv")
+    r = cli("shadow", "--replay", path)
+    assert r.returncode == 1 and "nothing measured" in r.stderr
