@@ -40,7 +40,7 @@ def test_replay_json_with_alarm_exits_3_and_writes_the_event_log(runs, tmp_path)
     log = faulty.with_name("faulty.shadow.jsonl")
     events = [json.loads(line) for line in log.read_text().splitlines()]
     assert events[0]["event"] == "start" and events[0]["calibration"].endswith("paper.toml")
-    assert [e["channel"] for e in events if e["event"] == "alarm"][0] == "wheel3_rpm"
+    assert next(e["channel"] for e in events if e["event"] == "alarm") == "wheel3_rpm"
     assert events[-1]["event"] == "end"
     assert (tmp_path / "p.png").stat().st_size > 10_000
 
