@@ -77,8 +77,10 @@ FINE_START_GRID: dict[str, np.ndarray] = {
     "C": np.logspace(0, 6, 19),
 }
 
-#: Number of grid minima least squares starts from (the best result is kept).
+#: Number of grid minima least squares starts from (the best result is kept), and how far
+#: above the best grid point's SSE a further minimum may lie to be used.
 START_COUNT = 3
+START_SSE_RATIO = 1.25
 
 #: Largest condition number of the column-scaled Jacobian for which intervals are trusted.
 MAX_CONDITION = 1e8
@@ -452,7 +454,10 @@ def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, 
         else:
             sse[ok] = _sse_of(data, [base.with_coefficients(*pt) for pt in pts[ok]], robot)
         starts = []
-        for flat in _local_minima(sse.reshape([a.size for a in axes]), START_COUNT):
+        minima = _local_minima(sse.reshape([a.size for a in axes]), START_COUNT)
+        # a minimum far above the best rarely leads least squares to a better optimum
+        minima = [f for f in minima if sse[f] <= START_SSE_RATIO * sse[minima[0]]]
+        for flat in minima:
             s = dict(start)
             for i, n in enumerate(_COEFFICIENTS):
                 if n in grid_names:
