@@ -159,29 +159,30 @@ class BlobDetector:
 
         crop = frame[self.y0:self.y1, self.x0:self.x1]
         s = self.stride
-        small = np.ascontiguousarray(crop[::s, ::s]) if s > 1 else crop
+        hc, wc = crop.shape[:2]
+        small = cv2.resize(crop, (wc // s, hc // s), interpolation=cv2.INTER_NEAREST) \
+            if s > 1 else crop
         mask = self._mask(small)
         n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
         if n <= 1:
             return np.empty((0, 4))
         order = np.argsort(-stats[1:, cv2.CC_STAT_AREA])[:MAX_BLOBS] + 1
         out = []
-        hc, wc = crop.shape[:2]
         for k in order:
             bx, by, bw, bh = stats[k, :4]
             wx0, wy0 = max(0, (bx - 1) * s), max(0, (by - 1) * s)
             wx1, wy1 = min(wc, (bx + bw + 1) * s), min(hc, (by + bh + 1) * s)
-            win = crop[wy0:wy1, wx0:wx1].astype(np.int16)
-            weight = (win.max(axis=2) - win.min(axis=2) - BACKGROUND_SATURATION).astype(np.float32)
-            np.maximum(weight, 0.0, out=weight)
+            win = np.ascontiguousarray(crop[wy0:wy1, wx0:wx1])
+            b, g, r = cv2.split(win)
+            sat = cv2.subtract(cv2.max(cv2.max(b, g), r), cv2.min(cv2.min(b, g), r))
+            weight = cv2.subtract(sat, BACKGROUND_SATURATION)  # saturates at 0
             if self.spec.kind == "hsv":
-                weight *= self._mask(np.ascontiguousarray(crop[wy0:wy1, wx0:wx1])) > 0
-            total = float(weight.sum())
+                weight = cv2.bitwise_and(weight, self._mask(win))
+            mom = cv2.moments(weight)
+            total = mom["m00"]
             if total <= 0.0:
                 continue
-            cx = float(weight.sum(axis=0) @ np.arange(wx1 - wx0)) / total
-            cy = float(weight.sum(axis=1) @ np.arange(wy1 - wy0)) / total
-            mean = np.tensordot(weight, win, axes=([0, 1], [0, 1])) / total
-            out.append((self.x0 + wx0 + cx, self.y0 + wy0 + cy,
-                        _hue_deg(float(mean[0]), float(mean[1]), float(mean[2])), total))
+            mean = cv2.mean(win, mask=cv2.compare(weight, 0, cv2.CMP_GT))
+            out.append((self.x0 + wx0 + mom["m10"] / total, self.y0 + wy0 + mom["m01"] / total,
+                        _hue_deg(mean[0], mean[1], mean[2]), total))
         return np.array(out, dtype=float).reshape(-1, 4)

@@ -182,7 +182,10 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
     link = _link_frames(frame_idx, xy, hue_deg, n_frames, 0.25 * max_radius_px, hue_tol_deg)
     moving = np.flatnonzero((link >= 0) & (np.hypot(*(xy[np.maximum(link, 0)] - xy).T) > 0.5))
     best: tuple[float, Ellipse | None, float] = (-1.0, None, 0.0)
+    last_gain = 0
     for h in range(hypotheses):
+        if h - last_gain > hypotheses // 4:
+            break  # no better path in a long while: the marker's is found
         # Half the hypotheses follow one blob from frame to frame (five points of one chain),
         # half draw moving blobs of one hue at random (robust when the linking fails).
         i0 = int(rng.choice(moving)) if moving.size and h % 4 else int(rng.integers(m))
@@ -210,6 +213,8 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
         # sliding along a line sits on a thin ellipse's two ends only.
         score = np.unique(cell[same[ok]]).size * angular_coverage(ang[ok])
         if score > best[0]:
+            if score > 1.05 * best[0]:
+                last_gain = h
             best = (score, e, float(hue_deg[i0]))
     score, path, hue0 = best
     if path is None or score < 3:
