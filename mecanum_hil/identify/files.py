@@ -131,3 +131,47 @@ def fit_files(paths: Sequence[str | Path], out: str | Path, robot: RobotProfile,
     report_path = (plot_fit(result, recordings, robot, report, sources)
                    if report is not None else None)
     return FitOutput(result, cal_path, report_path)
+
+
+def fit_demo(recording_paths: Sequence[str | Path], out_dir: str | Path,
+             robot: RobotProfile | None = None, echo=print,
+             method: str = "lsq") -> dict[str, Path]:
+    """The demo's fitting step: fit its recordings, write ``calibration.toml`` and ``report.png``.
+
+    Recordings without any measured wheel speed (pure command profiles) are left out.
+
+    Parameters
+    ----------
+    recording_paths : sequence of str or Path
+        The recordings the demo made.
+    out_dir : str or Path
+        Folder for ``calibration.toml`` and ``report.png``.
+    robot : RobotProfile, optional
+        Geometry (default: the shipped robot profile).
+    echo : callable
+        Prints one progress line.
+    method : {"lsq", "paper-grid"}
+        Fitting method.
+
+    Returns
+    -------
+    dict
+        ``{"fit/calibration": path, "fit/report": path}``.
+    """
+    from ..errors import FitError
+    from ..model import load_robot_profile
+
+    robot = robot or load_robot_profile()
+    usable = [Path(p) for p in recording_paths
+              if np.isfinite(read_recording(p).wheel_rpm).any()]
+    if not usable:
+        raise FitError("the demo made no recording with measured wheel speeds to fit")
+    out = Path(out_dir)
+    res = fit_files(usable, out / "calibration.toml", robot, method, report=out / "report.png")
+    c = res.result.calibration
+    echo(f"   fit ({method}) of {len(usable)} recordings: A={c.A:.4g} B={c.B:.4g} C={c.C:.4g}, "
+         f"fit {res.result.fit_percent:.1f} %, RMSE {res.result.rmse_rpm:.3g} rpm -> "
+         f"{res.calibration_path} , {res.report_path.name}")
+    for w in res.result.warnings:
+        echo(f"   warning: {w}")
+    return {"fit/calibration": res.calibration_path, "fit/report": res.report_path}

@@ -111,3 +111,18 @@ def test_real_micromouse_step_responses(shared_real_data, tmp_path):
     assert figures["testPid7"] > 60 and figures["testPid8"] > 65
     assert figures["controllerDelayImpact1ms"] > 25
     assert (tmp_path / "testPid7.png").stat().st_size > 10_000
+
+
+def test_fit_demo_writes_calibration_and_report(step_csv, tmp_path):
+    from mecanum_hil.identify.files import fit_demo
+
+    rec = read_recording(step_csv)
+    profile_only = write_recording(rec.with_values(wheel_rpm=np.full_like(rec.wheel_rpm, np.nan)),
+                                   tmp_path / "profile.csv")
+    lines = []
+    written = fit_demo([step_csv, profile_only], tmp_path / "fit", RobotProfile(), lines.append)
+    cal = load_calibration(written["fit/calibration"])
+    assert cal.info["sources"] == [str(step_csv)]
+    assert cal.A == pytest.approx(27.0, rel=0.05)
+    assert written["fit/report"].stat().st_size > 10_000
+    assert "fit (lsq) of 1 recordings" in lines[0]
