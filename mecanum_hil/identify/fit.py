@@ -475,7 +475,8 @@ def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, 
             for s in starts]
 
 
-def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free: Sequence[str]):
+def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free: Sequence[str],
+               on_bound: np.ndarray):
     """95 % Wald intervals from the Jacobian; warnings for parameters the data cannot pin down."""
     from scipy.stats import t as student_t
 
@@ -504,7 +505,7 @@ def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free:
         if d:
             warnings.append(f"{name} is not identifiable: the data do not depend on it")
     for i, name in enumerate(free):
-        if math.isfinite(half[i]) and half[i] > max(abs(x[i]), 1e-12):
+        if not on_bound[i] and math.isfinite(half[i]) and half[i] > max(abs(x[i]), 1e-12):
             warnings.append(
                 f"{name} is poorly identified: 95 % interval +-{half[i]:.4g} exceeds its value "
                 f"{x[i]:.4g} (the data may lack a transient, e.g. a step too short)")
@@ -538,14 +539,19 @@ def finish(data, calibration, robot, free, x, method, *, J=None, r=None, pose_we
                            np.array([DEFAULT_BOUNDS[n][0] for n in free]),
                            np.array([DEFAULT_BOUNDS[n][1] for n in free]), pose_weight)
         r, J = problem.fun(x), problem.jac(x)
-    half, warnings = _intervals(J, r, x, free)
+    if lower is None or upper is None:
+        lower = np.array([DEFAULT_BOUNDS[n][0] for n in free])
+        upper = np.array([DEFAULT_BOUNDS[n][1] for n in free])
+    tol = 1e-6 * np.maximum(1.0, np.abs(x))
+    on_bound = (x <= lower + tol) | (x >= upper - tol)
+    half, warnings = _intervals(J, r, x, free, on_bound)
     warnings = list(extra_warnings) + warnings
-    if lower is not None and upper is not None:
-        for i, name in enumerate(free):
-            tol = 1e-6 * max(1.0, abs(x[i]))
-            if x[i] <= lower[i] + tol or x[i] >= upper[i] - tol:
-                warnings.append(f"{name} = {x[i]:.6g} is on its bound; its interval assumes an "
-                                "interior optimum")
+    for i, name in enumerate(free):
+        if on_bound[i]:
+            edge = lower[i] if x[i] <= lower[i] + tol[i] else upper[i]
+            warnings.append(f"{name} = {x[i]:.4g} is at its bound {edge:g}: the data favour the "
+                            "edge of the allowed range, and its interval (which assumes an "
+                            "interior optimum) is only indicative")
     params = {n: float(v) for n, v in zip(free, x, strict=True)}
     cal = with_parameters(calibration, params)
     sse, rmse, fit_pct, n, per = _metrics(data, cal, robot)
