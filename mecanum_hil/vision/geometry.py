@@ -184,7 +184,7 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
     best: tuple[float, Ellipse | None, float] = (-1.0, None, 0.0)
     last_gain = 0
     for h in range(hypotheses):
-        if h - last_gain > hypotheses // 4:
+        if h - last_gain > max(40, hypotheses // 8):
             break  # no better path in a long while: the marker's is found
         # Half the hypotheses follow one blob from frame to frame (five points of one chain),
         # half draw moving blobs of one hue at random (robust when the linking fails).

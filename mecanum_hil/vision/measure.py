@@ -31,6 +31,9 @@ from .video import FrameTiming, frame_times, iter_frames, open_video
 DEFAULT_WINDOW_S = 0.1
 #: Default smallest share of frames with the marker found for a trustworthy result.
 DEFAULT_MIN_FOUND = 0.5
+#: Frames after which (and after twice, four times as many ...) the marker's path is looked
+#: for, to measure only blobs near it from then on.
+FOCUS_AFTER_FRAMES = 60
 
 
 @dataclass(frozen=True)
@@ -119,6 +122,7 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     stamps: list[float] = []
     q: queue.Queue = queue.Queue(maxsize=8)
     stop = threading.Event()
+    next_focus = FOCUS_AFTER_FRAMES
     worker = threading.Thread(target=_decode_ahead, args=(cap, q, stop), daemon=True)
     worker.start()
     try:
@@ -134,6 +138,11 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
             stamps.append(t)
             for k, det in enumerate(detectors):
                 results[k].append(det(frame))
+            if len(stamps) == next_focus:
+                next_focus *= 2
+                for k, det in enumerate(detectors):
+                    if isinstance(det, BlobDetector) and det.path is None:
+                        _focus(det, results[k])
             if progress is not None:
                 progress(len(stamps), info.frame_count)
     finally:
@@ -141,6 +150,20 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
         worker.join(timeout=5.0)
         cap.release()
     return info, np.array(stamps, dtype=float), results
+
+
+def _focus(det: BlobDetector, cands: list[np.ndarray]) -> None:
+    """Find the marker's path in the frames so far; if it is clear, focus the detector on it."""
+    n = len(cands)
+    frame_idx = np.concatenate([np.full(len(c), i) for i, c in enumerate(cands)]).astype(int)
+    allc = np.concatenate(cands)
+    try:
+        track = select_track(frame_idx, allc[:, :2], allc[:, 2], n, det.size_px,
+                             np.random.default_rng(1), hypotheses=200)
+    except VideoError:
+        return
+    if track.found.mean() >= 0.9 and track.coverage >= 0.25:
+        det.focus(track.path)
 
 
 def _wheel_angles(cands: list[np.ndarray], n: int, detector: BlobDetector, seed: int,
