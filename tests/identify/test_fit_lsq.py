@@ -174,3 +174,16 @@ def test_bad_input_is_a_fit_error():
         fit([measured(t, cmd, TRUE)], ROBOT, "simplex")
     with pytest.raises(FitError, match="paper-grid"):
         fit([measured(t, cmd, TRUE)], ROBOT, "lsq", a_grid=(0, 10, 1))
+
+
+def test_no_convergence_is_a_fit_error(monkeypatch):
+    import scipy.optimize
+
+    real = scipy.optimize.least_squares
+
+    def starved(*args, **kwargs):  # the real solver, allowed a single evaluation
+        return real(*args, **{**kwargs, "max_nfev": 1})
+
+    monkeypatch.setattr(scipy.optimize, "least_squares", starved)
+    with pytest.raises(FitError, match="did not converge"):
+        fit([measured(*step(), TRUE)], ROBOT)
