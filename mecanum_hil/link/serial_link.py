@@ -25,6 +25,47 @@ from .transport import Transport
 MAX_PENDING_BYTES = 16384
 
 
+class PendingOutput:
+    """Bytes on their way out through a writer that never blocks.
+
+    Parameters
+    ----------
+    write : callable
+        Takes bytes, returns how many it took; raises ``BlockingIOError`` when it takes none
+        now and ``OSError`` when the device is gone.
+    where : str
+        Port name for error messages.
+    limit : int
+        Largest backlog [bytes]; beyond it :meth:`queue` refuses the data.
+    """
+
+    def __init__(self, write, where: str, limit: int = MAX_PENDING_BYTES) -> None:
+        self._write = write
+        self.where = where
+        self.limit = limit
+        self._buf = bytearray()
+
+    def queue(self, data: bytes) -> None:
+        """Add ``data`` and push what the device takes now."""
+        self.flush()
+        if len(self._buf) + len(data) > self.limit:
+            raise LinkError(f"{self.where}: output buffer full, the other side does not read")
+        self._buf += data
+        self.flush()
+
+    def flush(self) -> None:
+        """Push what the device takes now; keep the rest."""
+        if not self._buf:
+            return
+        try:
+            n = self._write(bytes(self._buf))
+        except BlockingIOError:
+            return
+        except OSError as err:
+            raise LinkLostError(f"{self.where}: link lost while writing: {err}") from err
+        del self._buf[:n or 0]
+
+
 class SerialTransport(Transport):
     """Framed protocol over a serial port (``/dev/ttyUSB0``, ``loop://``, ``socket://...``).
 
@@ -51,7 +92,7 @@ class SerialTransport(Transport):
         self._ser = None
         self._decoder = StreamDecoder()
         self._inbox: deque[Message] = deque()
-        self._out = bytearray()
+        self._out = PendingOutput(self._write, self.port)
         if fd is not None:
             os.set_blocking(fd, False)
             self._fd: int | None = fd
@@ -84,30 +125,17 @@ class SerialTransport(Transport):
 
     # -- hooks -------------------------------------------------------------------------------
     def _send(self, msg: Message) -> None:
-        frame = encode(msg)
-        self._flush_out()
-        if len(self._out) + len(frame) > MAX_PENDING_BYTES:
-            raise LinkError(f"{self.port}: output buffer full, the other side does not read")
-        self._out += frame
-        self._flush_out()
+        self._out.queue(encode(msg))
 
-    def _flush_out(self) -> None:
-        if not self._out:
-            return
+    def _write(self, data: bytes) -> int:
+        if self._fd is not None:
+            return os.write(self._fd, data)
         try:
-            if self._fd is not None:
-                n = os.write(self._fd, self._out)
-            else:
-                n = self._ser.write(bytes(self._out)) or 0
-        except BlockingIOError:
-            return
-        except OSError as err:
-            raise LinkLostError(f"{self.port}: link lost while writing: {err}") from err
-        except Exception as err:  # serial.SerialException (not imported when fd-based)
+            return self._ser.write(data) or 0
+        except Exception as err:  # serial.SerialException (pyserial imported lazily)
             if type(err).__name__ == "SerialTimeoutException":
-                return  # nothing taken this time: stays pending (the fd path never blocks)
-            raise LinkLostError(f"{self.port}: link lost while writing: {err}") from err
-        del self._out[:n]
+                raise BlockingIOError from err  # nothing taken now: stays pending
+            raise OSError(str(err)) from err
 
     def _read_available(self, timeout_s: float) -> bytes:
         if self._fd is None:
@@ -140,7 +168,7 @@ class SerialTransport(Transport):
     def _recv(self, timeout_s: float) -> Message | None:
         deadline = time.monotonic() + timeout_s
         while not self._inbox:
-            self._flush_out()
+            self._out.flush()
             remaining = deadline - time.monotonic()
             data = self._read_available(max(0.0, remaining))
             if data:
@@ -158,7 +186,7 @@ class SerialTransport(Transport):
 
     def _close(self) -> None:
         try:
-            self._flush_out()
+            self._out.flush()
         except LinkError:
             pass
         if self._ser is not None:

@@ -16,13 +16,11 @@ import select
 import time
 from collections import deque
 
-from ..errors import LinkError, LinkLostError
+from ..errors import LinkLostError
 from .can_link import CanCodec
 from .protocol import FrameError, Message
+from .serial_link import PendingOutput
 from .transport import Transport
-
-#: Largest amount of unsent output kept before frames are dropped [bytes].
-MAX_PENDING_BYTES = 32768
 
 # answers to adapter commands: C close, S/s bitrate, O open, L listen-only, V/v version,
 # N serial number, F status flags, Z timestamps, M/m acceptance filter; '' (bare CR) is a no-op
@@ -51,27 +49,13 @@ class SlcanAdapterTransport(Transport):
         self._codec = CanCodec()
         self._line = bytearray()
         self._inbox: deque[Message] = deque()
-        self._out = bytearray()
+        self._out = PendingOutput(lambda data: os.write(fd, data), "slcan adapter", 32768)
 
     def wire_command(self, n_rpm, omega_dps, theta_deg):
         return self._codec.wire_command(n_rpm, omega_dps, theta_deg)
 
     def _queue(self, data: bytes) -> None:
-        if len(self._out) + len(data) > MAX_PENDING_BYTES:
-            raise LinkError("slcan adapter: output buffer full, the host does not read")
-        self._out += data
-        self._flush()
-
-    def _flush(self) -> None:
-        if not self._out:
-            return
-        try:
-            n = os.write(self.fd, self._out)
-        except BlockingIOError:
-            return
-        except OSError as err:
-            raise LinkLostError(f"slcan adapter: link lost: {err}") from err
-        del self._out[:n]
+        self._out.queue(data)
 
     def _send(self, msg: Message) -> None:
         if not self.opened:
@@ -118,7 +102,7 @@ class SlcanAdapterTransport(Transport):
     def _recv(self, timeout_s: float) -> Message | None:
         deadline = time.monotonic() + timeout_s
         while not self._inbox:
-            self._flush()
+            self._out.flush()
             remaining = max(0.0, deadline - time.monotonic())
             ready, _, _ = select.select([self.fd], [], [], remaining)
             if ready:

@@ -64,10 +64,14 @@ def _check_against_model(path, noise_std, quantum=0.0):
     assert tlm.sum() > 50
     ctrl_t = rec.extra_numeric("controller_time_s")[tlm]
     sample_t = ctrl_t + np.min(rec.t_s[tlm] - ctrl_t)  # on the host clock
-    grid = np.arange(0.0, rec.t_s[-1] + 0.01, 0.001)
-    held = np.clip(np.searchsorted(rec.t_s, grid, side="right") - 1, 0, None)
-    wheels = simulate(rec.commands[held], grid, cal, robot).wheel_rpm[0]
     late_s = rec.metadata["latency_ms"]["ack_max"] / 1e3 + 0.002
+    # a sample can predate the first command (received just after it): start the grid early
+    start = min(0.0, float(sample_t.min()) - late_s) - 0.01
+    grid = np.arange(start, rec.t_s[-1] + 0.01, 0.001)
+    held = np.searchsorted(rec.t_s, grid, side="right") - 1
+    commands = np.where((held >= 0)[:, None], rec.commands[np.clip(held, 0, None)],
+                        [0.0, 0.0, 90.0])  # at rest before the first command
+    wheels = simulate(commands, grid, cal, robot).wheel_rpm[0]
     lo_i = np.searchsorted(grid, sample_t - late_s)
     hi_i = np.searchsorted(grid, sample_t + 0.0015, side="right")
     lo = np.array([wheels[a:b].min(axis=0) for a, b in zip(lo_i, hi_i, strict=True)])

@@ -140,8 +140,8 @@ def test_observer_stop_request_ends_the_run_with_stop(pty_pair, scripted, host_s
 
 def test_a_slow_observer_never_delays_the_commands(pty_pair, scripted, host_serial, tmp_path):
     p = pty_pair()
-    scripted(p.master, telemetry=100, period_s=0.004)
-    obs = StopAfter(10**9, delay_s=0.02)  # 5x slower than the telemetry
+    scripted(p.master, telemetry=60, period_s=0.004)
+    obs = StopAfter(10**9, delay_s=0.012)  # 3x slower than the telemetry
     t, cmd = _stream(0.5)
     res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
                              config=FAST, observers=[obs])
