@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+# before numpy loads: see mecanum_hil/__init__.py
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest
 
