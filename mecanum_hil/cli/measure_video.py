@@ -20,7 +20,8 @@ def command(
         "--roi", help="Search region [N:]x,y,w,h [px]; one per wheel for several wheels.",
         metavar="[N:]X,Y,W,H")] = None,
     marker: Annotated[str, typer.Option(
-        "--marker", help="auto (any saturated dot); aruco is not supported yet.")] = "auto",
+        "--marker", help="auto (any saturated dot) or aruco (DICT_4X4_50, orientation).")
+    ] = "auto",
     marker_hsv: Annotated[str | None, typer.Option(
         "--marker-hsv", help="Pin the dot's colour: OpenCV HSV box H,S,V:H,S,V (H 0..179).",
         metavar="H,S,V:H,S,V")] = None,

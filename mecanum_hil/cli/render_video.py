@@ -41,6 +41,9 @@ def command(
     mirror: Annotated[bool, typer.Option(
         "--mirror", help="Film from the other side: positive speed turns clockwise.")] = False,
     seed: Annotated[int, typer.Option("--seed", help="Seed of noise and distractors.")] = 0,
+    marker: Annotated[str, typer.Option(
+        "--marker", help="dot (saturated dot near the rim) or aruco (ArUco marker on the hub).")
+    ] = "dot",
     truth: Annotated[Path | None, typer.Option(
         "--truth", help="Also write the true wheel speeds at the frame times (video clock).")
     ] = None,
@@ -63,7 +66,7 @@ def command(
     settings = RenderSettings(width, height, fps, shown, start_s, duration_s, mirror=mirror,
                               noise_std=noise, exposure=blur, lighting_drift=lighting,
                               tilt_deg=tilt, tilt_axis_deg=tilt_axis, jpeg_quality=jpeg,
-                              distractors=distractors, seed=seed)
+                              distractors=distractors, seed=seed, marker=marker)
     rec = read_recording(recording)
     with Progress(TextColumn("rendering"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} frames"),

@@ -32,8 +32,8 @@ class MarkerSpec:
     Attributes
     ----------
     kind : str
-        ``"auto"`` (any saturated dot) or ``"hsv"`` (a pinned colour). ``"aruco"`` is
-        refused with a clear error (not implemented yet).
+        ``"auto"`` (any saturated dot), ``"hsv"`` (a pinned colour) or ``"aruco"`` (see
+        :mod:`~mecanum_hil.vision.aruco`).
     hsv_low, hsv_high : tuple of 3 int or None
         OpenCV HSV box (H 0..179, S, V 0..255) for ``"hsv"``; ``hsv_low[0] > hsv_high[0]``
         wraps around red.
@@ -47,11 +47,8 @@ class MarkerSpec:
     min_saturation: int = MIN_SATURATION
 
     def __post_init__(self) -> None:
-        if self.kind == "aruco":
-            raise VideoError("ArUco markers are not supported yet: use a saturated dot "
-                             "(--marker auto or --marker-hsv)")
-        if self.kind not in ("auto", "hsv"):
-            raise VideoError(f"unknown marker kind '{self.kind}' (auto, hsv)")
+        if self.kind not in ("auto", "hsv", "aruco"):
+            raise VideoError(f"unknown marker kind '{self.kind}' (auto, hsv, aruco)")
         if self.kind == "hsv" and (self.hsv_low is None or self.hsv_high is None):
             raise VideoError("an HSV marker needs a low and a high HSV bound")
 

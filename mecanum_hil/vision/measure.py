@@ -198,6 +198,10 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
     opts = options or MeasureOptions()
     src = str(path)
     def make(size):
+        if opts.marker.kind == "aruco":
+            from .aruco import ArucoDetector
+
+            return [ArucoDetector(roi, size) for _, roi in opts.rois]
         return [BlobDetector(opts.marker, roi, size) for _, roi in opts.rois]
 
     info, stamps, per_wheel = scan_video(path, make, progress)
@@ -217,14 +221,19 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
     wheels_summary = []
     for (wheel, roi), cands in zip(opts.rois, per_wheel, strict=True):
         where = f"{src}, wheel {wheel}"
-        det = BlobDetector(opts.marker, roi, (info.width_px, info.height_px))
-        track, angle = _wheel_angles(cands, n, det, opts.seed, where)
-        geom = {"path": track.shape, "centre_px": [round(track.path.cx_px, 2),
-                                                   round(track.path.cy_px, 2)],
-                "axes_px": [round(track.path.a_px, 2), round(track.path.b_px, 2)],
-                "axis_angle_deg": round(track.path.angle_deg, 2),
-                "view_tilt_deg": round(track.path.tilt_deg, 1),
-                "path_coverage": round(track.coverage, 3)}
+        if opts.marker.kind == "aruco":
+            from .aruco import aruco_angles
+
+            angle, geom = aruco_angles(cands, where)
+        else:
+            det = BlobDetector(opts.marker, roi, (info.width_px, info.height_px))
+            track, angle = _wheel_angles(cands, n, det, opts.seed, where)
+            geom = {"path": track.shape, "centre_px": [round(track.path.cx_px, 2),
+                                                       round(track.path.cy_px, 2)],
+                    "axes_px": [round(track.path.a_px, 2), round(track.path.b_px, 2)],
+                    "axis_angle_deg": round(track.path.angle_deg, 2),
+                    "view_tilt_deg": round(track.path.tilt_deg, 1),
+                    "path_coverage": round(track.coverage, 3)}
         found = np.isfinite(angle)
         share = float(found.mean())
         if share < opts.min_found:
@@ -261,9 +270,12 @@ def _method(opts: MeasureOptions, timing: FrameTiming) -> str:
     from .speed import half_window
 
     h = half_window(timing.fps, opts.window_s)
-    marker = {"auto": "saturated-blob centroid", "hsv": "HSV-blob centroid"}[opts.marker.kind]
-    return (f"{marker}, angle on the path mapped to a circle, unwrapped; speed = slope of a local "
-            f"quadratic regression over {2 * h + 1} frames")
+    marker = {"auto": "saturated-blob centroid, angle on the path mapped to a circle",
+              "hsv": "HSV-blob centroid, angle on the path mapped to a circle",
+              "aruco": "ArUco marker orientation with the view's distortion removed",
+              }[opts.marker.kind]
+    return (f"{marker}, unwrapped; speed = slope of a local quadratic regression over "
+            f"{2 * h + 1} frames")
 
 
 def align_with_recording(measurement: VideoMeasurement, rec: Recording, calibration=None,

@@ -65,6 +65,9 @@ class RenderSettings:
         Video-time intervals [s] when a grey card hides the wheels.
     seed : int
         Seed of the noise and of the distractors' placement.
+    marker : str
+        ``"dot"`` (a saturated dot near the rim) or ``"aruco"`` (ArUco marker id ``k`` of
+        :data:`~mecanum_hil.vision.aruco.DICTIONARY` on the hub of the k-th shown wheel).
     """
 
     width_px: int = 320
@@ -84,6 +87,7 @@ class RenderSettings:
     distractors: int = 0
     occlusions_s: tuple[tuple[float, float], ...] = ()
     seed: int = 0
+    marker: str = "dot"
 
     def __post_init__(self) -> None:
         if self.width_px < 64 or self.height_px < 48:
@@ -96,6 +100,8 @@ class RenderSettings:
             raise VideoError(f"exposure must be within 0..1, got {self.exposure}")
         if not 0.0 <= self.tilt_deg < 80.0:
             raise VideoError(f"tilt must be within 0..80 deg, got {self.tilt_deg}")
+        if self.marker not in ("dot", "aruco"):
+            raise VideoError(f"marker must be 'dot' or 'aruco', got '{self.marker}'")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
             raise VideoError(f"JPEG quality must be within 1..100, got {self.jpeg_quality}")
 
@@ -191,6 +197,7 @@ class _Scene:
 
         self.s = settings
         self.places = wheel_placements(settings)
+        self._aruco_images: dict[int, np.ndarray] = {}
         h, w = settings.height_px, settings.width_px
         tilt = math.radians(settings.tilt_deg)
         a = math.radians(settings.tilt_axis_deg)
@@ -256,8 +263,11 @@ class _Scene:
                 p = self._pt(pl.cx_px, pl.cy_px, 0.85 * r * math.cos(a), -0.85 * r * math.sin(a))
                 cv2.line(frame, c, p, (150, 150, 150), max(1, round(r * 0.05)), cv2.LINE_AA,
                          _SHIFT)
-            self._marker(frame, pl, angles_rad[k], _hue_bgr(s.marker_hues_deg[
-                k % len(s.marker_hues_deg)]))
+            if s.marker == "aruco":
+                self._aruco(frame, pl, angles_rad[k], k)
+            else:
+                self._marker(frame, pl, angles_rad[k], _hue_bgr(s.marker_hues_deg[
+                    k % len(s.marker_hues_deg)]))
         for t0, t1 in s.occlusions_s:
             if t0 <= t_video_s < t1:
                 for pl in self.places:
@@ -275,6 +285,37 @@ class _Scene:
             _ok, buf = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(s.jpeg_quality)])
             frame = cv2.imdecode(buf, cv2.IMREAD_COLOR)
         return frame
+
+    def _aruco(self, frame: np.ndarray, pl: WheelPlacement, angles: np.ndarray,
+               k: int) -> None:
+        """ArUco marker ``k`` on the hub, turned by the wheel angle, averaged over the exposure."""
+        import cv2
+
+        from .aruco import aruco_dictionary
+
+        if k not in self._aruco_images:
+            cells = 8  # 4x4 bits, a black border and a white quiet zone: 8 cells across
+            img = np.full((cells * 24, cells * 24), 255, np.uint8)
+            img[24:-24, 24:-24] = cv2.aruco.generateImageMarker(aruco_dictionary(), k, 6 * 24)
+            self._aruco_images[k] = img
+        img = self._aruco_images[k]
+        x, y, w, h = pl.roi
+        scale = 0.9 * pl.radius_px / img.shape[0]
+        centre = np.array([(img.shape[1] - 1) / 2.0, (img.shape[0] - 1) / 2.0])
+        acc = np.zeros((h, w), np.float32)
+        cover = np.zeros((h, w), np.float32)
+        ones = np.full(img.shape, 255, np.uint8)
+        for a in angles:
+            rot = np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
+            lin = self.view @ rot * scale
+            shift = np.array([pl.cx_px - x, pl.cy_px - y]) - lin @ centre
+            m = np.column_stack([lin, shift])
+            acc += cv2.warpAffine(img, m, (w, h), flags=cv2.INTER_AREA)
+            cover += cv2.warpAffine(ones, m, (w, h), flags=cv2.INTER_AREA)
+        alpha = cover / (255.0 * len(angles))
+        box = frame[y:y + h, x:x + w].astype(np.float32)
+        box = box * (1.0 - alpha)[:, :, None] + (acc / len(angles))[:, :, None]
+        frame[y:y + h, x:x + w] = np.clip(box + 0.5, 0, 255).astype(np.uint8)
 
     def _marker(self, frame: np.ndarray, pl: WheelPlacement, angles: np.ndarray,
                 colour: tuple) -> None:

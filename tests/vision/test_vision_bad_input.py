@@ -98,6 +98,12 @@ def test_marker_in_too_few_frames(tmp_path, capsys):
     assert np.isnan(meas.recording.wheel_rpm[res.frame_t_s >= 0.6, 0]).all()
 
 
+def test_aruco_marker_absent(tmp_path, good_video, capsys):
+    code, _, err = run_cli(["measure-video", str(good_video.path), "--out",
+                            str(tmp_path / "o.csv"), "--marker", "aruco"], capsys)
+    assert code == 1 and "no ArUco marker" in one_error_line(err)
+
+
 def test_aliasing_is_reported_not_folded(tmp_path):
     t = np.arange(0.0, 2.0 + 1e-9, 0.01)
     rec = steady(0.0, 2.0).with_values(wheel_rpm=np.repeat((600.0 * t)[:, None], 4, 1))
@@ -122,7 +128,7 @@ def test_variable_frame_rate_is_flagged_and_its_timestamps_used():
 
 
 def test_bad_options(tmp_path, good_video, capsys):
-    for extra in (["--roi", "1:10,10"], ["--marker-hsv", "1,2,3"], ["--marker", "aruco"],
+    for extra in (["--roi", "1:10,10"], ["--marker-hsv", "1,2,3"], ["--marker", "qr"],
                   ["--roi", "1:400,400,50,50"]):
         code, _, err = run_cli(["measure-video", str(good_video.path), "--out",
                                 str(tmp_path / "o.csv"), *extra], capsys)
