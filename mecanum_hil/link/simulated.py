@@ -229,6 +229,7 @@ class SimulatedController:
         self.commands_received = 0
         self._t0 = time.monotonic()
         self._last_valid = -math.inf
+        self._last_tlm_tick = -1
 
     def now_s(self) -> float:
         """Controller time since the last HELLO [s]."""
@@ -248,6 +249,7 @@ class SimulatedController:
             self.transport.restart_sequences()
             self._t0 = time.monotonic()
             self.model.restart()
+            self._last_tlm_tick = -1
             self.connected = True
             self.status = Status.STOPPED
             self.model.set_command(0, _ZERO)
@@ -286,6 +288,9 @@ class SimulatedController:
     def send_telemetry(self) -> None:
         """Send one telemetry sample for the current tick."""
         tick = self._tick_now()
+        if tick <= self._last_tlm_tick:
+            return  # one sample per tick: controller times stay strictly increasing
+        self._last_tlm_tick = tick
         wheels = self.model.measured_rpm(tick)
         status = self.status | (Status.ESTOP if self.model.estop else 0)
         self.transport.send(Telemetry(round(tick * self.model.dt_s * 1e6),
@@ -313,8 +318,9 @@ class SimulatedController:
                 if self.connected and period < math.inf and time.monotonic() >= next_tx:
                     self.send_telemetry()
                     next_tx += period
-                    if next_tx < time.monotonic() - 10 * period:
-                        next_tx = time.monotonic()  # fell far behind: skip, do not burst
+                    if next_tx <= time.monotonic():
+                        # fell behind (a stall): skip the missed samples rather than burst
+                        next_tx = time.monotonic() + period
             except LinkLostError:
                 raise
             except LinkError as err:
