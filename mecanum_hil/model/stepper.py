@@ -14,7 +14,8 @@ module keeps everything the compiled kernel needs as arrays, built once:
   ``simulate_batch`` splits its grid, so stepping period by period reproduces one long call.
 
 :class:`BatchStepper` is the small stateful shell (wheel state, pose, delay line) around the
-pure kernel ``mecanum_hil.model._kernels.simulate_kernel``.
+pure kernel ``mecanum_hil.model._kernels.simulate_kernel``. Importing this module imports numba:
+import it where it is used, as ``simulate_batch`` does, so ``mecanum-hil --help`` stays fast.
 """
 
 from __future__ import annotations
@@ -24,17 +25,19 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ..errors import ConfigError
 from .calibration import Calibration, Effects, check_coefficients
 from .motor import TABLE_WIDTH
 from .robot import RobotProfile
+from .simulate import DEFAULT_POSE
 
 #: Default longest sub-step on the sub-stepped path (saturation, rate limit) [s].
 DEFAULT_MAX_SUBSTEP_S = 1e-3
 
 # Largest number of coefficient sets kept in the table cache before it is cleared.
-_CACHE_LIMIT = 65536
+_CACHE_LIMIT = 16384
 _TABLE_CACHE: dict[tuple, np.ndarray] = {}
 
 
@@ -117,65 +120,59 @@ def step_plan(period_s: float, effects: Effects,
     return StepPlan(h, m, pieces, nsub)
 
 
-def _compile_discretise():
-    from numba import njit, prange
-
-    @njit(cache=True)
-    def expm4(m):
-        # scaling and squaring with a Taylor series: ||m / 2^s|| <= 1/4, 18 terms leave a
-        # truncation error far below rounding, for the 4 x 4 augmented wheel model
-        norm = 0.0
-        for i in range(4):
-            row = 0.0
-            for j in range(4):
-                row += abs(m[i, j])
-            norm = max(norm, row)
-        s = 0
-        while norm > 0.25:
-            norm *= 0.5
-            s += 1
-        a = m / (2.0 ** s)
-        out = np.eye(4)
-        term = np.eye(4)
-        for n in range(1, 19):
-            term = term @ a / n
-            out += term
-        for _ in range(s):
-            out = out @ out
-        return out
-
-    @njit(cache=True, parallel=True)
-    def discretise_kernel(coeffs, h_s, out):
-        for r in prange(coeffs.shape[0]):
-            A = coeffs[r, 0]
-            B = coeffs[r, 1]
-            C = coeffs[r, 2]
-            for j in range(h_s.size):
-                h = h_s[j]
-                m = np.zeros((4, 4))
-                m[0, 0] = -(A + B) * h
-                m[0, 1] = C * h
-                m[0, 3] = A * h
-                m[1, 0] = -h
-                m[1, 3] = h
-                m[2, 0] = h
-                e = expm4(m)
-                out[r, j, 0] = e[0, 0]
-                out[r, j, 1] = e[0, 1]
-                out[r, j, 2] = e[1, 0]
-                out[r, j, 3] = e[1, 1]
-                out[r, j, 4] = e[0, 3]
-                out[r, j, 5] = e[1, 3]
-                out[r, j, 6] = e[2, 0]
-                out[r, j, 7] = e[2, 1]
-                out[r, j, 8] = e[2, 3]
-                out[r, j, 9] = math.exp(-B * h)
-                out[r, j, 10] = h
-
-    return discretise_kernel
+@njit(cache=True)
+def _expm4(m):
+    # scaling and squaring with a Taylor series: ||m / 2^s|| <= 1/4, 18 terms leave a
+    # truncation error far below rounding, for the 4 x 4 augmented wheel model
+    norm = 0.0
+    for i in range(4):
+        row = 0.0
+        for j in range(4):
+            row += abs(m[i, j])
+        norm = max(norm, row)
+    s = 0
+    while norm > 0.25:
+        norm *= 0.5
+        s += 1
+    a = m / (2.0 ** s)
+    out = np.eye(4)
+    term = np.eye(4)
+    for n in range(1, 19):
+        term = term @ a / n
+        out += term
+    for _ in range(s):
+        out = out @ out
+    return out
 
 
-_discretise_kernel = None
+@njit(cache=True)
+def _discretise_kernel(coeffs, h_s, out):
+    # serial: a few thousand rows take milliseconds, less than waking threads on a busy machine
+    m = np.zeros((4, 4))
+    for r in range(coeffs.shape[0]):
+        A = coeffs[r, 0]
+        B = coeffs[r, 1]
+        C = coeffs[r, 2]
+        for j in range(h_s.size):
+            h = h_s[j]
+            m[0, 0] = -(A + B) * h
+            m[0, 1] = C * h
+            m[0, 3] = A * h
+            m[1, 0] = -h
+            m[1, 3] = h
+            m[2, 0] = h
+            e = _expm4(m)
+            out[r, j, 0] = e[0, 0]
+            out[r, j, 1] = e[0, 1]
+            out[r, j, 2] = e[1, 0]
+            out[r, j, 3] = e[1, 1]
+            out[r, j, 4] = e[0, 3]
+            out[r, j, 5] = e[1, 3]
+            out[r, j, 6] = e[2, 0]
+            out[r, j, 7] = e[2, 1]
+            out[r, j, 8] = e[2, 3]
+            out[r, j, 9] = math.exp(-B * h)
+            out[r, j, 10] = h
 
 
 def discretise_many(coefficients, h_s) -> np.ndarray:
@@ -194,9 +191,6 @@ def discretise_many(coefficients, h_s) -> np.ndarray:
         Table rows as :func:`~mecanum_hil.model.motor.discretise` gives them (equal to
         rounding); about a microsecond per row instead of SciPy's ``expm`` per matrix.
     """
-    global _discretise_kernel
-    if _discretise_kernel is None:
-        _discretise_kernel = _compile_discretise()
     co = np.ascontiguousarray(np.asarray(coefficients, dtype=float).reshape(-1, 3))
     h = np.ascontiguousarray(np.asarray(h_s, dtype=float).reshape(-1))
     out = np.empty((co.shape[0], h.size, TABLE_WIDTH))
@@ -325,7 +319,7 @@ class BatchStepper:
         self._tables[idx] = step_tables(rows, self.plan.substep_s).reshape(
             self._tables[idx].shape)
 
-    def reset(self, index=None, pose=(0.0, 0.0, 90.0), state=None, command=None) -> None:
+    def reset(self, index=None, pose=DEFAULT_POSE, state=None, command=None) -> None:
         """Put robots (all, or those in ``index``) at a pose, at rest or in a given state.
 
         Parameters
