@@ -47,6 +47,12 @@ def command(
         "--link-timeout", help="Telemetry silence that counts as a lost link [s].")] = 0.5,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Show a progress bar.")] = True,
+    shadow: Annotated[str | None, typer.Option(
+        "--shadow", metavar="CAL", help="Shadow mode: run this calibration's model beside the "
+        "robot and flag divergence (events in OUT.shadow.jsonl).")] = None,
+    on_divergence: Annotated[str, typer.Option(
+        "--on-divergence", help="With --shadow: none (report) or stop (send STOP at the "
+        "first alarm; exit 3).")] = "none",
 ) -> None:
     """Send a command profile to a robot controller and record commands and telemetry."""
     from ..errors import ConfigError
@@ -89,6 +95,12 @@ def command(
     # Observers see every telemetry sample (their own thread). Options that watch the run
     # (shadow mode, ...) append theirs here.
     observers: list = []
+    shadow_obs = None
+    if shadow is not None:
+        from ..monitor.live import record_shadow
+
+        shadow_obs = record_shadow(shadow, rob, t, cmd, out, on_divergence, echo=typer.echo)
+        observers.append(shadow_obs)
 
     link = open_transport(transport, options)
     try:
@@ -101,6 +113,8 @@ def command(
                                         observers=observers, metadata=meta)
     finally:
         link.close()
+        if shadow_obs is not None:
+            typer.echo(shadow_obs.close())
     typer.echo(format_summary(result))
     if result.exit_code == 0:
         return
@@ -123,7 +137,9 @@ def _run_with_progress(link, t, cmd, out, rob, config, observers, meta, where):
         def update(elapsed_s, total_s, counts):
             bar.update(task, completed=min(elapsed_s, total_s),
                        counts=f"sent {counts['sent']} rx {counts['received']} "
-                              f"lost {counts['lost']} crc {counts['crc_errors']}")
+                              f"lost {counts['lost']} crc {counts['crc_errors']}"
+                              + "".join(f" | {o.status_line()}" for o in observers
+                                        if hasattr(o, "status_line")))
 
         return run_record_session(link, t, cmd, out, rob, config=config, observers=observers,
                                   metadata=meta, progress=update)

@@ -1,0 +1,308 @@
+"""Shadow mode on a live link: beside ``record`` (an observer) and listening on a CAN bus.
+
+The stateful edge around :class:`~mecanum_hil.monitor.core.ShadowMonitor`: the JSON-lines
+event log next to the recording, alarm lines on the terminal, the status line, and (passive
+CAN listening) the bus itself.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..model.calibration import Calibration
+from ..model.robot import RobotProfile
+from .core import ShadowConfig, ShadowMonitor
+from .eventlog import EventLog, event_log_path
+
+
+def _alarm_echo(echo: Callable[[str], None]) -> Callable[[dict[str, Any]], None]:
+    from ..cli.shadow import alarm_line
+
+    def listener(event: dict[str, Any]) -> None:
+        if event["event"] in ("alarm", "recovered"):
+            echo("shadow: " + alarm_line(event))
+
+    return listener
+
+
+class LiveShadow:
+    """A shadow monitor with its event log and terminal output; a link ``TelemetryObserver``.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    robot : RobotProfile
+    config : ShadowConfig
+    event_log : str or Path, optional
+        JSON-lines log to write (``None``: none).
+    stop_on_divergence : bool
+        Request a stop at the first alarm.
+    echo : callable, optional
+        Prints one alarm / recovery line (``None``: silent).
+    header : dict, optional
+        More fields for the log's ``start`` line.
+    """
+
+    def __init__(self, calibration: Calibration, robot: RobotProfile, config: ShadowConfig,
+                 event_log: str | Path | None = None, *, stop_on_divergence: bool = False,
+                 echo: Callable[[str], None] | None = None,
+                 header: dict[str, Any] | None = None) -> None:
+        self.log = (EventLog(event_log, calibration, config, header)
+                    if event_log is not None else None)
+        listeners = [] if self.log is None else [self.log]
+        if echo is not None:
+            listeners.append(_alarm_echo(echo))
+        self.monitor = ShadowMonitor(calibration, robot, config,
+                                     stop_on_divergence=stop_on_divergence, listeners=listeners)
+
+    @property
+    def stop_requested(self) -> bool:
+        """True once an alarm asked for a stop (``--on-divergence stop``)."""
+        return self.monitor.stop_requested
+
+    def on_telemetry(self, t_s: float, commands: np.ndarray, wheel_rpm: np.ndarray) -> None:
+        """One telemetry sample (see :meth:`ShadowMonitor.on_telemetry`)."""
+        self.monitor.on_telemetry(t_s, commands, wheel_rpm)
+
+    def status_line(self) -> str:
+        """The monitor's one-line status."""
+        return self.monitor.status_line()
+
+    def close(self, **summary: Any) -> str:
+        """Close the event log (writing ``summary`` into its ``end`` line); a summary text."""
+        alarms = self.monitor.alarms
+        if self.log is not None:
+            self.log.close({"samples": self.monitor.samples, "alarms": len(alarms),
+                            "first_alarm_t_s": alarms[0].t_s if alarms else None, **summary})
+        text = f"shadow: {self.monitor.samples} samples, {len(alarms)} alarm(s)"
+        if alarms:
+            a = alarms[0]
+            text += (f", first {a.channel} at {a.t_s:.3f} s (residual {a.residual:+.3g} "
+                     f"{a.unit})")
+        if self.log is not None:
+            text += f"; events in {self.log.path}"
+        return text
+
+
+def record_shadow(calibration: str | Path, robot: RobotProfile, t_s, commands,
+                  out: str | Path, on_divergence: str = "none",
+                  config: ShadowConfig | None = None,
+                  echo: Callable[[str], None] | None = None) -> LiveShadow:
+    """The observer ``record --shadow CAL`` adds to its session.
+
+    The monitor knows the profile's send schedule, so a command acts from its own send time
+    rather than from the next telemetry sample, as in a replay of the recording; the STOP that
+    ends a completed profile is part of the schedule. The event log is ``OUT.shadow.jsonl``.
+    """
+    from ..errors import ConfigError
+    from ..model import load_calibration
+
+    if on_divergence not in ("none", "stop"):
+        raise ConfigError(f"--on-divergence must be 'none' or 'stop', got '{on_divergence}'")
+    cal = load_calibration(calibration)
+    cfg = config or ShadowConfig()
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    cmd = np.asarray(commands, dtype=float).reshape(-1, 3)
+    t = t - t[0]
+    # the session sends STOP right after the last command: (0, 0, theta in force)
+    sched_t = np.append(t, t[-1])
+    sched_cmd = np.vstack([cmd, [0.0, 0.0, cmd[-1, 2]]])
+    live = LiveShadow(cal, robot, cfg, event_log_path(out),
+                      stop_on_divergence=on_divergence == "stop", echo=echo,
+                      header={"mode": "record", "recording": str(out),
+                              "on_divergence": on_divergence})
+    live.monitor.set_command_schedule(sched_t, sched_cmd)
+    return live
+
+
+class ControllerClock:
+    """Maps a controller's telemetry clock onto the listener's clock (both [s]).
+
+    The offset is the smallest (arrival - controller time) seen, the sample that waited least
+    on its way; it may grow by ``drift`` seconds per second so a controller clock running slow
+    is followed, and it restarts when the controller clock jumps back (a new HELLO).
+    Telemetry timed this way carries the controller's sampling instants instead of the
+    listener's receive jitter.
+    """
+
+    def __init__(self, drift: float = 2e-4) -> None:
+        self.drift = drift
+        self.offset: float | None = None
+        self._last: float | None = None
+
+    def __call__(self, controller_s: float, arrival_s: float) -> float:
+        d = arrival_s - controller_s
+        if self.offset is None or self._last is None or controller_s < self._last:
+            self.offset = d
+        else:
+            self.offset = min(d, self.offset + self.drift * (controller_s - self._last))
+        self._last = controller_s
+        return controller_s + self.offset
+
+
+def _send_stop(link, live: LiveShadow, t_s: float, cmd: np.ndarray, heard: dict) -> None:
+    """Send STOP (best effort) and tell the model: a bus does not echo one's own frames."""
+    from ..errors import LinkError
+    from ..link.protocol import Stop
+
+    try:
+        link.send(Stop())
+    except LinkError as err:
+        if live.log is not None:
+            live.log.write({"event": "stop_failed", "t_s": t_s, "error": str(err)})
+        return
+    heard["stops_sent"] += 1
+    cmd[:] = (0.0, 0.0, cmd[2])
+    live.monitor.on_command(t_s, cmd)
+
+
+def listen_can(interface: str, channel: str | None, bitrate: int | None,
+               calibration: str | Path, robot: str | Path, config: ShadowConfig, *,
+               out: str | Path | None = None, events: str | Path | None = None,
+               duration_s: float | None = None, stop_on_divergence: bool = False,
+               echo: Callable[[str], None] = print, bus=None,
+               status_every_s: float = 0.5) -> int:
+    """Listen passively to a CAN bus where another host commands the controller.
+
+    Commands (``MH_COMMAND``, ``MH_STOP``) act from their frames' bus timestamps; telemetry
+    (``MC_STATUS`` + ``MC_WHEELS``) is timed by the controller's clock mapped onto the bus
+    clock (:class:`ControllerClock`), then compared with the model. Nothing is sent, except
+    with ``stop_on_divergence``: then STOP goes out at the first alarm and again after every
+    command heard from then on, until listening ends.
+
+    Parameters
+    ----------
+    interface, channel, bitrate
+        The python-can bus (or ``bus``, an open one, for tests).
+    calibration, robot
+        Names or files.
+    config : ShadowConfig
+    out : str or Path, optional
+        Also record what was heard (the ``record`` format); the event log goes next to it.
+    events : str or Path, optional
+        Event log path (default: next to ``out``; none without ``out``).
+    duration_s : float, optional
+        Stop listening after this long [s]; default until Ctrl-C.
+    stop_on_divergence : bool
+    echo : callable
+        Terminal output (alarm lines, the status line, the summary).
+    status_every_s : float
+        Period of the status line [s].
+
+    Returns
+    -------
+    int
+        Number of alarms.
+    """
+    import can
+
+    from ..errors import ConfigError, LinkLostError
+    from ..io.recording import RecordingWriter
+    from ..link.can_link import CanCodec, CanTransport
+    from ..link.protocol import Command, FrameError, Stop, Telemetry
+    from ..link.session import EXTRA_COLUMNS
+    from ..model import load_calibration, load_robot_profile
+
+    if bus is None and not channel:
+        raise ConfigError("passive CAN listening needs --channel (and --interface)")
+    cal = load_calibration(calibration)
+    rob = load_robot_profile(robot)
+    log_path = events if events is not None else (event_log_path(out) if out else None)
+    live = LiveShadow(cal, rob, config, log_path, stop_on_divergence=stop_on_divergence,
+                      echo=echo, header={"mode": "listen-can", "bus": f"{interface}:{channel}",
+                                         "recording": str(out) if out else None})
+    link = None
+    writer = None
+    heard = {"commands": 0, "stops": 0, "telemetry": 0, "stops_sent": 0, "bad_frames": 0}
+    try:
+        link = CanTransport(interface, channel, bitrate, bus=bus)
+        codec = CanCodec()
+        clock = ControllerClock()
+        if out is not None:
+            writer = RecordingWriter(out, EXTRA_COLUMNS, {
+                "source": "mecanum-hil shadow (listen)", "bus": link.port,
+                "calibration": cal.source,
+                "columns": {"t_s": "bus time since the first frame heard (telemetry: controller "
+                                   "time mapped onto it)"}})
+        echo(f"shadow: listening on {link.port} (sending nothing"
+             + (", STOP on divergence)" if stop_on_divergence else ")"))
+        tty = sys.stderr.isatty()
+        start = time.perf_counter()
+        end = math.inf if duration_s is None else start + duration_s
+        t0: float | None = None
+        last_t = -math.inf
+        cmd: np.ndarray | None = None
+        next_status = start + status_every_s
+        while (now := time.perf_counter()) < end:
+            try:
+                frame = link.bus.recv(timeout=min(0.1, end - now))
+            except (can.CanError, OSError, ValueError) as err:
+                raise LinkLostError(f"CAN {link.port}: link lost: {err}") from err
+            if time.perf_counter() >= next_status:
+                next_status = time.perf_counter() + status_every_s
+                if tty:
+                    print("\r" + live.status_line()[:150], end="", file=sys.stderr, flush=True)
+            if frame is None or frame.is_error_frame or frame.is_remote_frame:
+                continue
+            try:
+                msg = codec.decode(frame.arbitration_id, bytes(frame.data))
+            except FrameError:
+                heard["bad_frames"] += 1
+                continue
+            if msg is None:
+                continue  # first half of a telemetry sample
+            stamp = frame.timestamp or time.time()
+            if t0 is None:
+                t0 = stamp
+            if isinstance(msg, Command | Stop):
+                t = max(stamp - t0, last_t)
+                if isinstance(msg, Command):
+                    heard["commands"] += 1
+                    cmd = np.array([msg.n_rpm, msg.omega_dps, msg.theta_deg])
+                else:
+                    heard["stops"] += 1
+                    cmd = np.array([0.0, 0.0, 90.0 if cmd is None else cmd[2]])
+                live.monitor.on_command(t, cmd)
+                if writer is not None and t > last_t:
+                    writer.write(t, cmd, extra=("cmd" if isinstance(msg, Command) else "stop",
+                                                msg.seq, "", ""))
+                last_t = t
+                if live.stop_requested and isinstance(msg, Command):
+                    # python-can stamps frames on the epoch clock: our STOP goes out now
+                    _send_stop(link, live, max(time.time() - t0, t), cmd, heard)
+            elif isinstance(msg, Telemetry):
+                heard["telemetry"] += 1
+                t = max(clock(msg.time_us * 1e-6, stamp - t0), last_t)
+                wheels = np.array(msg.wheel_rpm, dtype=float)
+                if writer is not None and t > last_t:
+                    writer.write(t, cmd if cmd is not None else (math.nan,) * 3, wheels,
+                                 extra=("tlm", msg.seq, f"{msg.time_us * 1e-6:.6f}", msg.status))
+                last_t = t
+                if cmd is None:
+                    continue  # the command in force is unknown until one is heard
+                was = live.stop_requested
+                live.on_telemetry(t, cmd, wheels)
+                if live.stop_requested and not was:
+                    _send_stop(link, live, max(time.time() - t0, t), cmd, heard)
+    except KeyboardInterrupt:
+        pass  # Ctrl-C is how an open-ended listen ends
+    finally:
+        if sys.stderr.isatty():
+            print("", file=sys.stderr)  # end the status line
+        if writer is not None:
+            writer.close({"heard": heard})
+        if link is not None:
+            link.close()
+        summary = live.close(**heard)
+    echo(f"heard {heard['commands']} commands, {heard['stops']} stops, {heard['telemetry']} "
+         f"telemetry samples" + (f"; sent {heard['stops_sent']} STOP" if heard["stops_sent"]
+                                 else ""))
+    echo(summary)
+    return len(live.monitor.alarms)
