@@ -13,9 +13,15 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LimitError
-from ..model import Calibration, RobotProfile, load_calibration, load_robot_profile
+from ..model import (
+    Calibration,
+    RobotProfile,
+    load_calibration,
+    load_robot_profile,
+    wheels_to_twist,
+)
 from ..model.stepper import DEFAULT_MAX_SUBSTEP_S, BatchStepper
-from ..units import RPM_TO_RAD_S
+from ..units import DPS_TO_RPM, RPM_TO_RAD_S
 from . import _kernels
 from .randomisation import CoefficientRanges
 from .task import ReachTask
@@ -80,10 +86,11 @@ class BatchCore:
         self._task_params = self.task.kernel_parameters()
         eff = self.calibration.effects
         r = self.robot.wheel_radius_m
-        # forward kinematics with slip, straight to (m/s, m/s, deg/s)
-        self._fk = np.array([[1, -1, -1], [1, 1, 1], [1, 1, -1], [1, -1, 1]], float) / 4.0 * (
-            np.array([eff.efficiency[0] * RPM_TO_RAD_S * r, eff.efficiency[1] * RPM_TO_RAD_S * r,
-                      eff.efficiency[2] * 6.0 / self.robot.k]))
+        # forward kinematics as a matrix (rows: unit wheel speeds), with slip, in the
+        # observation's units (m/s, m/s, deg/s)
+        self._fk = np.ascontiguousarray(wheels_to_twist(np.eye(4), self.robot.k) * np.array(
+            [eff.efficiency[0] * RPM_TO_RAD_S * r, eff.efficiency[1] * RPM_TO_RAD_S * r,
+             eff.efficiency[2] / DPS_TO_RPM]))
 
     def _evaluate(self, pose, state, targets):
         m = pose.shape[0]

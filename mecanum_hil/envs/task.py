@@ -13,7 +13,7 @@ so the return of an episode is the improvement of the potential, minus the time 
 bonus: a policy maximises it by reaching the target pose quickly. The episode terminates on success
 (position error below ``position_tolerance_m`` and heading error below ``heading_tolerance_deg``) or
 when the robot leaves the arena (farther than ``arena_radius_m`` from the start), and is truncated
-after ``episode_s`` seconds.
+after ``episode_s`` seconds (rounded to whole control periods).
 """
 
 from __future__ import annotations
