@@ -12,6 +12,7 @@ import typer
 
 from ..errors import MecanumHILError
 from . import demo, measure_video, render_video, simulate
+from . import diagnose as diagnose_cmd
 from . import fit as fit_cmd
 from . import record, shadow, sim_robot
 
@@ -35,6 +36,7 @@ def _root(
 app.command("simulate")(simulate.command)
 app.command("demo")(demo.command)
 app.command("fit")(fit_cmd.command)
+app.command("diagnose")(diagnose_cmd.command)
 app.command("measure-video")(measure_video.command)
 app.command("render-video")(render_video.command)
 app.command("record")(record.command)

@@ -12,7 +12,8 @@ The residual is measured minus predicted. Wheel channels are in [rpm]; pose chan
 
 The noise level of a channel is estimated without a model from the residual's first
 differences (median absolute deviation, so the few large jumps at steps do not count):
-``sigma = 1.4826 * MAD(diff(r)) / sqrt(2)``, exact for white noise on a smooth model error.
+``sigma = 1.4826 * MAD(diff(r)) / sqrt(2)``, exact for white noise on a smooth model error
+(for quantised data whose MAD is zero, a trimmed RMS of the differences instead).
 """
 
 from __future__ import annotations
@@ -82,6 +83,19 @@ def regime_masks(rec: Recording, robot: RobotProfile, *, settle_s: float = 0.5,
     }
 
 
+def _sd_from_differences(d: np.ndarray) -> float:
+    d = d[np.isfinite(d)]
+    if d.size < 4:
+        return float("nan")
+    mad = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+    # quantised data (encoder counts) can have a MAD of zero: then the RMS of the central 90 %
+    # of the differences, corrected for the trimming of a normal distribution (factor 0.623)
+    a = np.abs(d)
+    central = a[a <= np.quantile(a, 0.9)]
+    trimmed = float(np.sqrt(np.mean(central * central) / 0.623))
+    return max(mad, trimmed) / float(np.sqrt(2.0))
+
+
 def noise_sd(residual: np.ndarray) -> float:
     """Noise level of residual samples from their first differences (module docstring).
 
@@ -91,25 +105,14 @@ def noise_sd(residual: np.ndarray) -> float:
         One recording's residual; columns are channels, NaN where not measured.
     """
     r = np.asarray(residual, dtype=float)
-    r = r.reshape(r.shape[0], -1)
-    d = np.diff(r, axis=0).ravel()
-    d = d[np.isfinite(d)]
-    if d.size < 4:
-        return float("nan")
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+    return _sd_from_differences(np.diff(r.reshape(r.shape[0], -1), axis=0).ravel())
 
 
 def pooled_noise_sd(residuals: Sequence[np.ndarray]) -> float:
     """:func:`noise_sd` over several recordings (differences never span two recordings)."""
-    d = []
-    for r in residuals:
-        r2 = np.asarray(r, float).reshape(len(r), -1)
-        dd = np.diff(r2, axis=0).ravel()
-        d.append(dd[np.isfinite(dd)])
-    allv = np.concatenate(d) if d else np.empty(0)
-    if allv.size < 4:
-        return float("nan")
-    return float(1.4826 * np.median(np.abs(allv - np.median(allv))) / np.sqrt(2.0))
+    parts = [np.diff(np.asarray(r, float).reshape(len(r), -1), axis=0).ravel()
+             for r in residuals]
+    return _sd_from_differences(np.concatenate(parts) if parts else np.empty(0))
 
 
 def rmse(values) -> float:
