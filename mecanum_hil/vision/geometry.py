@@ -147,7 +147,7 @@ def _hue_close(h: np.ndarray, h0: float, tol_deg: float) -> np.ndarray:
 def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_frames: int,
                  max_radius_px: float, rng: np.random.Generator | None = None,
                  hypotheses: int = 400, rho_tol: float = 0.12, hue_tol_deg: float = 25.0,
-                 source: str = "video") -> Track:
+                 source: str = "video", initial: Ellipse | None = None) -> Track:
     """Find the candidate blobs that move on a circle (an ellipse in the image).
 
     RANSAC: ellipses through five candidates of one hue from different places; the winner is the
@@ -166,6 +166,9 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
     n_frames : int
     max_radius_px : float
         Largest plausible path radius [px] (the search region's size).
+    initial : Ellipse, optional
+        A path found before (on part of the video): the first hypothesis; the search then
+        only draws random samples around it.
 
     Raises
     ------
@@ -179,9 +182,20 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
                          "(give --marker-hsv, or --roi around the wheel)")
     grid = np.round(xy / 2.0).astype(np.int64)
     cell = grid[:, 0] * 1_000_003 + grid[:, 1]
-    link = _link_frames(frame_idx, xy, hue_deg, n_frames, 0.25 * max_radius_px, hue_tol_deg)
-    moving = np.flatnonzero((link >= 0) & (np.hypot(*(xy[np.maximum(link, 0)] - xy).T) > 0.5))
     best: tuple[float, Ellipse | None, float] = (-1.0, None, 0.0)
+    if initial is not None:
+        rho, ang = initial.unit(xy)
+        on = np.abs(rho - 1.0) < rho_tol
+        if on.sum() >= 5:
+            hue_init = float(np.median(hue_deg[on]))
+            same = _hue_close(hue_deg, hue_init, hue_tol_deg) & on
+            best = (np.unique(cell[same]).size * angular_coverage(ang[same]), initial, hue_init)
+        link = np.full(m, -1)
+        moving = np.arange(m)
+    else:
+        link = _link_frames(frame_idx, xy, hue_deg, n_frames, 0.25 * max_radius_px, hue_tol_deg)
+        moving = np.flatnonzero((link >= 0)
+                                & (np.hypot(*(xy[np.maximum(link, 0)] - xy).T) > 0.5))
     last_gain = 0
     for h in range(hypotheses):
         if h - last_gain > max(40, hypotheses // 8):
@@ -192,7 +206,7 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
         same = np.flatnonzero(_hue_close(hue_deg, hue_deg[i0], hue_tol_deg))
         if same.size < 5:
             continue
-        if h % 2:
+        if h % 2 and initial is None:
             chain = _follow(link, i0, int(rng.integers(5, max(6, min(n_frames, 400)))))
             if len(chain) < 5:
                 continue

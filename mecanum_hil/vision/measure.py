@@ -114,7 +114,7 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
                progress: Callable[[int, int], None] | None = None):
     """Decode every frame once and run the detectors on it.
 
-    Returns ``(info, stamps [s], per-detector lists of per-frame results)``.
+    Returns ``(info, stamps [s], per-detector lists of per-frame results, detectors)``.
     """
     cap, info = open_video(path)
     detectors = detectors_for((info.width_px, info.height_px))
@@ -149,7 +149,7 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
         stop.set()
         worker.join(timeout=5.0)
         cap.release()
-    return info, np.array(stamps, dtype=float), results
+    return info, np.array(stamps, dtype=float), results, detectors
 
 
 def _focus(det: BlobDetector, cands: list[np.ndarray]) -> None:
@@ -171,7 +171,7 @@ def _wheel_angles(cands: list[np.ndarray], n: int, detector: BlobDetector, seed:
     frame_idx = np.concatenate([np.full(len(c), i) for i, c in enumerate(cands)]).astype(int)
     allc = np.concatenate(cands) if cands else np.empty((0, 4))
     track = select_track(frame_idx, allc[:, :2], allc[:, 2], n, detector.size_px,
-                         np.random.default_rng(seed), source=source)
+                         np.random.default_rng(seed), source=source, initial=detector.path)
     angle = np.full(n, np.nan)
     _, ang = track.path.unit(track.xy_px[track.found])
     angle[track.found] = ang
@@ -204,7 +204,7 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
             return [ArucoDetector(roi, size) for _, roi in opts.rois]
         return [BlobDetector(opts.marker, roi, size) for _, roi in opts.rois]
 
-    info, stamps, per_wheel = scan_video(path, make, progress)
+    info, stamps, per_wheel, detectors = scan_video(path, make, progress)
     n = stamps.size
     if n < 3:
         raise VideoError(f"{src}: only {n} frame(s) could be decoded (empty or corrupt video)")
@@ -219,14 +219,13 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
     wheel_rpm = rec.wheel_rpm.copy()
     extra: dict[str, list[str]] = {}
     wheels_summary = []
-    for (wheel, roi), cands in zip(opts.rois, per_wheel, strict=True):
+    for (wheel, roi), cands, det in zip(opts.rois, per_wheel, detectors, strict=True):
         where = f"{src}, wheel {wheel}"
         if opts.marker.kind == "aruco":
             from .aruco import aruco_angles
 
             angle, geom = aruco_angles(cands, where)
         else:
-            det = BlobDetector(opts.marker, roi, (info.width_px, info.height_px))
             track, angle = _wheel_angles(cands, n, det, opts.seed, where)
             geom = {"path": track.shape, "centre_px": [round(track.path.cx_px, 2),
                                                        round(track.path.cy_px, 2)],

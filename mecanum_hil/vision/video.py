@@ -8,6 +8,7 @@ has usable ones, else from the nominal frame rate. ``cv2`` errors and failures b
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +57,9 @@ def open_video(path: str | Path):
     """
     import cv2
 
+    # FFmpeg's own complaints ("moov atom not found") would come on top of our one-line error;
+    # a user who wants them sets OPENCV_FFMPEG_LOGLEVEL.
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     p = Path(path)
     if not p.exists():
         raise VideoError(f"{p}: file not found")
