@@ -219,7 +219,8 @@ def step_tables(coefficients, substep_s) -> np.ndarray:
     missing = [i for i, key in enumerate(keys) if key not in _TABLE_CACHE]
     if missing:
         if len(_TABLE_CACHE) + len(missing) > _CACHE_LIMIT:
-            _TABLE_CACHE.clear()
+            _TABLE_CACHE.clear()  # then every set of this call is missing
+            missing = list(range(len(keys)))
         fresh = discretise_many(distinct[missing], np.array(hs))
         for i, rows in zip(missing, fresh, strict=True):
             _TABLE_CACHE[keys[i]] = rows

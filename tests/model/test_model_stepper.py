@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mecanum_hil.errors import ConfigError
-from mecanum_hil.model import Calibration, Effects, simulate
+from mecanum_hil.model import Calibration, Effects, simulate, stepper
 from mecanum_hil.model.motor import discretise
 from mecanum_hil.model.stepper import BatchStepper, discretise_many, step_plan, step_tables
 
@@ -38,6 +38,17 @@ def test_tables_follow_each_robots_coefficients():
     assert tables.shape == (3, 1, 11)
     np.testing.assert_array_equal(tables[0], tables[2])
     np.testing.assert_allclose(tables[1, 0], discretise(20.0, 10.0, 200.0, 0.02), atol=1e-12)
+
+
+def test_table_cache_overflow_keeps_every_requested_set(monkeypatch):
+    monkeypatch.setattr(stepper, "_CACHE_LIMIT", 4)
+    monkeypatch.setattr(stepper, "_TABLE_CACHE", {})
+    first = np.array([[14.7, 16.1, 303.0], [20.0, 10.0, 200.0], [5.0, 30.0, 500.0]])
+    step_tables(first, [0.02])
+    mixed = np.vstack([first[:2], [[7.0, 7.0, 70.0], [8.0, 8.0, 80.0]]])
+    tables = step_tables(mixed, [0.02])
+    np.testing.assert_allclose(tables[3, 0], discretise(8.0, 8.0, 80.0, 0.02), atol=1e-12)
+    np.testing.assert_allclose(tables[0, 0], discretise(14.7, 16.1, 303.0, 0.02), atol=1e-12)
 
 
 def test_step_plan_splits_at_the_delayed_command_change():
