@@ -313,6 +313,10 @@ class ShadowMonitor:
         self._schedule = rows
         self._sched_i = 0
 
+    def clear_command_schedule(self) -> None:
+        """Forget the schedule given by :meth:`set_command_schedule`."""
+        self._schedule = None
+
     def _step(self, row: np.ndarray) -> None:
         if self._qi[1] >= self._queue.shape[0]:
             self._grow_queue()

@@ -32,6 +32,31 @@ def _alarm_echo(echo: Callable[[str], None]) -> Callable[[dict[str, Any]], None]
     return listener
 
 
+class ControllerClock:
+    """Maps a controller's telemetry clock onto the listener's clock (both [s]).
+
+    The offset is the smallest (arrival - controller time) seen, the sample that waited least
+    on its way; it may grow by ``drift`` seconds per second so a controller clock running slow
+    is followed, and it restarts when the controller clock jumps back (a new HELLO).
+    Telemetry timed this way carries the controller's sampling instants instead of the
+    listener's receive jitter.
+    """
+
+    def __init__(self, drift: float = 2e-4) -> None:
+        self.drift = drift
+        self.offset: float | None = None
+        self._last: float | None = None
+
+    def __call__(self, controller_s: float, arrival_s: float) -> float:
+        d = arrival_s - controller_s
+        if self.offset is None or self._last is None or controller_s < self._last:
+            self.offset = d
+        else:
+            self.offset = min(d, self.offset + self.drift * (controller_s - self._last))
+        self._last = controller_s
+        return controller_s + self.offset
+
+
 class LiveShadow:
     """A shadow monitor with its event log and terminal output; a link ``TelemetryObserver``.
 
@@ -61,15 +86,32 @@ class LiveShadow:
             listeners.append(_alarm_echo(echo))
         self.monitor = ShadowMonitor(calibration, robot, config,
                                      stop_on_divergence=stop_on_divergence, listeners=listeners)
+        self._clock = ControllerClock()
 
     @property
     def stop_requested(self) -> bool:
         """True once an alarm asked for a stop (``--on-divergence stop``)."""
         return self.monitor.stop_requested
 
-    def on_telemetry(self, t_s: float, commands: np.ndarray, wheel_rpm: np.ndarray) -> None:
-        """One telemetry sample (see :meth:`ShadowMonitor.on_telemetry`)."""
+    def on_telemetry(self, t_s: float, commands: np.ndarray, wheel_rpm: np.ndarray,
+                     controller_time_s: float | None = None) -> None:
+        """One telemetry sample (see :meth:`ShadowMonitor.on_telemetry`).
+
+        With ``controller_time_s`` (a session that passes it), the sample is timed by the
+        controller's clock mapped onto the host's (:class:`ControllerClock`) instead of by its
+        receive time, which a stalled host delays.
+        """
+        if controller_time_s is not None:
+            t_s = min(t_s, self._clock(controller_time_s, t_s))
         self.monitor.on_telemetry(t_s, commands, wheel_rpm)
+
+    def on_command(self, t_s: float, commands: np.ndarray) -> None:
+        """A command as actually sent at ``t_s`` (a session that reports its sends).
+
+        Actual send times replace the profile's schedule from then on.
+        """
+        self.monitor.clear_command_schedule()
+        self.monitor.on_command(t_s, commands)
 
     def status_line(self) -> str:
         """The monitor's one-line status."""
@@ -120,31 +162,6 @@ def record_shadow(calibration: str | Path, robot: RobotProfile, t_s, commands,
                               "on_divergence": on_divergence})
     live.monitor.set_command_schedule(sched_t, sched_cmd)
     return live
-
-
-class ControllerClock:
-    """Maps a controller's telemetry clock onto the listener's clock (both [s]).
-
-    The offset is the smallest (arrival - controller time) seen, the sample that waited least
-    on its way; it may grow by ``drift`` seconds per second so a controller clock running slow
-    is followed, and it restarts when the controller clock jumps back (a new HELLO).
-    Telemetry timed this way carries the controller's sampling instants instead of the
-    listener's receive jitter.
-    """
-
-    def __init__(self, drift: float = 2e-4) -> None:
-        self.drift = drift
-        self.offset: float | None = None
-        self._last: float | None = None
-
-    def __call__(self, controller_s: float, arrival_s: float) -> float:
-        d = arrival_s - controller_s
-        if self.offset is None or self._last is None or controller_s < self._last:
-            self.offset = d
-        else:
-            self.offset = min(d, self.offset + self.drift * (controller_s - self._last))
-        self._last = controller_s
-        return controller_s + self.offset
 
 
 def _send_stop(link, live: LiveShadow, t_s: float, cmd: np.ndarray, heard: dict) -> None:

@@ -162,3 +162,30 @@ def test_demo_function_flags_the_fault_and_writes_its_files(tmp_path):
     assert 0.0 <= demo.detection_delay_s <= 0.3
     assert demo.recording.exists() and demo.plot.stat().st_size > 10_000
     assert '"event": "alarm"' in demo.event_log.read_text()
+
+
+def test_controller_clock_undoes_a_host_stall_and_live_shadow_uses_it(tmp_path):
+    from mecanum_hil.model import RobotProfile
+    from mecanum_hil.monitor.live import ControllerClock, LiveShadow
+
+    clock = ControllerClock()
+    ctrl = np.arange(6) * 0.01
+    arrival = np.array([0.0105, 0.0203, 0.1302, 0.1303, 0.1304, 0.0605])  # a 90 ms stall
+    mapped = [clock(c, a) for c, a in zip(ctrl, arrival, strict=True)]
+    # the least-delayed sample sets the offset (it may creep by the drift allowance, 2e-4 s/s)
+    np.testing.assert_allclose(mapped[1:], ctrl[1:] + 0.0103, atol=2e-5)
+    assert all(m <= a + 1e-12 for m, a in zip(mapped, arrival, strict=True))
+    # a session passing send times and controller times reproduces the replay
+    t, cmd = driving_commands(24.0, 100.0)
+    rec = simulate_run(t, cmd, CAL, make_fault("gain-drop", FAULT_T, wheel=1), seed=5)
+    live = LiveShadow(CAL, RobotProfile(), ShadowConfig(), tmp_path / "x.shadow.jsonl")
+    live.monitor.set_command_schedule(t + 5.0, cmd)  # a wrong schedule: on_command replaces it
+    for i in range(len(rec)):
+        live.on_command(rec.t_s[i], rec.commands[i])
+        late = rec.t_s[i] + (0.09 if 300 <= i < 310 else 0.0)  # host stalled, burst after
+        live.on_telemetry(late, rec.commands[i], rec.wheel_rpm[i], controller_time_s=rec.t_s[i])
+    text = live.close()
+    ref = replay(rec, CAL)
+    assert [a.channel for a in live.monitor.alarms] == [a.channel for a in ref.alarms]
+    assert live.monitor.alarms[0].t_s == pytest.approx(ref.alarms[0].t_s, abs=1e-9)
+    assert "wheel1_rpm" in text
