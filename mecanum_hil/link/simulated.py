@@ -229,7 +229,12 @@ class SimulatedController:
         self.commands_received = 0
         self._t0 = time.monotonic()
         self._last_valid = -math.inf
-        self._last_tlm_tick = -1
+        self._next_tlm_tick = 0
+        # telemetry on whole ticks (1 kHz / 100 Hz -> every 10th tick); 0 Hz sends none
+        self.telemetry_ticks = (max(1, round(model.rate_hz / self.telemetry_rate_hz))
+                                if self.telemetry_rate_hz > 0 else 0)
+        if self.telemetry_ticks:
+            self.telemetry_rate_hz = model.rate_hz / self.telemetry_ticks
 
     def now_s(self) -> float:
         """Controller time since the last HELLO [s]."""
@@ -249,12 +254,12 @@ class SimulatedController:
             self.transport.restart_sequences()
             self._t0 = time.monotonic()
             self.model.restart()
-            self._last_tlm_tick = -1
+            self._next_tlm_tick = 0
             self.connected = True
             self.status = Status.STOPPED
             self.model.set_command(0, _ZERO)
             self._last_valid = 0.0
-            self.transport.send(HelloAck(self.version, int(self.telemetry_rate_hz),
+            self.transport.send(HelloAck(self.version, round(self.telemetry_rate_hz),
                                          int(WATCHDOG_S * 1000), self.name))
             self.log("HELLO: session started")
             return
@@ -285,12 +290,8 @@ class SimulatedController:
             self.model.set_command(self._tick_now(math.ceil), _ZERO)
             self.log("watchdog: no command for 250 ms, wheels stopped")
 
-    def send_telemetry(self) -> None:
-        """Send one telemetry sample for the current tick."""
-        tick = self._tick_now()
-        if tick <= self._last_tlm_tick:
-            return  # one sample per tick: controller times stay strictly increasing
-        self._last_tlm_tick = tick
+    def send_telemetry(self, tick: int) -> None:
+        """Send the telemetry sample of ``tick``."""
         wheels = self.model.measured_rpm(tick)
         status = self.status | (Status.ESTOP if self.model.estop else 0)
         self.transport.send(Telemetry(round(tick * self.model.dt_s * 1e6),
@@ -305,22 +306,25 @@ class SimulatedController:
         """
         self.model.wheel_rpm(self.model.anchor)  # load the compiled simulator before serving
         end = math.inf if duration_s is None else time.monotonic() + duration_s
-        period = 1.0 / self.telemetry_rate_hz if self.telemetry_rate_hz > 0 else math.inf
-        next_tx = time.monotonic()
+        streaming = self.telemetry_ticks > 0
         while not self.stop_event.is_set() and time.monotonic() < end:
-            now = time.monotonic()
-            wait = min(next_tx - now, 0.02) if self.connected else 0.02
+            wait = 0.02
+            if self.connected and streaming:
+                wait = min(wait, self._next_tlm_tick * self.model.dt_s - self.now_s())
             try:
                 msg = self.transport.recv(max(0.0, wait))
                 if msg is not None:
                     self.handle(msg)
                 self._check_watchdog()
-                if self.connected and period < math.inf and time.monotonic() >= next_tx:
-                    self.send_telemetry()
-                    next_tx += period
-                    if next_tx <= time.monotonic():
-                        # fell behind (a stall): skip the missed samples rather than burst
-                        next_tx = time.monotonic() + period
+                if self.connected and streaming:
+                    now_tick = self._tick_now()
+                    if now_tick >= self._next_tlm_tick:
+                        if now_tick - self._next_tlm_tick > 50 * self.telemetry_ticks:
+                            self._next_tlm_tick = now_tick  # a long stall: skip, not burst
+                        # a sample is due: report it at its own tick, even if sent late
+                        tick = self._next_tlm_tick
+                        self._next_tlm_tick += self.telemetry_ticks
+                        self.send_telemetry(tick)
             except LinkLostError:
                 raise
             except LinkError as err:

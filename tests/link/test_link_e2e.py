@@ -79,13 +79,14 @@ def _check_against_model(path, noise_std, quantum=0.0):
     got = rec.wheel_rpm[tlm]
     slack = 4.5 * noise_std + quantum + 1e-6
     assert (got >= lo - slack).all() and (got <= hi + slack).all()
-    calm = (hi - lo).max(axis=1) < 0.05 * max(noise_std, 0.1)
-    assert calm.sum() > 20
+    calm = (hi - lo).max(axis=1) < 0.05 * max(noise_std, 1.0)
+    assert calm.sum() > 40
     residual = got[calm] - 0.5 * (lo[calm] + hi[calm])
     if noise_std > 0:
-        assert residual.std() == pytest.approx(noise_std, rel=0.25)
+        # 3 standard errors of a standard deviation estimated from >= 40 samples x 4 wheels
+        assert residual.std() == pytest.approx(noise_std, rel=0.2)
     else:
-        assert np.abs(residual).max() <= quantum + 0.05 * 0.1
+        assert np.abs(residual).max() <= quantum + 0.025 + 1e-9
     # and the model's own prediction for the recording (host times) is close on average
     pred = predict(rec, cal, robot)
     assert np.median(np.abs(pred.wheel_rpm[tlm] - got)) < 2 * noise_std + 0.5
@@ -114,9 +115,10 @@ def test_record_over_serial_to_sim_robot_matches_the_model(tmp_path, profile_fil
     ctrl_t = rec.extra_numeric("controller_time_s")
     tlm = np.isfinite(ctrl_t)
     assert np.all(np.diff(ctrl_t[tlm]) > 0)  # controller clock kept beside host time
-    # host and controller clocks differ by the link latency and the tick, not more
+    # host and controller clocks differ by a constant plus the link latency (and, on a loaded
+    # machine, the odd stall: a late sample keeps its own controller time)
     offset = rec.t_s[tlm] - ctrl_t[tlm]
-    assert np.ptp(offset) < 0.05
+    assert np.median(offset - offset.min()) < 0.02
     _check_against_model(again, NOISE_STD)
     assert log.count("STOP received") == 2 and log.count("HELLO: session started") == 2
 
