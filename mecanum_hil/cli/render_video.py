@@ -17,23 +17,23 @@ def command(
     out: Annotated[Path, typer.Option("--out", "-o", help="Video to write (.mp4 or .avi).")],
     wheels: Annotated[str, typer.Option(
         "--wheels", help="Wheels to show side by side, e.g. 1 or 1,2.")] = "1",
-    fps: Annotated[float, typer.Option("--fps", help="Frame rate [1/s].")] = 30.0,
-    size: Annotated[str, typer.Option("--size", help="Frame size WxH [px].")] = "320x240",
+    fps: Annotated[float, typer.Option("--fps", help="Frame rate \\[1/s].")] = 30.0,
+    size: Annotated[str, typer.Option("--size", help="Frame size WxH \\[px].")] = "320x240",
     start_s: Annotated[float, typer.Option(
-        "--start", help="Recording time of the first frame after the recording's start [s].")
+        "--start", help="Recording time of the first frame after the recording's start \\[s].")
     ] = 0.0,
     duration_s: Annotated[float | None, typer.Option(
-        "--duration", help="Video length [s] (default: to the recording's end).")] = None,
+        "--duration", help="Video length \\[s] (default: to the recording's end).")] = None,
     noise: Annotated[float, typer.Option(
-        "--noise", help="Sensor noise, standard deviation [grey levels].")] = 0.0,
+        "--noise", help="Sensor noise, standard deviation \\[grey levels].")] = 0.0,
     blur: Annotated[float, typer.Option(
         "--blur", help="Motion blur: shutter open for this share of a frame (0..1).")] = 0.0,
     lighting: Annotated[float, typer.Option(
         "--lighting-drift", help="Relative amplitude of slow brightness change.")] = 0.0,
     tilt: Annotated[float, typer.Option(
-        "--tilt", help="Oblique view: angle off the wheel axis [deg].")] = 0.0,
+        "--tilt", help="Oblique view: angle off the wheel axis \\[deg].")] = 0.0,
     tilt_axis: Annotated[float, typer.Option(
-        "--tilt-axis", help="Direction of the tilt axis in the image [deg].")] = 0.0,
+        "--tilt-axis", help="Direction of the tilt axis in the image \\[deg].")] = 0.0,
     jpeg: Annotated[int | None, typer.Option(
         "--jpeg", help="Extra JPEG compression of each frame, quality 1..100.")] = None,
     distractors: Annotated[int, typer.Option(

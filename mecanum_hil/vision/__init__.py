@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from .detect import MarkerSpec, parse_hsv, parse_roi
-from .measure import MeasureOptions, VideoMeasurement, measure_video
+from .loop import LoopResult, render_and_measure
+from .measure import MeasureOptions, VideoMeasurement, align_with_recording, measure_video
 from .render import RenderResult, RenderSettings, render_video, wheel_placements
 
 __all__ = [
-    "MarkerSpec", "MeasureOptions", "RenderResult", "RenderSettings", "VideoMeasurement",
-    "measure_video", "parse_hsv", "parse_roi", "render_video", "wheel_placements",
+    "LoopResult", "MarkerSpec", "MeasureOptions", "RenderResult", "RenderSettings",
+    "VideoMeasurement", "align_with_recording", "measure_video", "parse_hsv", "parse_roi",
+    "render_and_measure", "render_video", "wheel_placements",
 ]
