@@ -238,13 +238,14 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
         if share < opts.min_found:
             raise VideoError(f"{where}: marker found in only {100 * share:.0f}% of the frames "
                              f"(need {100 * opts.min_found:.0f}%, see --min-found)")
-        rpm, turns = wheel_speed_rpm(timing.t_s, angle, opts.window_s, opts.invert)
+        rpm, turns, outliers = wheel_speed_rpm(timing.t_s, angle, opts.window_s, opts.invert)
         wheel_rpm[:, wheel - 1] = rpm
         extra[f"wheel{wheel}_turns"] = ["" if not math.isfinite(v) else f"{v:.6f}" for v in turns]
         speeds = rpm[np.isfinite(rpm)]
         wheels_summary.append({
             "wheel": wheel, "roi": list(roi) if roi is not None else None,
             "found_fraction": round(share, 4), "frames_found": int(found.sum()),
+            "outliers_dropped": outliers,
             "speed_samples": int(speeds.size),
             "mean_rpm": round(float(speeds.mean()), 3) if speeds.size else None,
             "max_abs_rpm": round(float(np.abs(speeds).max()), 3) if speeds.size else None,

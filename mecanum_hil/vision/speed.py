@@ -23,6 +23,32 @@ ALIAS_STEP_TURNS = 0.4
 MAX_GAP_FRAMES = 2
 
 
+def reject_outliers(angle_rad: np.ndarray) -> tuple[np.ndarray, int]:
+    """Drop single-frame jumps (a reflection or another blob taken for the marker once).
+
+    A frame is an outlier when the marker jumps more than a quarter turn into it and out of it
+    again, while the motion on both sides of it (two frames each) is slow and consistent. A wheel
+    genuinely turning fast shows large steps on both sides too, so it is left to the aliasing
+    check. Returns the angles with outliers set to NaN, and their number.
+    """
+    a = np.asarray(angle_rad, dtype=float) / (2 * np.pi)
+    n = a.size
+    if n < 5:
+        return np.asarray(angle_rad, dtype=float).copy(), 0
+
+    def step(x, y):
+        return np.abs((y - x + 0.5) % 1.0 - 0.5)
+
+    i = np.arange(2, n - 2)
+    before, into = step(a[i - 2], a[i - 1]), step(a[i - 1], a[i])
+    out_of, after = step(a[i], a[i + 1]), step(a[i + 1], a[i + 2])
+    across = step(a[i - 1], a[i + 1])
+    bad = (into > 0.25) & (out_of > 0.25) & (before < 0.1) & (after < 0.1) & (across < 0.2)
+    out = np.asarray(angle_rad, dtype=float).copy()
+    out[i[bad]] = np.nan
+    return out, int(bad.sum())
+
+
 def half_window(fps: float, window_s: float) -> int:
     """Half-width ``h`` [frames] of a regression window of about ``window_s`` [s]."""
     return max(1, math.floor(window_s * fps / 2.0 + 0.5))
@@ -80,18 +106,32 @@ def unwrap_runs(angle_rad: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.
 def local_slope(t_s: np.ndarray, y: np.ndarray, run: np.ndarray, h: int) -> np.ndarray:
     """Slope ``dy/dt`` of a local quadratic regression over ``2h+1`` frames, within runs.
 
-    Frames without a value, or with fewer than three same-run neighbours in the window
-    (itself included), get NaN.
+    Near the ends of a run the window slides inward to keep ``2h+1`` frames (the polynomial is
+    evaluated off-centre, as Savitzky-Golay's ``interp`` mode does), so a constant acceleration
+    stays unbiased everywhere. A run of two frames gets their difference quotient; frames
+    without a value get NaN.
     """
     n = y.size
     out = np.full(n, np.nan)
     if n == 0:
         return out
-    offs = np.arange(-h, h + 1)
-    idx = np.arange(n)[:, None] + offs[None, :]
-    inside = (idx >= 0) & (idx < n)
+    pos = np.arange(n)
+    valid = run >= 0
+    # First and last index of each frame's run (runs are contiguous stretches of indices).
+    first = np.full(n, -1)
+    last = np.full(n, -1)
+    if valid.any():
+        ids = np.unique(run[valid])
+        lo_of = {int(r): int(np.flatnonzero(run == r)[0]) for r in ids}
+        hi_of = {int(r): int(np.flatnonzero(run == r)[-1]) for r in ids}
+        first[valid] = [lo_of[int(r)] for r in run[valid]]
+        last[valid] = [hi_of[int(r)] for r in run[valid]]
+    lo = np.maximum(pos - h, first)
+    lo = np.maximum(np.minimum(lo, last - 2 * h), first)
+    idx = lo[:, None] + np.arange(2 * h + 1)[None, :]
+    inside = idx <= last[:, None]
     idx_c = np.clip(idx, 0, n - 1)
-    use = inside & (run[idx_c] == run[:, None]) & (run[:, None] >= 0)
+    use = inside & (run[idx_c] == run[:, None]) & valid[:, None]
     scale = float(np.median(np.diff(t_s))) if n > 1 else 1.0
     dt = np.where(use, (t_s[idx_c] - t_s[:, None]) / scale, 0.0)
     dy = np.where(use, y[idx_c] - np.where(np.isfinite(y), y, 0.0)[:, None], 0.0)
@@ -102,27 +142,22 @@ def local_slope(t_s: np.ndarray, y: np.ndarray, run: np.ndarray, h: int) -> np.n
                   np.stack([S[2], S[3], S[4]], -1)], -2)
     rhs = np.stack(T, -1)
     count = w.sum(axis=1)
-    quad = count >= 4
     det = np.linalg.det(M)
-    good = quad & (np.abs(det) > 1e-9)
+    good = (count >= 3) & (np.abs(det) > 1e-12)
     if good.any():
         sol = np.linalg.solve(M[good], rhs[good][..., None])[..., 0]
         out[good] = sol[:, 1] / scale
-    # Three points: a straight line (a quadratic would pass through them exactly).
-    lin = (count == 3) & ~good
-    if lin.any():
-        s0, s1, s2 = S[0][lin], S[1][lin], S[2][lin]
-        d = s0 * s2 - s1 * s1
-        ok = np.abs(d) > 1e-12
-        slope = np.where(ok, (s0 * T[1][lin] - s1 * T[0][lin]) / np.where(ok, d, 1.0), np.nan)
-        out[np.flatnonzero(lin)] = slope / scale
-    out[run < 0] = np.nan
+    pair = (count == 2) & ~good
+    if pair.any():
+        out[pair] = T[1][pair] / np.where(S[2][pair] > 0, S[2][pair], np.nan) / scale
+    out[~valid] = np.nan
     return out
 
 
 def wheel_speed_rpm(t_s: np.ndarray, angle_rad: np.ndarray, window_s: float,
-                    invert: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Wheel speed [rpm] (CCW in the image positive) and unwrapped angle [turns] per frame.
+                    invert: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
+    """Wheel speed [rpm] (CCW in the image positive), unwrapped angle [turns] per frame, and the
+    number of single-frame outliers dropped (:func:`reject_outliers`).
 
     Parameters
     ----------
@@ -139,6 +174,7 @@ def wheel_speed_rpm(t_s: np.ndarray, angle_rad: np.ndarray, window_s: float,
     a = np.asarray(angle_rad, dtype=float)
     if invert:
         a = -a
+    a, outliers = reject_outliers(a)
     turns, run = unwrap_runs(a, t)
     fps = (t.size - 1) / (t[-1] - t[0]) if t.size > 1 and t[-1] > t[0] else 1.0
-    return 60.0 * local_slope(t, turns, run, half_window(fps, window_s)), turns
+    return 60.0 * local_slope(t, turns, run, half_window(fps, window_s)), turns, outliers
