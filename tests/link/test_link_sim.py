@@ -198,3 +198,23 @@ def test_hello_of_another_version_gets_an_error(live_controller):
     err = _until(host, lambda m: isinstance(m, proto.ErrorMsg))
     assert err.code == proto.ErrorCode.VERSION_MISMATCH
     assert not ctrl.connected
+
+
+def test_a_dead_time_appearing_mid_run_delays_later_commands(tmp_path):
+    fx = load_sim_effects(_write(tmp_path, """
+[[faults]]
+at_s = 0.2
+[faults.effects.dead_time]
+dead_time_s = 0.05
+"""))
+    model = ControllerModel(CAL, ROBOT, fx, rate_hz=RATE)
+    model.set_command(100, (60.0, 0.0, 90.0))  # before the fault: acts at once
+    assert model.wheel_rpm(150)[0] > 20
+    model.wheel_rpm(250)  # the fault is in force from tick 200
+    model.set_command(300, (0.0, 0.0, 90.0))  # after it: acts 50 ticks later
+    cmd = np.zeros((400, 3))
+    cmd[:, 2] = 90.0
+    cmd[100:350, 0] = 60.0
+    ref = _reference(cmd, CAL)
+    for k in (299, 320, 349, 350, 360, 399):
+        np.testing.assert_allclose(model.wheel_rpm(k), ref[k], atol=1e-7, err_msg=f"tick {k}")
