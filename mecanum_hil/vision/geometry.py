@@ -130,6 +130,9 @@ class Track:
         :func:`angular_coverage`).
     shape : str
         ``"ellipse"`` or ``"circle"`` (too little of the path seen to fit an ellipse).
+    residual_px : float
+        RMS distance of the chosen detections from the path [px] (about the radius times the
+        relative radial error): large for a circle fitted to an oblique view's short arc.
     """
 
     path: Ellipse
@@ -137,6 +140,7 @@ class Track:
     found: np.ndarray
     coverage: float
     shape: str
+    residual_px: float = 0.0
 
 
 def _hue_close(h: np.ndarray, h0: float, tol_deg: float) -> np.ndarray:
@@ -243,16 +247,40 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
         if coverage < 0.05:
             raise VideoError(f"{source}: the marker does not move (it stays within "
                              f"{360 * coverage:.0f} deg of its path); no speed can be measured")
-        shape = "ellipse" if coverage >= 0.6 else "circle"
-        refit = fit_ellipse(pts) if shape == "ellipse" else fit_circle(pts)
-        if plausible(refit, max_radius_px):
+        shape, refit = _refit(pts, coverage, max_radius_px)
+        if refit is not None:
             path = refit
         else:
             shape = "ellipse" if path.a_px != path.b_px else "circle"
     track_xy, found = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol,
                                       hue_tol_deg)
-    _, ang = path.unit(track_xy[found])
-    return Track(path, track_xy, found, angular_coverage(ang), shape)
+    rho, ang = path.unit(track_xy[found])
+    residual = float(np.sqrt(np.mean((rho - 1.0) ** 2)) * math.sqrt(path.a_px * path.b_px))
+    return Track(path, track_xy, found, angular_coverage(ang), shape, residual)
+
+
+def _refit(pts: np.ndarray, coverage: float, max_radius_px: float
+           ) -> tuple[str, Ellipse | None]:
+    """Least-squares path through the chosen points: an ellipse when most of it was seen; on a
+    shorter arc a circle, unless an ellipse fits far better (an oblique view)."""
+    ell = fit_ellipse(pts)
+    ell = ell if plausible(ell, max_radius_px) else None
+    if coverage >= 0.6:
+        return "ellipse", ell
+    circ = fit_circle(pts)
+    circ = circ if plausible(circ, max_radius_px) else None
+    if circ is None or ell is None:
+        return ("circle", circ) if circ is not None else ("ellipse", ell)
+
+    def rms_px(e: Ellipse) -> float:
+        rho, _ = e.unit(pts)
+        return float(np.sqrt(np.mean((rho - 1.0) ** 2)) * math.sqrt(e.a_px * e.b_px))
+
+    r_c, r_e = rms_px(circ), rms_px(ell)
+    # An ellipse has two more parameters: it must beat the circle clearly to be believed.
+    if r_c > 0.15 and r_e < 0.5 * r_c:
+        return "ellipse", ell
+    return "circle", circ
 
 
 def _best_per_frame(path: Ellipse, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol, hue_tol):

@@ -31,6 +31,10 @@ from .video import FrameTiming, frame_times, iter_frames, open_video
 DEFAULT_WINDOW_S = 0.1
 #: Default smallest share of frames with the marker found for a trustworthy result.
 DEFAULT_MIN_FOUND = 0.5
+#: RMS distance of the detections from the fitted path above which a warning is given [px].
+PATH_RESIDUAL_WARN_PX = 0.5
+#: Share of a turn below which the path's shape (circle or ellipse) is uncertain (a warning).
+SHORT_ARC = 0.5
 #: Frames after which (and after twice, four times as many ...) the marker's path is looked
 #: for, to measure only blobs near it from then on.
 FOCUS_AFTER_FRAMES = 60
@@ -232,7 +236,19 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
                     "axes_px": [round(track.path.a_px, 2), round(track.path.b_px, 2)],
                     "axis_angle_deg": round(track.path.angle_deg, 2),
                     "view_tilt_deg": round(track.path.tilt_deg, 1),
-                    "path_coverage": round(track.coverage, 3)}
+                    "path_coverage": round(track.coverage, 3),
+                    "path_residual_px": round(track.residual_px, 3)}
+            if track.residual_px > PATH_RESIDUAL_WARN_PX:
+                warnings.append(
+                    f"wheel {wheel}: the marker's detections lie {track.residual_px:.1f} px (RMS) "
+                    f"off the fitted {track.shape} (glare, a moving camera, strong perspective?): "
+                    "speeds may be off by several percent")
+            if track.coverage < SHORT_ARC:
+                warnings.append(
+                    f"wheel {wheel}: the marker was seen on only {100 * track.coverage:.0f}% of "
+                    f"a turn, too little to tell its path's shape (taken as: {track.shape}); if "
+                    "the camera looks at the wheel obliquely, speeds may be off by up to "
+                    "1 - cos(view angle); film at least half a turn")
         found = np.isfinite(angle)
         share = float(found.mean())
         if share < opts.min_found:

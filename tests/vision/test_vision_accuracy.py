@@ -136,3 +136,14 @@ def test_aruco_orientation_oblique_noisy(tmp_path, fps):
     assert w["view_tilt_deg"] == pytest.approx(30.0, abs=2.0)
     # Corner positions jitter more than a dot's centroid: 0.3 rpm RMS at 30 fps, 0.7 at 60 fps.
     assert rms(meas.recording.wheel_rpm[:, 0], res.wheel_rpm[:, 0]) < (0.5 if fps == 30 else 1.0)
+
+
+def test_short_arc_is_warned_about_and_an_oblique_one_still_fits_an_ellipse(tmp_path):
+    res = render_video(steady(10.0, 2.0), tmp_path / "slow.avi",
+                       RenderSettings(tilt_deg=40.0, tilt_axis_deg=30.0, noise_std=2.0))
+    meas = measure_video(res.path)  # a third of a turn
+    assert meas.summary["wheels"][0]["path"] == "ellipse"
+    assert rms(meas.recording.wheel_rpm[:, 0], res.wheel_rpm[:, 0]) < 0.5
+    assert any("too little to tell its path's shape" in w for w in meas.warnings)
+    full = measure_video(render_video(steady(30.0, 2.0), tmp_path / "turn.avi").path)
+    assert full.warnings == ()
