@@ -30,13 +30,16 @@ from ..profiles import CommandProfile, Segment, ramp, step
 CAMPAIGN_STEPS_RPM = (4.0, 8.0, 15.0, 30.0, 60.0, 100.0, 120.0)
 
 
-def campaign_profiles(*, step_hold_s: float = 2.0, ramp_rate_rpm_per_s: float = 5.0,
+def campaign_profiles(*, steps_rpm: Sequence[float] = CAMPAIGN_STEPS_RPM,
+                      step_hold_s: float = 2.0, ramp_rate_rpm_per_s: float = 5.0,
                       ramp_top_rpm: float = 130.0, motion_rpm: float = 60.0,
-                      turn_dps: float = 60.0) -> list[CommandProfile]:
+                      turn_dps: float = 60.0, reverse: bool = True) -> list[CommandProfile]:
     """The command profiles of a campaign like the paper's.
 
     Parameters
     ----------
+    steps_rpm : sequence of float
+        Sizes of the straight steps [rpm].
     step_hold_s : float
         How long each step is held [s].
     ramp_rate_rpm_per_s : float
@@ -47,6 +50,8 @@ def campaign_profiles(*, step_hold_s: float = 2.0, ramp_rate_rpm_per_s: float = 
         ``n`` of the strafe and the diagonal run [rpm].
     turn_dps : float
         Turning speed of the turn on the spot [deg/s].
+    reverse : bool
+        Also a reversing step (forward, then backward).
 
     Returns
     -------
@@ -55,15 +60,16 @@ def campaign_profiles(*, step_hold_s: float = 2.0, ramp_rate_rpm_per_s: float = 
         right (theta 0), a diagonal run (theta 45) and a reversing step (forward, then back).
     """
     kw = {"duration_s": step_hold_s, "rest_s": 0.3, "stop_s": 1.0}
-    out = [step(n, name=f"step-{n:g}rpm", **kw) for n in CAMPAIGN_STEPS_RPM]
+    out = [step(n, name=f"step-{n:g}rpm", **kw) for n in steps_rpm]
     out.append(ramp(ramp_top_rpm, ramp_rate_rpm_per_s, hold_s=1.0, rest_s=0.3, stop_s=1.0,
                     name=f"ramp-{ramp_rate_rpm_per_s:g}rpm-per-s"))
     out.append(step(0.0, omega_dps=turn_dps, name=f"turn-{turn_dps:g}dps", **kw))
     out.append(step(motion_rpm, theta_deg=0.0, name="strafe-right", **kw))
     out.append(step(motion_rpm, theta_deg=45.0, name="diagonal-45deg", **kw))
-    out.append(CommandProfile("reverse-45rpm", (
-        Segment("hold", 0.3), Segment("step", step_hold_s, 45.0),
-        Segment("step", step_hold_s, -45.0), Segment("step", 1.0, 0.0)), (0.0, 0.0, 90.0)))
+    if reverse:
+        out.append(CommandProfile("reverse-45rpm", (
+            Segment("hold", 0.3), Segment("step", step_hold_s, 45.0),
+            Segment("step", step_hold_s, -45.0), Segment("step", 1.0, 0.0)), (0.0, 0.0, 90.0)))
     return out
 
 
