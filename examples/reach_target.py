@@ -78,7 +78,7 @@ def paths(calibration: str, seeds, policy: str):
             obs, _, terminated, truncated, info = env.step(action)
             poses.append(info["pose"])
             done = terminated or truncated
-        out.append((np.array(poses), info["target"]))
+        out.append((np.array(poses), info["task_state"]))
     return out
 
 

@@ -8,6 +8,7 @@ entry-point discovery, so an import is what makes the id known)::
 
     env = gym.make("MecanumHIL-v0", calibration="CAL.toml")
     envs = gym.make_vec("MecanumHIL-v0", num_envs=4096, calibration="CAL.toml")
+    dodge = gym.make("MecanumHIL-v0", calibration="CAL.toml", task="dodge")
 
 or, without the import, ``gym.make("mecanum_hil.envs:MecanumHIL-v0", ...)`` (Gymnasium imports
 the module named before the colon).
@@ -17,10 +18,10 @@ from __future__ import annotations
 
 import gymnasium
 
-from ._core import OBSERVATION_LAYOUT
+from ._core import observation_layout
 from .mecanum_env import MecanumHILEnv
 from .randomisation import CoefficientRanges
-from .task import ReachTask
+from .task import DodgeTask, ReachTask
 from .vector_env import MecanumHILVectorEnv
 
 ENV_ID = "MecanumHIL-v0"
@@ -34,9 +35,10 @@ if ENV_ID not in gymnasium.registry:
 
 __all__ = [
     "ENV_ID",
-    "OBSERVATION_LAYOUT",
     "CoefficientRanges",
+    "DodgeTask",
     "MecanumHILEnv",
     "MecanumHILVectorEnv",
     "ReachTask",
+    "observation_layout",
 ]

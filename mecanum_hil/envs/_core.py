@@ -1,4 +1,4 @@
-"""The batch core both environments share: N robots, their targets, limits and rewards.
+"""The batch core both environments share: N robots, their tasks, limits and rewards.
 
 One code path serves the single environment (N = 1) and the vector environment, so the vector
 environment equals N single ones by construction; the numbers come from
@@ -24,10 +24,10 @@ from ..model.stepper import DEFAULT_MAX_SUBSTEP_S, BatchStepper
 from ..units import DPS_TO_RPM, RPM_TO_RAD_S
 from . import _kernels
 from .randomisation import CoefficientRanges
-from .task import ReachTask
+from .task import DodgeTask, ReachTask, resolve_task
 
-#: Names and units of the observation vector's entries, in order.
-OBSERVATION_LAYOUT = (
+#: Observation entries 0..9, common to the tasks: name and meaning (units in brackets).
+COMMON_OBSERVATION = (
     ("x_m", "X position, world frame [m]"),
     ("y_m", "Y position, world frame [m]"),
     ("phi_deg", "heading, CCW from world X, wrapped to [-180, 180) [deg]"),
@@ -38,11 +38,13 @@ OBSERVATION_LAYOUT = (
     ("wheel2_rpm", "wheel 2 (front right) speed [rpm]"),
     ("wheel3_rpm", "wheel 3 (rear left) speed [rpm]"),
     ("wheel4_rpm", "wheel 4 (rear right) speed [rpm]"),
-    ("target_forward_m", "target position ahead of the robot, robot frame [m]"),
-    ("target_left_m", "target position to the robot's left, robot frame [m]"),
-    ("target_dphi_deg", "target heading minus heading, wrapped to [-180, 180) [deg]"),
 )
-OBS_SIZE = len(OBSERVATION_LAYOUT)
+OBS_SIZE = len(COMMON_OBSERVATION) + 3
+
+
+def observation_layout(task: ReachTask | DodgeTask | str | None = None):
+    """Names and meanings of the 13 observation entries for ``task`` (default reach)."""
+    return COMMON_OBSERVATION + resolve_task(task).observation_names
 
 
 def as_calibration(calibration: Calibration | str | Path) -> Calibration:
@@ -60,14 +62,15 @@ class BatchCore:
 
     def __init__(self, n: int, calibration: Calibration | str | Path = "paper",
                  robot: RobotProfile | str | Path = "tdam-stm", *,
-                 control_period_s: float = 0.02, task: ReachTask | None = None,
+                 control_period_s: float = 0.02,
+                 task: ReachTask | DodgeTask | str | None = None,
                  randomize: bool = False,
                  coefficient_ranges: Mapping[str, tuple[float, float]] | None = None,
                  max_substep_s: float = DEFAULT_MAX_SUBSTEP_S,
                  num_threads: int | None = 1) -> None:
         self.calibration = as_calibration(calibration)
         self.robot = as_robot(robot)
-        self.task = task or ReachTask()
+        self.task = resolve_task(task)
         self.control_period_s = float(control_period_s)
         self.ranges = (CoefficientRanges.from_calibration(self.calibration, coefficient_ranges)
                        if randomize else None)
@@ -78,12 +81,13 @@ class BatchCore:
         nmax = self.robot.wheel_speed_max_rpm
         self.action_low = np.array([0.0, -self.robot.omega_max_dps, -180.0])
         self.action_high = np.array([nmax, self.robot.omega_max_dps, 180.0])
-        self.targets = np.zeros((n, 3))
+        self.task_state = np.zeros((n, len(self.task.state_names)))
         self.steps = np.zeros(n, dtype=np.int64)
         self.commands = np.zeros((n, 3))
         self._potential = np.zeros(n)
         self.success = np.zeros(n, dtype=bool)
-        self._task_params = self.task.kernel_parameters()
+        self._task_params = self.task.kernel_parameters(self.robot)
+        self._evaluate_kernel = self.task.evaluate
         eff = self.calibration.effects
         r = self.robot.wheel_radius_m
         # forward kinematics as a matrix (rows: unit wheel speeds), with slip, in the
@@ -92,15 +96,15 @@ class BatchCore:
             [eff.efficiency[0] * RPM_TO_RAD_S * r, eff.efficiency[1] * RPM_TO_RAD_S * r,
              eff.efficiency[2] / DPS_TO_RPM]))
 
-    def _evaluate(self, pose, state, targets):
+    def _evaluate(self, pose, state, task_state, steps):
         m = pose.shape[0]
         obs = np.empty((m, OBS_SIZE))
         potential = np.empty(m)
         success = np.empty(m, dtype=bool)
-        left = np.empty(m, dtype=bool)
-        _kernels.evaluate(pose, state, targets, self._fk, self._task_params, obs, potential,
-                          success, left)
-        return obs, potential, success, left
+        failed = np.empty(m, dtype=bool)
+        self._evaluate_kernel(pose, state, task_state, self._fk, self._task_params,
+                              steps * self.control_period_s, obs, potential, success, failed)
+        return obs, potential, success, failed
 
     def reset_robots(self, index: np.ndarray, rngs: Sequence[np.random.Generator]) -> np.ndarray:
         """Start new episodes for the robots in ``index``, drawing from their generators.
@@ -109,20 +113,20 @@ class BatchCore:
         """
         m = len(index)
         coeffs = np.empty((m, 3)) if self.ranges is not None else None
-        targets = np.empty((m, 3))
+        drawn = np.empty((m, self.task_state.shape[1]))
         for j, rng in enumerate(rngs):
             if coeffs is not None:
                 coeffs[j] = self.ranges.draw(rng)
-            targets[j] = self.task.draw_target(rng)
+            drawn[j] = self.task.draw(rng)
         if coeffs is not None:
             self.stepper.set_coefficients(coeffs, index)
         self.stepper.reset(index, pose=self.task.start_pose)
-        self.targets[index] = targets
+        self.task_state[index] = drawn
         self.steps[index] = 0
         self.commands[index] = 0.0
         self.success[index] = False
         obs, potential, _, _ = self._evaluate(self.stepper.pose[index],
-                                              self.stepper.state[index], targets)
+                                              self.stepper.state[index], drawn, np.zeros(m))
         self._potential[index] = potential
         return obs
 
@@ -155,13 +159,16 @@ class BatchCore:
         self.commands = cmd
         st = self.stepper
         st.step(cmd)
-        obs, potential, success, left = self._evaluate(st.pose, st.state, self.targets)
+        self.steps += 1
+        obs, potential, success, failed = self._evaluate(st.pose, st.state, self.task_state,
+                                                         self.steps)
         reward = np.empty(self.n)
         terminated = np.empty(self.n, dtype=bool)
         truncated = np.empty(self.n, dtype=bool)
         t = self.task
-        _kernels.reward_and_ends(potential, self._potential, success, left, self.steps,
+        _kernels.reward_and_ends(potential, self._potential, success, failed, self.steps,
                                  self.episode_steps, t.time_cost_per_s * self.control_period_s,
-                                 t.success_bonus, t.leave_penalty, reward, terminated, truncated)
+                                 t.success_bonus, t.failure_penalty, reward, terminated,
+                                 truncated)
         self.success = success
         return obs, reward, terminated, truncated

@@ -13,13 +13,13 @@ from gymnasium import spaces
 from ..model import Calibration, RobotProfile
 from ..model.stepper import DEFAULT_MAX_SUBSTEP_S
 from ._core import OBS_SIZE, BatchCore
-from .task import ReachTask
+from .task import DodgeTask, ReachTask
 
 _ONE = np.zeros(1, dtype=np.int64)
 
 
 def observation_space() -> spaces.Box:
-    """The observation box (layout in ``mecanum_hil.envs.OBSERVATION_LAYOUT``)."""
+    """The observation box (layout: ``mecanum_hil.envs.observation_layout(task)``)."""
     low = np.full(OBS_SIZE, -np.inf)
     high = np.full(OBS_SIZE, np.inf)
     low[[2, 12]] = -180.0
@@ -35,7 +35,8 @@ class MecanumHILEnv(gym.Env):
     period; actions outside the box are clipped and a pair ``(n, omega)`` whose fastest wheel
     target ``|n| + k |omega| / 6`` exceeds ``wheel_speed_max_rpm`` is scaled down to the limit
     (``info["command"]`` is what was sent). Observation: 13 float64 values, see
-    ``mecanum_hil.envs.OBSERVATION_LAYOUT``. Task and reward: :mod:`mecanum_hil.envs.task`.
+    ``mecanum_hil.envs.observation_layout(task)``. Tasks and reward:
+    :mod:`mecanum_hil.envs.task`.
 
     Parameters
     ----------
@@ -46,8 +47,8 @@ class MecanumHILEnv(gym.Env):
         Robot profile (geometry and wheel speed limit).
     control_period_s : float
         How long each action is held [s] (a 50 Hz command stream by default).
-    task : ReachTask, optional
-        Task parameters (default :class:`ReachTask`).
+    task : ReachTask, DodgeTask, "reach" or "dodge", optional
+        The task and its parameters (default: reach with :class:`ReachTask`'s defaults).
     randomize : bool
         Draw ``A, B, C`` within the calibration's 95 % intervals at each reset
         (:mod:`mecanum_hil.envs.randomisation`).
@@ -63,7 +64,8 @@ class MecanumHILEnv(gym.Env):
 
     def __init__(self, calibration: Calibration | str | Path = "paper",
                  robot: RobotProfile | str | Path = "tdam-stm", *,
-                 control_period_s: float = 0.02, task: ReachTask | None = None,
+                 control_period_s: float = 0.02,
+                 task: ReachTask | DodgeTask | str | None = None,
                  randomize: bool = False,
                  coefficient_ranges: Mapping[str, tuple[float, float]] | None = None,
                  max_substep_s: float = DEFAULT_MAX_SUBSTEP_S,
@@ -85,9 +87,10 @@ class MecanumHILEnv(gym.Env):
         return self.core.stepper.pose[0].copy()
 
     @property
-    def target(self) -> np.ndarray:
-        """Target pose of the episode ``(X [m], Y [m], phi [deg])`` (a copy)."""
-        return self.core.targets[0].copy()
+    def task_state(self) -> np.ndarray:
+        """What the reset drew for the episode (a copy): the target pose ``(X [m], Y [m],
+        phi [deg])`` for reach, ``(strike direction [deg], deadline [s])`` for dodge."""
+        return self.core.task_state[0].copy()
 
     @property
     def coefficients(self) -> np.ndarray:
@@ -96,7 +99,8 @@ class MecanumHILEnv(gym.Env):
 
     def _info(self, success: bool = False) -> dict[str, Any]:
         return {"command": self.core.commands[0].copy(), "pose": self.pose,
-                "target": self.target, "coefficients": self.coefficients, "success": success}
+                "task_state": self.task_state, "coefficients": self.coefficients,
+                "success": success}
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Start an episode: robot at the task's start pose at rest, a new target drawn."""

@@ -17,7 +17,7 @@ from ..model import Calibration, RobotProfile
 from ..model.stepper import DEFAULT_MAX_SUBSTEP_S
 from ._core import BatchCore
 from .mecanum_env import observation_space
-from .task import ReachTask
+from .task import DodgeTask, ReachTask
 
 
 class MecanumHILVectorEnv(VectorEnv):
@@ -28,7 +28,8 @@ class MecanumHILVectorEnv(VectorEnv):
     ``SyncVectorEnv`` seeds its sub-environments), with next-step autoreset: the step after a
     robot's episode ended resets it, returns its first observation, reward 0 and ignores its
     action. ``infos`` is empty: per-robot details would cost more than the step itself; the
-    applied commands, poses and targets are the attributes ``commands``, ``pose``, ``targets``.
+    applied commands, poses and episode draws are the attributes ``commands``, ``pose``,
+    ``task_state``.
 
     Parameters
     ----------
@@ -47,7 +48,8 @@ class MecanumHILVectorEnv(VectorEnv):
 
     def __init__(self, num_envs: int = 1, calibration: Calibration | str | Path = "paper",
                  robot: RobotProfile | str | Path = "tdam-stm", *,
-                 control_period_s: float = 0.02, task: ReachTask | None = None,
+                 control_period_s: float = 0.02,
+                 task: ReachTask | DodgeTask | str | None = None,
                  randomize: bool = False,
                  coefficient_ranges: Mapping[str, tuple[float, float]] | None = None,
                  max_substep_s: float = DEFAULT_MAX_SUBSTEP_S, num_threads: int | None = 1,
@@ -83,9 +85,9 @@ class MecanumHILVectorEnv(VectorEnv):
         return self.core.stepper.pose
 
     @property
-    def targets(self) -> np.ndarray:
-        """Target poses (N, 3) of the current episodes (live array)."""
-        return self.core.targets
+    def task_state(self) -> np.ndarray:
+        """What the resets drew for the current episodes, (N, W) (live array)."""
+        return self.core.task_state
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,
               options: dict[str, Any] | None = None):

@@ -84,10 +84,10 @@ def test_trajectory_equals_simulate_on_the_commands_sent():
 def test_observation_layout_and_units():
     env = MecanumHILEnv(task=ReachTask(episode_s=100.0, arena_radius_m=50.0))
     obs, info = env.reset(seed=1)
-    assert len(mecanum_hil.envs.OBSERVATION_LAYOUT) == obs.size == 13
+    assert len(mecanum_hil.envs.observation_layout()) == obs.size == 13
     np.testing.assert_array_equal(obs[:3], [0.0, 0.0, 90.0])
     # target error in the robot frame: heading 90 deg, so "ahead" is world +Y
-    tx, ty, tphi = info["target"]
+    tx, ty, tphi = info["task_state"]
     np.testing.assert_allclose(obs[10:13], [ty, -tx, (tphi - 90.0 + 180.0) % 360.0 - 180.0])
     for _ in range(100):  # straight ahead at 60 rpm for 2 s: steady state
         obs, *_ = env.step([60.0, 0.0, 90.0])
