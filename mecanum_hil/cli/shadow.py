@@ -63,7 +63,7 @@ def command(
     noise_rpm: NoiseOpt = None,
     drift: DriftOpt = 1.0,
     threshold: ThresholdOpt = 10.0,
-    warmup: WarmupOpt = 1.0,
+    warmup: WarmupOpt = 2.0,
     transport: Annotated[str | None, typer.Option(
         "--transport", help="Live: listen on a link passively (can).")] = None,
     interface: Annotated[str, typer.Option(

@@ -45,7 +45,8 @@ P_NOISE = 24  # 7 given noise levels (0 = estimate)
 P_FLOOR = 31  # 7 noise floors
 P_CMD0 = 38  # 3 values: command in force before the first sample (start from rest)
 P_TOL = 41  # timing tolerance [s]
-P_WIDTH = 42
+P_SAFETY = 42  # noise estimate margin [standard errors]
+P_WIDTH = 43
 
 # --- float state ``fs`` ------------------------------------------------------------------------
 S_Y, S_Z, S_UE, S_TGT = 0, 4, 8, 12  # 4 values each
@@ -290,19 +291,23 @@ def _cusum(pp, ch, c, r, t, ev, nev):
 
 
 @njit(cache=True)
-def _residual(pp, fs, ch, buf, c, r, t, ev, nev):
-    """Feed residual ``r`` of channel ``c``: noise estimation during warm-up, then the CUSUM."""
+def _residual(pp, fs, ch, buf, c, raw, r, t, ev, nev):
+    """Feed channel ``c``: the raw residual to the noise estimate during warm-up, then the
+    (timing-tolerant) residual ``r`` to the CUSUM."""
     ch[c, C_RESID] = r
     if ch[c, C_SIGMA] > 0.0:
         return _cusum(pp, ch, c, r, t, ev, nev)
     n = int(ch[c, C_COUNT])
-    buf[c, n] = r
+    buf[c, n] = raw
     n += 1
     ch[c, C_COUNT] = n
     if n >= buf.shape[1] or (n >= pp[P_MINN] and t - fs[S_TSTART] >= pp[P_WARM]):
         x = buf[c, :n]
         mad = np.median(np.abs(x - np.median(x)))
-        ch[c, C_SIGMA] = max(1.482602218505602 * mad, pp[P_FLOOR + c])
+        # the MAD estimate's standard error is ~1.17 sigma / sqrt(n); an underestimate inflates
+        # every z and shortens the CUSUM's run length steeply, so take an upper bound
+        margin = 1.0 + pp[P_SAFETY] * 1.17 / math.sqrt(n)
+        ch[c, C_SIGMA] = max(1.482602218505602 * mad * margin, pp[P_FLOOR + c])
         ev[nev, E_KIND] = EV_NOISE
         ev[nev, E_CH] = c
         ev[nev, E_T] = t
@@ -381,13 +386,14 @@ def monitor_step(row, pp, fs, ch, buf, queue, qi, ev, tab, q):
         fs[S_MEAS + i] = row[4 + i]
         if not math.isnan(row[4 + i]):
             r = row[4 + i] - fs[S_Y + i]
+            raw = r
             if pp[P_TOL] > 0.0:
                 # a measurement the model reaches within +-tol seconds is consistent with it:
                 # shrink the residual by the model's slope times the tolerance (first order),
-                # so sub-millisecond clock and latency offsets do not read as divergence
+                # so millisecond clock and latency offsets do not read as divergence
                 slack = abs(_slope(pp, fs, i)) * pp[P_TOL]
                 r = r - slack if r > slack else (r + slack if r < -slack else 0.0)
-            nev = _residual(pp, fs, ch, buf, i, r, t, ev, nev)
+            nev = _residual(pp, fs, ch, buf, i, raw, r, t, ev, nev)
     fs[S_PRED + 4] = fs[S_PX]
     fs[S_PRED + 5] = fs[S_PY]
     fs[S_PRED + 6] = math.degrees(fs[S_PPHI])
@@ -404,10 +410,12 @@ def monitor_step(row, pp, fs, ch, buf, queue, qi, ev, tab, q):
             # pose over a window, re-anchored on the measured pose: the open-loop model's
             # dead-reckoning drift cannot build up, and the noise of a window's residual is
             # that of two pose measurements whatever the window's length
-            nev = _residual(pp, fs, ch, buf, 4, row[8] - fs[S_PX], t, ev, nev)
-            nev = _residual(pp, fs, ch, buf, 5, row[9] - fs[S_PY], t, ev, nev)
-            nev = _residual(pp, fs, ch, buf, 6, _wrap_deg(row[10] - math.degrees(fs[S_PPHI])),
-                            t, ev, nev)
+            rx = row[8] - fs[S_PX]
+            ry = row[9] - fs[S_PY]
+            rphi = _wrap_deg(row[10] - math.degrees(fs[S_PPHI]))
+            nev = _residual(pp, fs, ch, buf, 4, rx, rx, t, ev, nev)
+            nev = _residual(pp, fs, ch, buf, 5, ry, ry, t, ev, nev)
+            nev = _residual(pp, fs, ch, buf, 6, rphi, rphi, t, ev, nev)
             fs[S_TANCH] = t
             fs[S_PX] = row[8]
             fs[S_PY] = row[9]

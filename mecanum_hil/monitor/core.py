@@ -13,7 +13,8 @@ Method (see docs/shadow.md for the reasoning behind the defaults):
   the previous sample time to this one; wheel channels compare the open-loop wheel speeds, pose
   channels the pose over a window of ``pose_window_s`` re-anchored on the measured pose;
 * normalisation: residual / sigma, sigma given or estimated once per channel as 1.4826 MAD of
-  the residuals of the first ``warmup_s`` (at least ``min_warmup_samples``), not below a floor;
+  the residuals of the first ``warmup_s`` (at least ``min_warmup_samples``), raised by
+  ``noise_margin`` standard errors, not below a floor;
 * detection: two-sided CUSUM ``S+ = max(0, S+ + z - k)``, ``S- = max(0, S- - z - k)``, alarm when
   either exceeds ``h``; the alarm reports the mean residual since the statistic left zero (the
   size of the shift) and that time (the onset estimate). A channel then stays diverged, without
@@ -58,7 +59,12 @@ class ShadowConfig:
         Length of the initial window whose residuals give the noise estimate [s]; the channel is
         not tested before its estimate exists.
     min_warmup_samples : int
-        Fewest residuals per channel for the noise estimate.
+        Fewest residuals per channel for the noise estimate (pose channels, one residual per
+        window, start testing after ``min_warmup_samples * pose_window_s``).
+    noise_margin : float
+        The estimate is raised by this many of its standard errors (``1.17 sigma / sqrt(n)``
+        for the MAD): an underestimate inflates every normalised residual, and the CUSUM's
+        false-alarm rate depends steeply on it.
     clear_s : float
         A diverged channel recovers (and may alarm again) after this long without a threshold
         crossing [s].
@@ -83,8 +89,9 @@ class ShadowConfig:
 
     drift_k: float = 1.0
     threshold_h: float = 10.0
-    warmup_s: float = 1.0
-    min_warmup_samples: int = 20
+    warmup_s: float = 2.0
+    min_warmup_samples: int = 100
+    noise_margin: float = 1.5
     clear_s: float = 1.0
     pose_window_s: float = 0.1
     noise_rpm: float | None = None
@@ -99,8 +106,8 @@ class ShadowConfig:
 
     def __post_init__(self) -> None:
         for name in ("drift_k", "threshold_h", "warmup_s", "clear_s", "pose_window_s",
-                     "noise_floor_rpm", "noise_floor_m", "noise_floor_deg", "max_substep_s",
-                     "timing_tolerance_s"):
+                     "noise_margin", "noise_floor_rpm", "noise_floor_m", "noise_floor_deg",
+                     "max_substep_s", "timing_tolerance_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"shadow setting {name} must be a finite number >= 0, got {v}")
@@ -173,6 +180,7 @@ def _params(cal: Calibration, robot: RobotProfile, cfg: ShadowConfig) -> np.ndar
     pp[kn.P_PWIN] = cfg.pose_window_s
     pp[kn.P_FROM_MEAS] = 1.0 if cfg.start_from_measured else 0.0
     pp[kn.P_TOL] = cfg.timing_tolerance_s
+    pp[kn.P_SAFETY] = cfg.noise_margin
     given = [cfg.noise_rpm] * 4 + [cfg.noise_m] * 2 + [cfg.noise_deg]
     pp[kn.P_NOISE:kn.P_NOISE + kn.N_CH] = [0.0 if g is None else g for g in given]
     pp[kn.P_FLOOR:kn.P_FLOOR + kn.N_CH] = ([cfg.noise_floor_rpm] * 4 + [cfg.noise_floor_m] * 2

@@ -175,17 +175,20 @@ def test_controller_clock_undoes_a_host_stall_and_live_shadow_uses_it(tmp_path):
     # the least-delayed sample sets the offset (it may creep by the drift allowance, 2e-4 s/s)
     np.testing.assert_allclose(mapped[1:], ctrl[1:] + 0.0103, atol=2e-5)
     assert all(m <= a + 1e-12 for m, a in zip(mapped, arrival, strict=True))
-    # a session passing send times and controller times reproduces the replay
+    # a session passing send times and controller times: a host stall changes nothing
     t, cmd = driving_commands(24.0, 100.0)
     rec = simulate_run(t, cmd, CAL, make_fault("gain-drop", FAULT_T, wheel=1), seed=5)
     live = LiveShadow(CAL, RobotProfile(), ShadowConfig(), tmp_path / "x.shadow.jsonl")
     live.monitor.set_command_schedule(t + 5.0, cmd)  # a wrong schedule: on_command replaces it
+    ideal = ShadowMonitor(CAL)
     for i in range(len(rec)):
         live.on_command(rec.t_s[i], rec.commands[i])
-        late = rec.t_s[i] + (0.09 if 300 <= i < 310 else 0.0)  # host stalled, burst after
+        late = rec.t_s[i] + (0.09 if 1500 <= i < 1510 else 0.0)  # host stalled, burst after
         live.on_telemetry(late, rec.commands[i], rec.wheel_rpm[i], controller_time_s=rec.t_s[i])
+        ideal.on_command(rec.t_s[i], rec.commands[i])
+        ideal.on_telemetry(rec.t_s[i], rec.commands[i], rec.wheel_rpm[i])
     text = live.close()
-    ref = replay(rec, CAL)
-    assert [a.channel for a in live.monitor.alarms] == [a.channel for a in ref.alarms]
-    assert live.monitor.alarms[0].t_s == pytest.approx(ref.alarms[0].t_s, abs=1e-9)
+    assert live.monitor.alarms == ideal.alarms
+    assert live.monitor.alarms[0].channel == "wheel1_rpm"
+    assert FAULT_T <= live.monitor.alarms[0].t_s <= FAULT_T + 0.3
     assert "wheel1_rpm" in text
