@@ -79,3 +79,18 @@ def test_recording_without_measurements_is_refused(tmp_path):
                            tmp_path / "empty.csv")
     r = cli("shadow", "--replay", path)
     assert r.returncode == 1 and "nothing measured" in r.stderr
+
+
+def test_listen_on_a_quiet_bus_hears_nothing_and_exits_0(tmp_path):
+    r = cli("shadow", "--transport", "can", "--interface", "virtual", "--channel", "quiet",
+            "--duration", "0.3", "--out", tmp_path / "heard.csv")
+    assert r.returncode == 0, r.stderr
+    assert "listening on virtual:quiet (sending nothing)" in r.stdout
+    assert "heard 0 commands" in r.stdout
+    assert (tmp_path / "heard.shadow.jsonl").read_text().count('"event"') == 2  # start, end
+
+
+def test_passive_listening_needs_can(tmp_path):
+    r = cli("shadow", "--transport", "serial")
+    assert r.returncode == 1 and r.stderr.startswith("error: ")
+    assert "--transport can" in r.stderr
