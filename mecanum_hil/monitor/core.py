@@ -467,7 +467,8 @@ def replay(rec: Recording, calibration: Calibration, robot: RobotProfile | None 
     Parameters
     ----------
     rec : Recording
-        Needs commands on every row (the model's input) and at least one measured channel.
+        Needs commands on every row (the model's input) from the first row that has them on
+        (leading rows without commands are skipped) and at least one measured channel.
     calibration, robot, config, listeners
         As for :class:`ShadowMonitor`.
     source : str
@@ -480,6 +481,14 @@ def replay(rec: Recording, calibration: Calibration, robot: RobotProfile | None 
     from ..errors import RecordingError
     from ..prediction import require_commands
 
+    known = np.flatnonzero(np.isfinite(rec.commands).all(axis=1))
+    if known.size and known[0] > 0:
+        # a listener joining a running robot records telemetry before it hears a command:
+        # the model starts at the first row whose command is known
+        k = int(known[0])
+        rec = rec.with_values(t_s=rec.t_s[k:], commands=rec.commands[k:],
+                              wheel_rpm=rec.wheel_rpm[k:], pose=rec.pose[k:],
+                              extra={n: list(v)[k:] for n, v in rec.extra.items()})
     require_commands(rec, source)
     if not (np.isfinite(rec.wheel_rpm).any() or np.isfinite(rec.pose).all(axis=1).any()):
         raise RecordingError(f"{source}: nothing measured to compare (wheel and pose columns "

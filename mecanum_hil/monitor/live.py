@@ -37,7 +37,8 @@ class ControllerClock:
 
     The offset is the smallest (arrival - controller time) seen, the sample that waited least
     on its way; it may grow by ``drift`` seconds per second so a controller clock running slow
-    is followed, and it restarts when the controller clock jumps back (a new HELLO).
+    is followed, and it restarts when the controller clock does not advance (a new HELLO) or on
+    :meth:`reset` (the listener sees a HELLO_ACK).
     Telemetry timed this way carries the controller's sampling instants instead of the
     listener's receive jitter.
     """
@@ -47,9 +48,16 @@ class ControllerClock:
         self.offset: float | None = None
         self._last: float | None = None
 
+    def reset(self) -> None:
+        """Forget the offset (the controller restarted its clock: HELLO_ACK)."""
+        self.offset = None
+        self._last = None
+
     def __call__(self, controller_s: float, arrival_s: float) -> float:
         d = arrival_s - controller_s
-        if self.offset is None or self._last is None or controller_s < self._last:
+        # a clock that does not advance has restarted (a controller answering a backlog of
+        # HELLOs restarts at 0 each time): start over rather than keep a stale offset
+        if self.offset is None or self._last is None or controller_s <= self._last:
             self.offset = d
         else:
             self.offset = min(d, self.offset + self.drift * (controller_s - self._last))
@@ -223,7 +231,7 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
     from ..errors import ConfigError, LinkLostError
     from ..io.recording import RecordingWriter
     from ..link.can_link import CanCodec, CanTransport
-    from ..link.protocol import Command, FrameError, Stop, Telemetry
+    from ..link.protocol import Command, FrameError, HelloAck, Stop, Telemetry
     from ..link.session import EXTRA_COLUMNS
     from ..model import load_calibration, load_robot_profile
 
@@ -294,6 +302,8 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
                 if live.stop_requested and isinstance(msg, Command):
                     # python-can stamps frames on the epoch clock: our STOP goes out now
                     _send_stop(link, live, max(time.time() - t0, t), cmd, heard)
+            elif isinstance(msg, HelloAck):
+                clock.reset()  # the controller's clock restarts at the HELLO it answers
             elif isinstance(msg, Telemetry):
                 heard["telemetry"] += 1
                 t = max(clock(msg.time_us * 1e-6, stamp - t0), last_t)

@@ -127,6 +127,10 @@ def test_passive_can_listener_flags_the_fault_and_sends_only_when_told(tmp_path,
     alarms = [e for e in events if e["event"] == "alarm"]
     heard = read_recording(tmp_path / "heard.csv")
     fault_t = _fault_time(heard)
+    if not stop:  # what was heard replays to the same verdict
+        again = replay(heard, Calibration())
+        assert again.alarms[0].channel == "wheel3_rpm"
+        assert abs(again.alarms[0].t_s - alarms[0]["t_s"]) <= 0.011
     assert alarms[0]["channel"] == "wheel3_rpm"
     # the simulated controller switches faults on at its 1 ms ticks and reports every 10 ms:
     # the first faulty sample may carry a controller time up to one report before at_s
