@@ -1,7 +1,8 @@
 """Shadow mode: the fitted model beside the robot, flagging persistent divergence.
 
 :class:`ShadowMonitor` (live, one sample at a time; a link ``TelemetryObserver``) and
-:func:`replay` (a recording, as if live) share one compiled per-sample core.
+:func:`replay` (a recording, as if live) share one compiled per-sample core;
+:func:`shadow_fault_demo` is the demo's run with an injected fault that gets flagged.
 """
 
 from .core import (
@@ -13,6 +14,7 @@ from .core import (
     recording_rows,
     replay,
 )
+from .scenarios import shadow_fault_demo
 
 __all__ = [
     "CHANNELS",
@@ -22,4 +24,5 @@ __all__ = [
     "ShadowResult",
     "recording_rows",
     "replay",
+    "shadow_fault_demo",
 ]
