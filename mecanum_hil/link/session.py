@@ -72,6 +72,11 @@ class TelemetryObserver(Protocol):
     reused, but copying is cheap). The session reads ``stop_requested`` before every command;
     once it is true the session sends STOP and ends with reason ``observer_stop`` (exit 3).
     An exception raised by an observer ends the session with reason ``error``.
+
+    Optionally an observer also defines ``on_command(t_s, commands)``: it is then told every
+    command (and the final stop) at its actual send time, in order with the telemetry, and its
+    ``on_telemetry`` receives ``controller_time_s=`` (the controller's clock for the sample [s]),
+    which lets it time samples by the controller instead of by a possibly stalled host.
     """
 
     stop_requested: bool
@@ -189,13 +194,22 @@ class _ObserverPump:
                                             daemon=True)
             self._thread.start()
 
-    def push(self, t_s: float, commands: np.ndarray, wheels: np.ndarray) -> None:
+    def _put(self, item: tuple) -> None:
         if self._thread is None:
             return
         if len(self._queue) == self._queue.maxlen:
             self.dropped += 1
-        self._queue.append((t_s, commands, wheels))
+        self._queue.append(item)
         self._event.set()
+
+    def push(self, t_s: float, commands: np.ndarray, wheels: np.ndarray,
+             controller_time_s: float | None = None) -> None:
+        """A telemetry sample for the observers."""
+        self._put((t_s, commands, wheels, controller_time_s))
+
+    def push_command(self, t_s: float, commands: np.ndarray) -> None:
+        """A command as sent, for the observers that take commands."""
+        self._put((t_s, commands, None, None))
 
     @property
     def stop_requested(self) -> bool:
@@ -206,10 +220,17 @@ class _ObserverPump:
             self._event.wait(0.05)
             self._event.clear()
             while self._queue:
-                t_s, cmd, wheels = self._queue.popleft()
+                t_s, cmd, wheels, ctrl_t = self._queue.popleft()
                 for obs in self.observers:
                     try:
-                        obs.on_telemetry(t_s, cmd, wheels)
+                        takes_commands = hasattr(obs, "on_command")
+                        if wheels is None:
+                            if takes_commands:
+                                obs.on_command(t_s, cmd)
+                        elif takes_commands:
+                            obs.on_telemetry(t_s, cmd, wheels, controller_time_s=ctrl_t)
+                        else:
+                            obs.on_telemetry(t_s, cmd, wheels)
                     except Exception as err:  # reported by the session, which then stops
                         self.error = err
                         return
@@ -282,7 +303,7 @@ class _Session:
             t = self._row_time(now)
             self.writer.write(t, self.cmd_in_force, wheels,
                               extra=("tlm", msg.seq, f"{ctrl_t:.6f}", msg.status))
-            self.pump.push(t, self.cmd_in_force.copy(), wheels)
+            self.pump.push(t, self.cmd_in_force.copy(), wheels, ctrl_t)
         elif isinstance(msg, Pong):
             sent = self._pings.pop(msg.token, None)
             if sent is not None:
@@ -377,8 +398,10 @@ class _Session:
                 if len(self._acks) > 64:
                     self._acks.pop(next(iter(self._acks)))
             self.cmd_in_force = np.array([wire.n_rpm, wire.omega_dps, wire.theta_deg])
-            self.writer.write(self._row_time(now), self.cmd_in_force,
+            t_row = self._row_time(now)
+            self.writer.write(t_row, self.cmd_in_force,
                               extra=("cmd", "" if sent is None else sent.seq, "", ""))
+            self.pump.push_command(t_row, self.cmd_in_force.copy())
             if now >= next_ping:
                 self._ping_token = (self._ping_token + 1) & 0xFFFFFFFF
                 if self.send(Ping(self._ping_token)) is not None:
@@ -399,8 +422,10 @@ class _Session:
             theta = self.cmd_in_force[2] if np.isfinite(self.cmd_in_force[2]) else 90.0
             self.cmd_in_force = np.array([0.0, 0.0, theta])
             try:
-                self.writer.write(self._row_time(now), self.cmd_in_force,
+                t_row = self._row_time(now)
+                self.writer.write(t_row, self.cmd_in_force,
                                   extra=("stop", "" if sent is None else sent.seq, "", ""))
+                self.pump.push_command(t_row, self.cmd_in_force.copy())
                 if keep_receiving_s > 0 and sent is not None:
                     self.pump_until(now + keep_receiving_s)
             except Exception:  # the tail is a courtesy; the recording is already complete
