@@ -20,9 +20,10 @@ The method (``docs/diagnose.md`` has the details and the reasons):
    added only if it removes at least :data:`MIN_EXPLAINED` of the held-out *excess* over the
    noise floor and at least :data:`MIN_RELATIVE` of the held-out score. Rounds repeat until
    none qualifies or the residual is at the noise floor.
-4. **Slip** changes no wheel speed, only the pose: it is scored the same way on the pose
-   channels (in wheel-rpm equivalents, :func:`mecanum_hil.identify.fit.pose_scale`) after the
-   wheel rounds, when recordings have pose data.
+4. **Slip** changes no wheel speed, only the pose: after the wheel rounds, when recordings
+   have pose data, its efficiencies are fitted on the pose channels (A, B, C held at their
+   wheel fit, which pins them) and scored the same way on the pose residuals, each recording's
+   channel divided by its own noise level.
 5. **Unexplained.** If the remaining wheel residual is still above the noise
    (``rmse > STRUCTURE_RATIO * sigma``) and structured (lag-1 autocorrelation above
    :data:`STRUCTURE_RHO`; white noise has about 0), no effect of the library explains it and
@@ -534,6 +535,15 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
     bounds = _candidate_bounds(effect, guess)
     pw = 1.0 if effect == "slip" else 0.0
     cal = with_parameters(base, guess)
+    if effect == "slip":
+        # slip changes no wheel speed, and the wheel speeds are what pin A, B, C (they were
+        # fitted on them); freeing them on the pose would credit slip with a coefficient
+        # change, so only the efficiencies are fitted, on the pose channels
+        res = fit_parameters(ev.recs, cal, ev.robot, list(new), x0=guess, bounds=bounds,
+                             pose_weight=pw, sources=sources)
+        return _Fitted(effect, with_parameters(cal, res.parameters),
+                       tuple(n for n in base_free if n.startswith("efficiency")) + new,
+                       dict(res.ci95), res.warnings)
     if two_stage and effect != "slip":  # slip does not touch the wheels: nothing absorbed
         x0 = {n: parameter_value(cal, n) for n in base_free}
         if degenerate(base):
@@ -825,26 +835,19 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
     wheel_cands = [c for c in candidates if c != "slip" and c not in accepted]
     pose_cands = [c for c in candidates if c == "slip" and c not in accepted]
     for channel, pool in (("wheel", wheel_cands), ("pose", pose_cands)):
-        pose_base = current
         if channel == "pose":
-            if not pool or not ev.has_pose():
-                continue
-            if not ev.set_pose_noise(current):
+            if not pool or not ev.has_pose() or not ev.set_pose_noise(current):
                 continue
             scale2 = 1.0
-            # the baseline of the pose channels is fitted on them too (as the candidate is),
-            # so slip gets no credit for A, B, C moving towards the pose
-            try:
-                pfit = fit_parameters(recs, current, rob, cur_free,
-                                      x0={n: parameter_value(current, n) for n in cur_free},
-                                      pose_weight=1.0, sources=names)
-                pose_base = with_parameters(current, pfit.parameters)
-            except FitError:
-                pass
         else:
             scale2 = noise2
         while pool and len(steps) < max_rounds:
-            if steps and channel == "wheel":
+            # the wheels pin A, B, C; on the pose channels only slip's parameters move
+            moving = cur_free if channel == "wheel" else [
+                n for n in cur_free if n.startswith("efficiency")]
+            h0 = heldout_score(ev, current, moving, channel)
+            s0 = _score(h0, scale2)
+            if steps and channel == "wheel" and s0 > NOISE_FLOOR_SCORE:
                 # refit the model just extended from where its fit stopped, so a candidate of
                 # this round gets no credit for a search that merely went on further
                 # (the cost is not smooth where a drive limit switches on, so a search may
@@ -865,12 +868,8 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
                     last_ci = {**last_ci, **more.ci95}
                     if more.sse > 0.99 * sse_now:
                         break
-            # the wheels pin A, B, C; on the pose channels only slip's parameters move
-            moving = cur_free if channel == "wheel" else [
-                n for n in cur_free if n.startswith("efficiency")]
-            h0 = heldout_score(ev, current if channel == "wheel" else pose_base, moving,
-                               channel)
-            s0 = _score(h0, scale2)
+                h0 = heldout_score(ev, current, moving, channel)
+                s0 = _score(h0, scale2)
             say(f"round {len(steps) + 1} ({channel}): held-out score {s0:.3f} "
                 "(mean square / noise^2; 1 = noise floor)")
             if s0 <= NOISE_FLOOR_SCORE:

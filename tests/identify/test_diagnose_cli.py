@@ -79,3 +79,16 @@ def test_real_micromouse_data(shared_real_data):
     # what it finds is recorded in docs/diagnose.md; here: it runs and never makes it worse
     assert d.rmse_final <= d.rmse_initial * 1.001
     assert d.noise_rpm > 0
+
+
+@pytest.mark.slow
+def test_demo_story_finds_the_hidden_ceiling(tmp_path):
+    from mecanum_hil.identify.diagnose_report import STORY_EFFECTS, diagnose_story
+
+    lines: list[str] = []
+    files = diagnose_story(tmp_path, echo=lines.append)
+    cal = load_calibration(files["diagnosed"])
+    assert cal.effects.active().keys() == {"saturation"}
+    assert cal.effects.top_speed_rpm == pytest.approx(STORY_EFFECTS.top_speed_rpm, abs=1.5)
+    assert "## Step 1: saturation" in files["report"].read_text()
+    assert lines[-1].startswith("named: saturation")
