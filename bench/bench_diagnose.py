@@ -1,0 +1,87 @@
+"""Benchmark of diagnose: its cost against one ``fit``, and its held-out score against exact LOO.
+
+Measured in one run on a campaign like the paper's (100 Hz, 0.25 rpm noise) with a hidden drive
+ceiling (saturation 110 rpm):
+
+* wall time of ``fit`` (A, B, C, the user's step) as the baseline, and of ``diagnose`` as a
+  ratio of it;
+* the approximate leave-one-recording-out score (one Gauss-Newton step per left-out recording,
+  :func:`mecanum_hil.identify.diagnose.heldout_score`) against the exact one (a full refit on
+  the other recordings for each left-out one), for the model without and with the named
+  effect: their values and the cost ratio.
+
+Run: ``python bench/bench_diagnose.py [--quick]`` (``--quick``: fewer recordings).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from mecanum_hil.identify.campaign import campaign_profiles, paper_campaign
+from mecanum_hil.identify.diagnose import _Evaluator, diagnose, heldout_score
+from mecanum_hil.identify.fit import fit, fit_parameters, parameter_value, with_parameters
+from mecanum_hil.model import Calibration, Effects, RobotProfile
+
+
+def exact_loo(recs, cal, robot, free) -> float:
+    """Held-out mean square wheel residual by refitting ``free`` without each recording."""
+    ev = _Evaluator(recs, robot)
+    sse = n = 0.0
+    for i in range(len(recs)):
+        others = [r for k, r in enumerate(recs) if k != i]
+        res = fit_parameters(others, cal, robot, free,
+                             x0={p: parameter_value(cal, p) for p in free})
+        c = with_parameters(cal, res.parameters)
+        r = ev.channel(ev.predict([c], subset=[i])[0], "wheel")[i]
+        sse += float(r @ r)
+        n += r.size
+    return sse / n
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    robot = RobotProfile()
+    steps = (4.0, 30.0, 120.0) if args.quick else (4.0, 8.0, 30.0, 100.0, 120.0)
+    profiles = campaign_profiles(steps_rpm=steps, step_hold_s=1.5, reverse=False)
+    recs = paper_campaign(Calibration(effects=Effects(top_speed_rpm=110.0)), robot,
+                          rate_hz=100.0, noise_rpm=0.25, seed=1, profiles=profiles)
+    print(f"campaign: {len(recs)} recordings, {sum(len(r) for r in recs)} samples")
+
+    t0 = time.perf_counter()
+    user = fit(recs, robot).calibration
+    t_fit = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    d = diagnose(recs, user, robot)
+    t_diag = time.perf_counter() - t0
+    print(f"fit A, B, C (baseline): {t_fit:6.2f} s")
+    print(f"diagnose:               {t_diag:6.2f} s = {t_diag / t_fit:5.1f} x fit; named "
+          f"{d.effects}, RMSE {d.rmse_initial:.3f} -> {d.rmse_final:.3f} rpm")
+
+    ev = _Evaluator(recs, robot)
+    rows = []
+    for label, cal, free in (("A, B, C only", d.baseline, ["A", "B", "C"]),
+                             ("with saturation", d.calibration,
+                              ["A", "B", "C", "top_speed_rpm"])):
+        t0 = time.perf_counter()
+        approx = heldout_score(ev, cal, free).heldout_ms
+        t_a = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        exact = exact_loo(recs, cal, robot, free)
+        t_e = time.perf_counter() - t0
+        rows.append((label, approx, exact, t_a, t_e))
+    print("held-out mean square [rpm^2]: approximate (one step) vs exact (refit) LOO")
+    for label, a, e, ta, te in rows:
+        print(f"  {label:16s} approx {a:10.4f}  exact {e:10.4f}  ratio {a / e:6.3f}  "
+              f"cost {ta:5.2f} s vs {te:6.2f} s = {te / max(ta, 1e-9):5.1f} x")
+    ratio = [r[1] / r[2] for r in rows]
+    print(f"agreement of approximate and exact held-out scores: "
+          f"{np.min(ratio):.3f} .. {np.max(ratio):.3f}")
+
+
+if __name__ == "__main__":
+    main()
