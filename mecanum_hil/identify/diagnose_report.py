@@ -150,13 +150,14 @@ def write_report(diagnosis: Diagnosis, recordings: Sequence[Recording], out_dir:
         spec = EFFECTS[step.effect]
         md += [f"## Step {k}: {step.effect}", "", f"*{spec.description}*", "",
                "| parameter | value | 95 % interval |", "|---|---|---|", *_param_lines(step), "",
-               "| candidate | held-out RMS | explains of excess | of score | parameters |",
+               "| candidate | held-out RMS | explains of excess (held out / in sample) | "
+               "of score | parameters |",
                "|---|---|---|---|---|"]
         for c in step.candidates:
             mark = " **(added)**" if c.accepted else ""
             md.append(f"| {c.effect}{mark} | {_fmt(c.heldout_rmse)} | "
-                      f"{_fmt(100 * c.explained, 3)} % | {_fmt(100 * c.relative, 3)} % | "
-                      f"{c.note or c.parameters} |")
+                      f"{_fmt(100 * c.explained, 3)} % / {_fmt(100 * c.in_sample, 3)} % | "
+                      f"{_fmt(100 * c.relative, 3)} % | {c.note or c.parameters} |")
         md += ["", "| recording | wheel RMSE before [rpm] | after [rpm] |", "|---|---|---|"]
         for name, b, a in zip(names, step.rmse_before_per_recording,
                               step.rmse_after_per_recording, strict=True):
