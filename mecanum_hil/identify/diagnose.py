@@ -348,7 +348,9 @@ def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
                     lat.append(t[hit[0]] - t[j])
     if not lat:
         return 0.0
-    return max(float(np.median(lat)) - float(np.median(dts)), 0.0)
+    # whole microseconds: a difference of sample times can fall a hair below a whole number
+    # of samples, where the simulator's dead-time grid fails (see the IndexError note below)
+    return round(max(float(np.median(lat)) - float(np.median(dts)), 0.0), 6)
 
 
 def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, float]:
