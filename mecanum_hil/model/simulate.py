@@ -83,15 +83,20 @@ def uniform_time(duration_s: float, rate_hz: float) -> np.ndarray:
 
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
     """Refine the time grid so a dead time is exact; return grid, delayed commands, sample index."""
+    eps = 1e-9 * max(1.0, abs(t[-1]))
     shifted = t + delay_s
-    grid = np.union1d(t, shifted[shifted < t[-1]])
-    # merge breakpoints closer than rounding so no step is (almost) empty
-    keep = np.concatenate([[True], np.diff(grid) > 1e-9 * max(1.0, abs(t[-1]))])
-    grid = grid[keep]
-    src = np.searchsorted(t, grid - delay_s + 1e-12, side="right") - 1
+    shifted = shifted[shifted < t[-1]]
+    # A delayed command change within rounding of a sample time is taken at that sample time, so
+    # every sample time stays on the grid and no step is (almost) empty.
+    j = np.searchsorted(t, shifted)
+    near = (np.abs(t[np.clip(j, 0, t.size - 1)] - shifted) <= eps) | (
+        np.abs(t[np.clip(j - 1, 0, t.size - 1)] - shifted) <= eps)
+    grid = np.union1d(t, shifted[~near])
+    grid = grid[np.concatenate([[True], np.diff(grid) > eps])]
+    src = np.searchsorted(t, grid - delay_s + 2 * eps, side="right") - 1
     delayed = np.where((src >= 0)[None, :, None], cmd[:, np.clip(src, 0, None), :],
                        initial_command[:, None, :])
-    sample_idx = np.searchsorted(grid, t - 1e-12 * max(1.0, abs(t[-1])))
+    sample_idx = np.searchsorted(grid, t - eps)
     return grid, delayed, sample_idx
 
 

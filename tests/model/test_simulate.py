@@ -151,6 +151,18 @@ def test_dead_time_is_an_exact_shift():
     np.testing.assert_allclose(late[:6], 0.0, atol=1e-12)
 
 
+@pytest.mark.parametrize("delay", [0.06, 0.06 - 1e-12, 0.06 + 1e-12, 0.01999999956, 0.0200000004])
+def test_dead_time_at_and_near_whole_samples(delay):
+    t = np.arange(301) / 100
+    cmd = hold(0, 0, 90, t)
+    cmd[50:, 0] = 60
+    eff = replace(PAPER, effects=Effects(dead_time_s=delay))
+    late = simulate(cmd, t, eff).wheel_rpm[0, :, 0]
+    base = simulate(cmd, t, PAPER).wheel_rpm[0, :, 0]
+    shift = round(delay * 100)
+    np.testing.assert_allclose(late[shift:], base[: t.size - shift], atol=1e-4)
+
+
 def test_fractional_dead_time_matches_fine_grid():
     t = uniform_time(1.0, 100)
     eff = replace(PAPER, effects=Effects(dead_time_s=0.0137))
