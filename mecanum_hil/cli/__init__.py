@@ -11,10 +11,9 @@ import sys
 import typer
 
 from ..errors import MecanumHILError
-from . import demo, measure_video, render_video, simulate
+from . import demo, measure_video, record, render_video, shadow, sim_robot, simulate
 from . import diagnose as diagnose_cmd
 from . import fit as fit_cmd
-from . import record, shadow, sim_robot
 
 app = typer.Typer(
     name="mecanum-hil",
