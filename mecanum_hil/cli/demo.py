@@ -10,10 +10,12 @@ import typer
 
 def command(
     out: Annotated[
-        Path, typer.Option("--out", "-o", help="Folder for recordings and plots.")
+        Path, typer.Option("--out", "-o", help="Folder for everything the demo writes.")
     ] = Path("demo-out"),
+    quick: Annotated[bool, typer.Option(
+        "--quick", help="Record three of the paper's experiments instead of all seven.")] = False,
 ) -> None:
-    """Run the paper's experiments on the model; write recordings and plots into a folder."""
+    """Run the whole loop on the simulated robot: model, record, video, fit, shadow, diagnose."""
     from ..demo import run_demo
 
-    run_demo(out, echo=typer.echo)
+    run_demo(out, echo=typer.echo, quick=quick)

@@ -37,12 +37,12 @@ def command(
     import json
 
     from ..identify.diagnose import CANDIDATES, diagnose
-    from ..io.recording import read_recording
+    from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile, save_calibration
 
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
-    recs = [read_recording(p) for p in recordings]
+    recs = [read_for_analysis(p) for p in recordings]
     names = [p.stem for p in recordings]
     if len(set(names)) != len(names):
         names = [str(p) for p in recordings]

@@ -112,14 +112,14 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
             events: Path | None, no_events: bool, plot: Path | None) -> int:
     import json
 
-    from ..io.recording import read_recording
+    from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile
     from ..monitor import replay
     from ..monitor.eventlog import EventLog, event_log_path
 
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
-    rec = read_recording(path)
+    rec = read_for_analysis(path)
     listeners = []
     if not json_out:
         listeners.append(lambda e: typer.echo(alarm_line(e)) if e["event"] in (

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import MecanumHILError
 from ..io.recording import Recording, read_recording
+from ..io.timing import read_for_analysis
 from ..model.calibration import Calibration, save_calibration
 from ..model.robot import RobotProfile
 from ..model.simulate import DEFAULT_POSE, simulate
@@ -121,7 +122,7 @@ def fit_files(paths: Sequence[str | Path], out: str | Path, robot: RobotProfile,
     -------
     FitOutput
     """
-    recordings = [read_recording(p) for p in paths]
+    recordings = [read_for_analysis(p) for p in paths]
     sources = [str(p) for p in paths]
     result = fit(recordings, robot, method, calibration, sources=sources, **grid_options)
     header = (f"Written by mecanum-hil fit ({result.method}) from {len(sources)} recording(s).\n"

@@ -91,6 +91,13 @@ class Recording:
                 pass
         return out
 
+    def select(self, rows) -> Recording:
+        """The recording reduced to ``rows`` (a boolean mask or indices), extras included."""
+        idx = np.arange(len(self))[rows]
+        extra = {k: [v[i] for i in idx] for k, v in self.extra.items()}
+        return replace(self, t_s=self.t_s[idx], commands=self.commands[idx],
+                       wheel_rpm=self.wheel_rpm[idx], pose=self.pose[idx], extra=extra)
+
     def with_values(self, **changes) -> Recording:
         """A copy with some fields replaced."""
         return replace(self, **changes)

@@ -69,9 +69,22 @@ def test_malformed_csv_is_one_line(tmp_path):
     assert "Traceback" not in r.stderr
 
 
-def test_demo_writes_recordings_and_plots(tmp_path):
-    r = cli("demo", "--out", tmp_path / "demo")
+def test_demo_runs_the_whole_loop(tmp_path):
+    """`demo --quick`: model, record over a pty, video, fit, diagnose, shadow, one report."""
+    r = cli("demo", "--quick", "--out", tmp_path / "demo")
     assert r.returncode == 0, r.stderr
-    rec = read_recording(tmp_path / "demo" / "model" / "paper-step-120.csv")
+    out = tmp_path / "demo"
+    rec = read_recording(out / "model" / "paper-step-120.csv")
     assert rec.wheel_rpm[300, 0] == pytest.approx(120.0, abs=0.01)
-    assert (tmp_path / "demo" / "model" / "paper-turn.png").exists()
+    # recorded through the serial protocol: the hidden 115 rpm ceiling shows in the telemetry
+    recorded = read_recording(out / "recorded" / "paper-step-120.csv")
+    steady = (recorded.t_s > 2.5) & (recorded.t_s < 3.4) & np.isfinite(recorded.wheel_rpm[:, 0])
+    assert np.median(recorded.wheel_rpm[steady]) == pytest.approx(115.0, abs=1.0)
+    assert (out / "video" / "paper-step-120.csv").exists()
+    assert (out / "fit" / "calibration.toml").exists()
+    # diagnose names the ceiling and shadow mode flags the injected fault and stops the run
+    assert "saturation" in (out / "diagnose" / "calibration.toml").read_text()
+    report = (out / "REPORT.md").read_text()
+    assert "named: saturation" in report and "observer_stop" in report
+    events = (out / "shadow" / "paper-step-60-fault.shadow.jsonl").read_text()
+    assert '"wheel2_rpm"' in events

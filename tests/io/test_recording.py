@@ -93,3 +93,11 @@ def test_writer_leaves_a_valid_file_at_every_flush(tmp_path):
     w.close({"rows": 5})
     assert read_recording(p).metadata == {"source": "t", "rows": 5}
     assert len(read_recording(p)) == 5
+
+
+def test_select_rows_keeps_extras():
+    rec = Recording(np.arange(4.0), np.zeros((4, 3)), np.array([[1.0] * 4, [np.nan] * 4] * 2),
+                    np.full((4, 3), np.nan), {"event": ["tlm", "cmd", "tlm", "cmd"]})
+    tlm = rec.select(np.isfinite(rec.wheel_rpm[:, 0]))
+    np.testing.assert_array_equal(tlm.t_s, [0.0, 2.0])
+    assert tlm.extra == {"event": ["tlm", "tlm"]}
