@@ -225,7 +225,7 @@ def simulate_batch(
             didx = np.append(didx, 0)
             nsub = np.append(nsub, 0)
         args = (
-            np.ascontiguousarray(gcmd), didx, nsub, table,
+            gcmd, didx, nsub, table,  # any strides: a view is not copied
             np.array([c.coefficients for c in group], dtype=float),
             float(robot.k), float(robot.wheel_radius_m),
             *effect_arrays([c.effects for c in group]),
