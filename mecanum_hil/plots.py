@@ -20,6 +20,21 @@ def _pyplot():
     return plt
 
 
+def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """Lay out, write (creating the folder) and close a figure; a failure is one clear error."""
+    plt = _pyplot()
+    fig.tight_layout()
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(p, dpi=dpi)
+    except OSError as err:
+        raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
+    finally:
+        plt.close(fig)
+    return p
+
+
 def plot_recordings(recordings: Mapping[str, Recording], path: str | Path, title: str = "",
                     styles: Mapping[str, str] | None = None) -> Path:
     """Wheel speeds against time, path in the plane and heading against time.
@@ -70,13 +85,4 @@ def plot_recordings(recordings: Mapping[str, Recording], path: str | Path, title
         ax_h.grid(True, alpha=0.3)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    p = Path(path)
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(p, dpi=110)
-    except OSError as err:
-        raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
-    finally:
-        plt.close(fig)
-    return p
+    return save_figure(fig, path, dpi=110)

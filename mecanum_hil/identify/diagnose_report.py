@@ -47,7 +47,7 @@ def plot_comparison(measured: Recording, curves: dict[str, Recording], path: str
         PNG to write.
     title : str
     """
-    from ..plots import _pyplot
+    from ..plots import _pyplot, save_figure
 
     plt = _pyplot()
     wheels = [i for i in range(4) if np.isfinite(measured.wheel_rpm[:, i]).any()]
@@ -83,16 +83,7 @@ def plot_comparison(measured: Recording, curves: dict[str, Recording], path: str
         ax.set_visible(False)
     if title:
         fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    p = Path(path)
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(p, dpi=100)
-    except OSError as err:
-        raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
-    finally:
-        plt.close(fig)
-    return p
+    return save_figure(fig, path, dpi=100)
 
 
 def _fmt(v: float, digits: int = 4) -> str:

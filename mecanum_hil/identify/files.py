@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import MecanumHILError
 from ..io.recording import Recording, read_recording
 from ..io.timing import read_for_analysis
 from ..model.calibration import Calibration, save_calibration
@@ -46,7 +45,7 @@ def plot_fit(result: FitResult, recordings: Sequence[Recording], robot: RobotPro
     labels : sequence of str, optional
         Panel titles (default: the fit's data sources).
     """
-    from ..plots import _pyplot
+    from ..plots import _pyplot, save_figure
 
     plt = _pyplot()
     cal = result.calibration
@@ -82,16 +81,7 @@ def plot_fit(result: FitResult, recordings: Sequence[Recording], robot: RobotPro
         axes[k // ncols, k % ncols].set_visible(False)
     fig.suptitle(f"fit ({result.method}): A={cal.A:.4g} B={cal.B:.4g} C={cal.C:.4g}, "
                  f"RMSE {result.rmse_rpm:.3g} rpm, fit {result.fit_percent:.1f} %", fontsize=10)
-    fig.tight_layout()
-    p = Path(path)
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(p, dpi=110)
-    except OSError as err:
-        raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
-    finally:
-        plt.close(fig)
-    return p
+    return save_figure(fig, path, dpi=110)
 
 
 def fit_files(paths: Sequence[str | Path], out: str | Path, robot: RobotProfile,

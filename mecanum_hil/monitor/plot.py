@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import MecanumHILError
 from ..io.recording import Recording
+from ..plots import save_figure
 
 
 def plot_shadow(measured: Recording, model: Recording, alarms: Sequence, path: str | Path,
@@ -59,13 +59,4 @@ def plot_shadow(measured: Recording, model: Recording, alarms: Sequence, path: s
     ax_r.legend(fontsize=6, ncol=4)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    p = Path(path)
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(p, dpi=110)
-    except OSError as err:
-        raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
-    finally:
-        plt.close(fig)
-    return p
+    return save_figure(fig, path, dpi=110)
