@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import LinkError
 from .io.recording import empty_like_times, read_recording, write_recording
 from .model import load_calibration, load_robot_profile
 from .plots import plot_recordings
@@ -55,7 +56,7 @@ at_s = 2.5
 gains = [1.0, 0.8, 1.0, 1.0]
 """
 
-QUICK_EXPERIMENTS = ("paper-step-30", "paper-step-120", "paper-turn")
+QUICK_EXPERIMENTS = ("paper-step-120", "paper-turn")
 
 
 def _model_stage(out: Path, echo) -> None:
@@ -84,7 +85,8 @@ def _record_stage(out: Path, names, echo) -> list[Path]:
         path = out / "recorded" / f"{name}.csv"
         result = record_profile_to_simulated_controller(name, path, effects=truth)
         if result.exit_code != 0:
-            raise RuntimeError(f"recording {name} ended with {result.reason}: {result.message}")
+            raise LinkError(f"demo: recording {name} ended with {result.reason}: "
+                            f"{result.message or 'see ' + str(path)}")
         rec = read_recording(path)
         plot_recordings({"recorded": rec}, path.with_suffix(".png"), title=f"recorded: {name}",
                         styles={"recorded": "."})

@@ -13,7 +13,7 @@ def command(
         Path, typer.Option("--out", "-o", help="Folder for everything the demo writes.")
     ] = Path("demo-out"),
     quick: Annotated[bool, typer.Option(
-        "--quick", help="Record three of the paper's experiments instead of all seven.")] = False,
+        "--quick", help="Record two of the paper's experiments instead of all seven.")] = False,
 ) -> None:
     """Run the whole loop on the simulated robot: model, record, video, fit, shadow, diagnose."""
     from ..demo import run_demo

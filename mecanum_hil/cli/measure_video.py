@@ -59,6 +59,12 @@ def command(
     opts = MeasureOptions(rois=rois, marker=spec, invert=invert, fps=fps, window_s=window_s,
                           min_found=min_found)
     rec = read_recording(recording) if recording is not None else None
+    if recording is not None:
+        merged_target = merged or out.with_name(out.stem + ".merged.csv")
+        for target in (out, merged_target):
+            if target.resolve() == recording.resolve():
+                raise VideoError(f"{target}: would overwrite the recording given with "
+                                 "--recording; write the measurement to another file")
     err_console = Console(stderr=True)
     with Progress(TextColumn("measuring {task.fields[name]}"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),

@@ -96,6 +96,9 @@ def command(
     # (shadow mode, ...) append theirs here.
     observers: list = []
     shadow_obs = None
+    if shadow is None and on_divergence != "none":
+        raise ConfigError("--on-divergence acts on shadow mode's alarms: give --shadow CAL too "
+                          "(without it nothing watches the run)")
     if shadow is not None:
         from ..monitor.live import record_shadow
 

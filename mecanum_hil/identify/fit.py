@@ -701,16 +701,41 @@ def fit(
     FitResult
     """
     cal = calibration if calibration is not None else Calibration(source="<fit>")
+    for i, rec in enumerate(recordings):
+        _require_start_at_rest(rec, robot, _source(i, rec, sources))
     if method == "lsq":
         if grid_options:
             raise FitError(f"grid options {sorted(grid_options)} apply to --method paper-grid only")
-        return fit_parameters(recordings, cal, robot, sources=sources)
-    if method == "paper-grid":
+        result = fit_parameters(recordings, cal, robot, sources=sources)
+    elif method == "paper-grid":
         from .grid import paper_grid
 
         data = prepare(recordings, robot, sources)
         res = paper_grid(data, cal, robot, **grid_options)
         x = np.array([res.A, res.B, res.C])
-        return finish(data, cal, robot, list(_COEFFICIENTS), x, "paper-grid",
-                      extra_warnings=res.warnings, info_extra=res.info)
-    raise FitError(f"unknown method {method!r}; choose lsq or paper-grid")
+        result = finish(data, cal, robot, list(_COEFFICIENTS), x, "paper-grid",
+                        extra_warnings=res.warnings, info_extra=res.info)
+    else:
+        raise FitError(f"unknown method {method!r}; choose lsq or paper-grid")
+    if not result.fit_percent > 0.0:
+        raise FitError(
+            f"the best model explains the data worse than their mean (fit "
+            f"{result.fit_percent:.1f} %): no trustworthy coefficients (is there a transient, "
+            "and do the commands belong to these wheel speeds?)")
+    return result
+
+
+def _require_start_at_rest(rec: Recording, robot: RobotProfile, src: str) -> None:
+    """The model starts every recording from rest: refuse one that starts in motion."""
+    wheels = np.asarray(rec.wheel_rpm, dtype=float)
+    rows = np.flatnonzero(np.isfinite(wheels).any(axis=1))
+    if rows.size == 0 or not np.isfinite(rec.commands).all():
+        return  # reported by the engine's own checks
+    first = np.nanmax(np.abs(wheels[rows[0]]))
+    targets = command_to_wheels(rec.commands[:, 0], rec.commands[:, 1], rec.commands[:, 2],
+                                robot.k)
+    if first > max(2.0, 0.05 * float(np.abs(targets).max())):
+        raise FitError(
+            f"{src}: starts in motion (a wheel at {first:.1f} rpm at t_s={rec.t_s[rows[0]]:g}); "
+            "the model starts every recording from rest, so trim the recording to begin at "
+            "standstill (or record from standstill)")

@@ -129,6 +129,33 @@ def _parse_float(text: str, where: str) -> float:
     return value
 
 
+def _drop_cut_last_line(text: str) -> tuple[str, str]:
+    """Drop a last line cut off mid-row (a crash or full disk while writing).
+
+    Every complete row ends with a newline; a last line without one that does not have the
+    header's number of fields, or whose fields are not all numbers or empty, is a partial
+    write: it is dropped so that everything before it stays readable. Returns the text and the
+    dropped line ("" when none).
+    """
+    if text.endswith("\n") or "\n" not in text:
+        return text, ""
+    head, _, tail = text.rpartition("\n")
+    n_fields = len(next(csv.reader(io.StringIO(text.split("\n", 1)[0]))))
+    try:
+        fields = next(csv.reader(io.StringIO(tail)))
+    except (csv.Error, StopIteration):
+        return head + "\n", tail
+    if len(fields) != n_fields:
+        return head + "\n", tail
+    try:
+        for f in fields[: len(COLUMNS)]:
+            if f.strip():
+                float(f)
+    except ValueError:
+        return head + "\n", tail
+    return text, ""
+
+
 def read_recording(path: str | Path) -> Recording:
     """Read a recording (CSV and, when present, its JSON sidecar).
 
@@ -137,7 +164,9 @@ def read_recording(path: str | Path) -> Recording:
     RecordingError
         For a missing file, a header that differs from the pinned columns, a row with the wrong
         number of fields, a non-numeric value, a missing time or time that does not increase;
-        the message names the file, line and column.
+        the message names the file, line and column. A last line cut off mid-row (no final
+        newline: a crash while writing) is not an error: it is dropped, and the metadata's
+        ``truncated_last_line`` holds it.
     """
     p = Path(path)
     try:
@@ -146,6 +175,7 @@ def read_recording(path: str | Path) -> Recording:
         raise RecordingError(f"{p}: file not found") from None
     except (OSError, UnicodeDecodeError) as err:
         raise RecordingError(f"{p}: cannot read: {err}") from err
+    text, truncated = _drop_cut_last_line(text)
     rows = csv.reader(io.StringIO(text))
     try:
         header = next(rows)
@@ -200,6 +230,8 @@ def read_recording(path: str | Path) -> Recording:
             raise RecordingError(f"{side}: bad JSON sidecar: {err}") from err
         if not isinstance(metadata, dict):
             raise RecordingError(f"{side}: the sidecar must hold a JSON object")
+    if truncated:
+        metadata = {**metadata, "truncated_last_line": truncated}
     return Recording(arr[:, 0].copy(), arr[:, 1:4].copy(), arr[:, 4:8].copy(),
                      arr[:, 8:11].copy(), dict(zip(extra_names, extra, strict=True)), metadata)
 
@@ -300,6 +332,10 @@ class RecordingWriter:
         extra_text = [format_value(v) if isinstance(v, float) else str(v) for v in extra]
         self._csv.writerow(_row(t_s, [*commands, *wheel_rpm, *pose], extra_text))
         self.rows += 1
+        self.tick()
+
+    def tick(self) -> None:
+        """Flush when the flush interval has passed (call it also while no rows come)."""
         now = time.monotonic()
         if now - self._last_flush >= self.flush_interval_s:
             self.flush()

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import LinkError, LinkLostError
-from .protocol import Command, Message, StreamDecoder, encode
+from .protocol import Command, Message, Stop, StreamDecoder, encode
 from .transport import Transport
 
 #: Largest amount of unsent output kept before frames are dropped [bytes].
@@ -50,6 +50,17 @@ class PendingOutput:
         self.flush()
         if len(self._buf) + len(data) > self.limit:
             raise LinkError(f"{self.where}: output buffer full, the other side does not read")
+        self._buf += data
+        self.flush()
+
+    def urgent(self, data: bytes, resync: bytes = b"") -> None:
+        """Send ``data`` before anything pending: the backlog (stale commands) is dropped.
+
+        ``resync`` goes first when a partly written message may be cut off, so the receiver
+        finds the start of ``data`` (a frame delimiter, a line end).
+        """
+        if self._buf:
+            self._buf = bytearray(resync)
         self._buf += data
         self.flush()
 
@@ -125,7 +136,11 @@ class SerialTransport(Transport):
 
     # -- hooks -------------------------------------------------------------------------------
     def _send(self, msg: Message) -> None:
-        self._out.queue(encode(msg))
+        if isinstance(msg, Stop):
+            # STOP never waits behind a backlog of older commands
+            self._out.urgent(encode(msg), resync=b"\x00")
+        else:
+            self._out.queue(encode(msg))
 
     def _write(self, data: bytes) -> int:
         if self._fd is not None:

@@ -14,7 +14,7 @@ reason                code   meaning
 ``observer_stop``     3      an observer (shadow mode) asked to stop
 ``link_lost``         4      the port vanished, or the controller fell silent
 ``interrupted``       130    Ctrl-C
-``terminated``        143    SIGTERM
+``terminated``        143    SIGTERM or SIGHUP
 ====================  =====  ===========================================================
 
 Observers (shadow mode) see every telemetry sample on their own thread, so a slow observer
@@ -320,6 +320,7 @@ class _Session:
                 break
             msg = self.tr.recv(remaining)
             now = time.perf_counter()
+            self.writer.tick()
             if msg is not None:
                 self.handle(msg, now)
             elif self.telemetry_rate_hz > 0 and now - self.last_rx > self.config.link_timeout_s:
@@ -415,7 +416,7 @@ class _Session:
             try:
                 sent = self.tr.send(Stop())
                 break
-            except Exception:  # best effort: the link may be gone
+            except BaseException:  # best effort; a second Ctrl-C must not skip the STOP
                 continue
         if self.t0 is not None:
             now = time.perf_counter()
@@ -508,7 +509,8 @@ def run_record_session(
                     "event": "cmd: command sent, tlm: telemetry received, stop: STOP sent"},
         **(metadata or {}),
     }
-    writer = RecordingWriter(out, EXTRA_COLUMNS, meta)
+    # fsync at every flush (at least every 0.2 s): a power loss keeps what was received
+    writer = RecordingWriter(out, EXTRA_COLUMNS, meta, fsync=True)
     sess = _Session(transport, t, cmd, writer, config, observers, progress)
     reason, message, error = "completed", "", None
     old_handler = None
@@ -516,6 +518,8 @@ def run_record_session(
         def _on_sigterm(signum, frame):
             raise SessionTerminated()
         old_handler = signal.signal(signal.SIGTERM, _on_sigterm)
+        # a closed terminal or dropped SSH session (SIGHUP) ends the run the same way
+        old_hup = signal.signal(signal.SIGHUP, _on_sigterm)
     tail = 0.0
     try:
         try:
@@ -539,6 +543,7 @@ def run_record_session(
     finally:
         if old_handler is not None:
             signal.signal(signal.SIGTERM, old_handler)
+            signal.signal(signal.SIGHUP, old_hup)
         sess.pump.close()
         duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
         latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}

@@ -18,7 +18,7 @@ from collections import deque
 
 from ..errors import LinkLostError
 from .can_link import CanCodec
-from .protocol import FrameError, Message
+from .protocol import FrameError, Message, Stop
 from .serial_link import PendingOutput
 from .transport import Transport
 
@@ -62,7 +62,10 @@ class SlcanAdapterTransport(Transport):
             return  # a closed adapter puts nothing on the bus
         lines = b"".join(f"t{fid:03X}{len(data)}{data.hex().upper()}\r".encode()
                          for fid, data in self._codec.encode(msg))
-        self._queue(lines)
+        if isinstance(msg, Stop):
+            self._out.urgent(lines, resync=b"\r")  # STOP never waits behind a backlog
+        else:
+            self._queue(lines)
 
     def _line_in(self, line: str) -> None:
         if not line:

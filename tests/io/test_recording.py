@@ -101,3 +101,17 @@ def test_select_rows_keeps_extras():
     tlm = rec.select(np.isfinite(rec.wheel_rpm[:, 0]))
     np.testing.assert_array_equal(tlm.t_s, [0.0, 2.0])
     assert tlm.extra == {"event": ["tlm", "tlm"]}
+
+
+def test_a_last_line_cut_mid_row_is_dropped_not_fatal(tmp_path):
+    p = tmp_path / "cut.csv"
+    p.write_text(HEADER + "\n0,1,2,3,,,,,,,\n0.01,1,2,3,5,,,,,,\n0.02,1,2")
+    rec = read_recording(p)
+    assert len(rec) == 2 and rec.metadata["truncated_last_line"] == "0.02,1,2"
+    # a complete last row without a newline is kept
+    p.write_text(HEADER + "\n0,1,2,3,,,,,,,\n0.01,1,2,3,5,,,,,,")
+    assert len(read_recording(p)) == 2
+    # a bad row in the middle is still an error
+    p.write_text(HEADER + "\n0,1,2\n0.01,1,2,3,5,,,,,,\n")
+    with pytest.raises(RecordingError, match="line 2"):
+        read_recording(p)

@@ -157,3 +157,31 @@ def test_random_bytes_never_raise(chunk):
     for i in range(0, len(data), chunk):
         dec.feed(data[i:i + chunk])
     assert len(dec._buf) <= proto.MAX_ENCODED_BYTES
+
+
+def test_stop_goes_before_a_backlog_of_stale_commands():
+    """With the device not reading, a queued STOP replaces the backlog instead of waiting."""
+    from mecanum_hil.link.protocol import Command, Stop, StreamDecoder, encode
+    from mecanum_hil.link.serial_link import PendingOutput
+
+    taken = bytearray()
+    accepting = {"n": 0}
+
+    def write(data: bytes) -> int:
+        n = min(len(data), accepting["n"])
+        if n == 0:
+            raise BlockingIOError
+        taken.extend(data[:n])
+        accepting["n"] -= n
+        return n
+
+    out = PendingOutput(write, "test", limit=4096)
+    frames = [encode(Command(60.0, 0.0, 90.0)) for _ in range(20)]
+    accepting["n"] = len(frames[0]) // 2  # half a frame goes out, then the device stalls
+    for f in frames:
+        out.queue(f)
+    out.urgent(encode(Stop()), resync=b"\x00")
+    accepting["n"] = 10_000
+    out.flush()
+    decoded = list(StreamDecoder().feed(bytes(taken)))
+    assert [type(m).__name__ for m in decoded] == ["Stop"]

@@ -80,6 +80,52 @@ def test_record_shadow_stops_the_run_when_the_sim_robot_stalls_a_wheel(tmp_path)
     assert abs(again.alarms[0].t_s - alarms[0]["t_s"]) <= 0.05
 
 
+# The issue's other two faults through the same path: a wheel's gain dropping by 20 %, and a
+# dead time appearing (visible only when the command changes after it: the profile steps from
+# 30 to 60 rpm at 4.0 s, 1.5 s after the fault).
+PROFILE_STEP_AFTER_FAULT = PROFILE_TOML + """
+[[segments]]
+kind = "step"
+duration_s = 1.5
+n_rpm = 60.0
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("effects", "channels", "visible_from_s"),
+    [
+        ("[faults.effects.wheel_gain]\ngains = [1.0, 0.8, 1.0, 1.0]", {"wheel2_rpm"}, 0.0),
+        ("[faults.effects.dead_time]\ndead_time_s = 0.08",
+         {"wheel1_rpm", "wheel2_rpm", "wheel3_rpm", "wheel4_rpm"}, 4.0 - FAULT_AT_S),
+    ],
+    ids=["gain-drop-20%", "dead-time-appears"],
+)
+def test_record_shadow_flags_gain_drop_and_dead_time_from_the_sim_robot(
+        tmp_path, effects, channels, visible_from_s):
+    prof = tmp_path / "p.toml"
+    prof.write_text(PROFILE_STEP_AFTER_FAULT)
+    fx = tmp_path / "fx.toml"
+    fx.write_text(f"[noise]\nwheel_rpm_std = 0.5\nseed = 4\n[[faults]]\nat_s = {FAULT_AT_S}\n"
+                  f"{effects}\n")
+    out = tmp_path / "run.csv"
+    with spawn_sim_robot("--serial", "--effects", str(fx)) as sim:
+        r = subprocess.run(
+            [sys.executable, "-m", "mecanum_hil", "record", "--transport", "serial", "--port",
+             sim.path, "--profile", str(prof), "--out", str(out), "--shadow", "paper",
+             "--on-divergence", "stop", "--no-progress"],
+            capture_output=True, text=True, timeout=120)
+    assert r.returncode == 3, r.stdout + r.stderr
+    events = [json.loads(x) for x in out.with_name("run.shadow.jsonl").read_text().splitlines()]
+    alarms = [e for e in events if e["event"] == "alarm"]
+    rec = read_recording(out)
+    fault_t = _fault_time(rec)
+    # no alarm before the fault; the first within 0.3 s of when the fault can be seen
+    assert alarms[0]["channel"] in channels
+    assert fault_t - 1e-5 <= alarms[0]["t_s"] <= fault_t + visible_from_s + 0.3
+    assert {e["channel"] for e in alarms} <= channels
+
+
 def _fault_time(rec):
     """Host time of the first telemetry row at or after the fault's controller time [s]."""
     ctrl = rec.extra_numeric("controller_time_s")
