@@ -50,12 +50,13 @@ gains = [1.0, 0.0, 1.0, 1.0]   # wheel 2 stalls
 """
 
 
-@pytest.mark.slow
-def test_record_shadow_stops_the_run_when_the_sim_robot_stalls_a_wheel(tmp_path):
+def _record_with_shadow(tmp_path, profile_toml, effects_toml):
+    """``record --shadow paper --on-divergence stop`` against ``sim-robot --serial`` with
+    ``effects_toml`` (its fault schedule), both real processes on a real pty."""
     prof = tmp_path / "p.toml"
-    prof.write_text(PROFILE_TOML)
+    prof.write_text(profile_toml)
     fx = tmp_path / "fx.toml"
-    fx.write_text(EFFECTS_TOML)
+    fx.write_text(effects_toml)
     out = tmp_path / "run.csv"
     with spawn_sim_robot("--serial", "--effects", str(fx)) as sim:
         r = subprocess.run(
@@ -63,6 +64,12 @@ def test_record_shadow_stops_the_run_when_the_sim_robot_stalls_a_wheel(tmp_path)
              sim.path, "--profile", str(prof), "--out", str(out), "--shadow", "paper",
              "--on-divergence", "stop", "--no-progress"],
             capture_output=True, text=True, timeout=120)
+    return r, out
+
+
+@pytest.mark.slow
+def test_record_shadow_stops_the_run_when_the_sim_robot_stalls_a_wheel(tmp_path):
+    r, out = _record_with_shadow(tmp_path, PROFILE_TOML, EFFECTS_TOML)
     assert r.returncode == 3, r.stdout + r.stderr
     assert "shadow: ALARM" in r.stdout and "wheel2_rpm" in r.stdout
     events = [json.loads(x) for x in out.with_name("run.shadow.jsonl").read_text().splitlines()]
@@ -103,18 +110,9 @@ n_rpm = 60.0
 )
 def test_record_shadow_flags_gain_drop_and_dead_time_from_the_sim_robot(
         tmp_path, effects, channels, visible_from_s):
-    prof = tmp_path / "p.toml"
-    prof.write_text(PROFILE_STEP_AFTER_FAULT)
-    fx = tmp_path / "fx.toml"
-    fx.write_text(f"[noise]\nwheel_rpm_std = 0.5\nseed = 4\n[[faults]]\nat_s = {FAULT_AT_S}\n"
-                  f"{effects}\n")
-    out = tmp_path / "run.csv"
-    with spawn_sim_robot("--serial", "--effects", str(fx)) as sim:
-        r = subprocess.run(
-            [sys.executable, "-m", "mecanum_hil", "record", "--transport", "serial", "--port",
-             sim.path, "--profile", str(prof), "--out", str(out), "--shadow", "paper",
-             "--on-divergence", "stop", "--no-progress"],
-            capture_output=True, text=True, timeout=120)
+    r, out = _record_with_shadow(
+        tmp_path, PROFILE_STEP_AFTER_FAULT,
+        f"[noise]\nwheel_rpm_std = 0.5\nseed = 4\n[[faults]]\nat_s = {FAULT_AT_S}\n{effects}\n")
     assert r.returncode == 3, r.stdout + r.stderr
     events = [json.loads(x) for x in out.with_name("run.shadow.jsonl").read_text().splitlines()]
     alarms = [e for e in events if e["event"] == "alarm"]
