@@ -53,5 +53,7 @@ def predict(rec: Recording, calibration: Calibration, robot: RobotProfile,
         "coefficients": {"A": calibration.A, "B": calibration.B, "C": calibration.C},
         "effects": calibration.effects.active(),
         "tool_version": __version__,
+        "sample_rate_hz": float(1.0 / np.median(np.diff(rec.t_s))),
+        "notes": "the model's prediction for the commands of " + source,
     }
     return trajectory_to_recording(traj, meta, rec.extra)

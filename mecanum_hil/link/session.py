@@ -507,6 +507,7 @@ def run_record_session(
         "columns": {"t_s": "host time since the first command",
                     "controller_time_s": "controller clock of a telemetry row",
                     "event": "cmd: command sent, tlm: telemetry received, stop: STOP sent"},
+        "notes": "",
         **(metadata or {}),
     }
     # fsync at every flush (at least every 0.2 s): a power loss keeps what was received
@@ -550,7 +551,9 @@ def run_record_session(
         result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
                        "link_stats": transport.stats.as_dict(), "latency_ms": latency,
                        "controller": sess.controller,
-                       "telemetry_rate_hz": sess.telemetry_rate_hz}
+                       "telemetry_rate_hz": sess.telemetry_rate_hz,
+                       # the recording's sample rate is the telemetry's (commands interleave)
+                       "sample_rate_hz": sess.telemetry_rate_hz or None}
         if message:
             result_meta["end_message"] = message
         writer.close(result_meta)
