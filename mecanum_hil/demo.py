@@ -115,9 +115,9 @@ def _video_stage(out: Path, recorded: Path, echo) -> None:
     summary = loop.measurement.summary
     rms = ", ".join(f"wheel {w}: {v:.2f} rpm" for w, v in loop.rms_error_rpm.items())
     echo(f"   {video} -> {measured}; RMS error against the rendered truth: {rms}")
-    found = getattr(summary, "marker_found_fraction", None)
-    if found is not None:
-        echo(f"   marker found in {100 * found:.0f} % of frames")
+    for w in summary["wheels"]:
+        echo(f"   wheel {w['wheel']}: marker found in {100 * w['found_fraction']:.0f} % of "
+             f"{summary['frames']} frames")
 
 
 def _shadow_stage(out: Path, calibration: Path, echo) -> dict:

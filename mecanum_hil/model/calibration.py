@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -303,7 +303,3 @@ def save_calibration(cal: Calibration, path: str | Path, header: str = "") -> Pa
         raise ConfigError(f"{p}: cannot write calibration: {err.strerror or err}") from err
     return p
 
-
-def effect_field_names() -> list[str]:
-    """All parameter field names of :class:`Effects`."""
-    return [f.name for f in fields(Effects)]

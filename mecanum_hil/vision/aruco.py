@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from ..errors import VideoError
+from .detect import clip_roi
 
 #: The dictionary markers are looked up in (and the renderer draws from).
 DICTIONARY = "DICT_4X4_50"
@@ -39,12 +40,7 @@ class ArucoDetector:
                  frame_size: tuple[int, int]) -> None:
         import cv2
 
-        fw, fh = frame_size
-        x, y, w, h = roi if roi is not None else (0, 0, fw, fh)
-        self.x0, self.y0 = max(0, x), max(0, y)
-        self.x1, self.y1 = min(fw, x + w), min(fh, y + h)
-        if self.x1 - self.x0 < 8 or self.y1 - self.y0 < 8:
-            raise VideoError(f"--roi {x},{y},{w},{h} lies outside the {fw}x{fh} frame")
+        self.x0, self.y0, self.x1, self.y1 = clip_roi(roi, frame_size)
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         self._detector = cv2.aruco.ArucoDetector(aruco_dictionary(), params)

@@ -104,6 +104,20 @@ def _hue_deg(b: float, g: float, r: float) -> float:
     return (60.0 * h) % 360.0
 
 
+
+def clip_roi(roi: tuple[int, int, int, int] | None,
+             frame_size: tuple[int, int]) -> tuple[int, int, int, int]:
+    """A region ``(x, y, w, h)`` [px] clipped to the frame, as ``(x0, y0, x1, y1)``.
+
+    ``None`` is the whole frame. Raises :class:`VideoError` when less than 8 x 8 px remain.
+    """
+    fw, fh = frame_size
+    x, y, w, h = roi if roi is not None else (0, 0, fw, fh)
+    x0, y0, x1, y1 = max(0, x), max(0, y), min(fw, x + w), min(fh, y + h)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        raise VideoError(f"--roi {x},{y},{w},{h} lies outside the {fw}x{fh} frame")
+    return x0, y0, x1, y1
+
 class BlobDetector:
     """Find marker candidates in one region of each frame.
 
@@ -118,12 +132,7 @@ class BlobDetector:
 
     def __init__(self, spec: MarkerSpec, roi: tuple[int, int, int, int] | None,
                  frame_size: tuple[int, int]) -> None:
-        fw, fh = frame_size
-        x, y, w, h = roi if roi is not None else (0, 0, fw, fh)
-        self.x0, self.y0 = max(0, x), max(0, y)
-        self.x1, self.y1 = min(fw, x + w), min(fh, y + h)
-        if self.x1 - self.x0 < 8 or self.y1 - self.y0 < 8:
-            raise VideoError(f"--roi {x},{y},{w},{h} lies outside the {fw}x{fh} frame")
+        self.x0, self.y0, self.x1, self.y1 = clip_roi(roi, frame_size)
         self.spec = spec
         #: Once the marker's path is known (:meth:`focus`), blobs far from it are not measured.
         self.path = None
