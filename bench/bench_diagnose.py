@@ -23,7 +23,8 @@ import numpy as np
 from mecanum_hil.identify.campaign import campaign_profiles, paper_campaign
 from mecanum_hil.identify.diagnose import _Evaluator, diagnose, heldout_score
 from mecanum_hil.identify.fit import fit, fit_parameters, parameter_value, with_parameters
-from mecanum_hil.model import Calibration, Effects, RobotProfile
+from mecanum_hil.link.effects_file import sim_effects_for
+from mecanum_hil.model import Effects, RobotProfile
 
 
 def exact_loo(recs, cal, robot, free) -> float:
@@ -48,8 +49,8 @@ def main() -> None:
     robot = RobotProfile()
     steps = (4.0, 30.0, 120.0) if args.quick else (4.0, 8.0, 30.0, 100.0, 120.0)
     profiles = campaign_profiles(steps_rpm=steps, step_hold_s=1.5, reverse=False)
-    recs = paper_campaign(Calibration(effects=Effects(top_speed_rpm=110.0)), robot,
-                          rate_hz=100.0, noise_rpm=0.25, seed=1, profiles=profiles)
+    hidden = sim_effects_for(Effects(top_speed_rpm=110.0), wheel_rpm_std=0.25, seed=1)
+    recs = paper_campaign(hidden, robot, seed=1, profiles=profiles)
     print(f"campaign: {len(recs)} recordings, {sum(len(r) for r in recs)} samples")
 
     t0 = time.perf_counter()

@@ -33,17 +33,31 @@ def trajectory_to_recording(traj: Trajectory, metadata: dict[str, Any] | None = 
                      traj.pose[0].copy(), dict(extra or {}), dict(metadata or {}))
 
 
+def start_pose(rec: Recording) -> tuple[float, float, float]:
+    """Where the model starts a recording: its first measured pose, if measured before the
+    robot moves (a recording's first rows may be commands without a pose), else
+    ``(0 m, 0 m, 90 deg)`` [m, m, deg]."""
+    pose = np.asarray(rec.pose, dtype=float)
+    rows = np.flatnonzero(np.isfinite(pose).all(axis=1))
+    if rows.size:
+        moving = (np.abs(np.nan_to_num(rec.commands[:, 0])) > 1e-9) | \
+            (np.abs(np.nan_to_num(rec.commands[:, 1])) > 1e-9)
+        first_move = int(np.argmax(moving)) if moving.any() else len(rec)
+        # the row at which the first moving command is sent is still at rest
+        if rows[0] <= first_move:
+            return tuple(float(v) for v in pose[rows[0]])
+    return tuple(DEFAULT_POSE)
+
+
 def predict(rec: Recording, calibration: Calibration, robot: RobotProfile,
             initial_pose=None, source: str = "recording") -> Recording:
     """Simulate the model on a recording's commands and times.
 
-    The initial pose is the recording's first measured pose when it has one, else
-    ``(0 m, 0 m, 90 deg)``. Extra columns are kept.
+    The initial pose is :func:`start_pose` unless given. Extra columns are kept.
     """
     require_commands(rec, source)
     if initial_pose is None:
-        first = rec.pose[0]
-        initial_pose = first if np.isfinite(first).all() else DEFAULT_POSE
+        initial_pose = start_pose(rec)
     traj = simulate(rec.commands, rec.t_s, calibration, robot, initial_pose=initial_pose)
     meta = {
         "source": "mecanum-hil simulate",

@@ -1,29 +1,26 @@
-"""Identification campaigns generated with the model itself: the paper's experiments, plus noise.
+"""Identification campaigns recorded from the simulated controller: the paper's experiments.
 
 A campaign is what a user would record on the robot to fit and diagnose the model: steps of
 several sizes (including small ones, where a deadband shows), the paper's 5 rpm/s ramp up to the
 130 rpm command limit (past a drive's ceiling), a turn on the spot, a strafe and a diagonal
-run. :func:`paper_campaign` simulates it with a calibration whose effects are hidden from the
-later analysis, and adds measurement noise to the wheel speeds and the pose (a camera's).
+run. :func:`paper_campaign` records it from the simulated controller (``sim-robot``'s firmware
+and robot, in simulated time) whose effects file hides effects from the later analysis, with
+its wheel-speed noise, and a camera's noisy pose.
 
-Effects outside the model's library, to check that ``diagnose`` says "unexplained" instead of
-naming the closest wrong effect, are applied to a finished recording by :func:`add_resonance`
-(a lightly damped mode between the drive and the encoder, e.g. a flexible coupling) and
-:func:`add_roller_ripple` (the Mecanum rollers' speed ripple: a periodic gain over each wheel
-turn).
+The effects file can also hide effects outside the model's library (``[unmodelled]``: a
+resonance between drive and encoder, the rollers' speed ripple), to check that ``diagnose``
+says "unexplained" instead of naming the closest wrong effect.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-
-import numpy as np
+from collections.abc import Sequence
+from pathlib import Path
 
 from ..io.recording import Recording
+from ..link.effects_file import SimEffects
 from ..model.calibration import Calibration
 from ..model.robot import RobotProfile
-from ..model.simulate import DEFAULT_POSE, simulate
-from ..prediction import trajectory_to_recording
 from ..profiles import CommandProfile, Segment, ramp, step
 
 #: Step sizes of the campaign [rpm]: small ones (a deadband shows), the paper's, past 100 rpm.
@@ -73,118 +70,73 @@ def campaign_profiles(*, steps_rpm: Sequence[float] = CAMPAIGN_STEPS_RPM,
     return out
 
 
-def paper_campaign(calibration: Calibration | None = None, robot: RobotProfile | None = None, *,
-                   rate_hz: float = 50.0, noise_rpm: float = 1.0, pose_noise_m: float = 0.003,
-                   heading_noise_deg: float = 0.3, seed: int = 0,
-                   profiles: Sequence[CommandProfile] | None = None,
-                   distort: Callable[[Recording, np.random.Generator], Recording] | None = None,
+def paper_campaign(effects: SimEffects | str | Path | None = None,
+                   robot: RobotProfile | None = None, *,
+                   calibration: Calibration | None = None, command_rate_hz: float = 50.0,
+                   telemetry_rate_hz: float = 100.0, link_delay_s: float = 0.00015,
+                   pose_noise: tuple[float, float, float] | None = (0.003, 0.003, 0.3),
+                   seed: int = 0, profiles: Sequence[CommandProfile] | None = None,
                    ) -> list[Recording]:
-    """Simulate a campaign on a robot whose true model is ``calibration`` (effects included).
+    """Record a campaign from the simulated controller, whose effects file hides the truth.
+
+    Each profile is recorded as ``record`` would against ``sim-robot --effects FILE``, in
+    simulated time (:func:`~mecanum_hil.link.lockstep.record_lockstep`): commands at
+    ``command_rate_hz`` through the wire protocol, the controller's effects, noise and faults,
+    telemetry at ``telemetry_rate_hz``. The recordings come back as ``fit`` and ``diagnose``
+    read them (:func:`~mecanum_hil.io.timing.read_for_analysis`: telemetry timed by the
+    controller's clock).
 
     Parameters
     ----------
-    calibration : Calibration, optional
-        The "true" robot: coefficients and hidden effects (default: the paper's, no effects).
+    effects : SimEffects or path, optional
+        The simulated controller's effects file (or its content): hidden effects (library
+        ones and ``[unmodelled]`` ones), wheel noise and its seed (recording ``i`` uses
+        ``seed + i``, as a controller restarted for every recording would draw new noise).
+        Default: none, no noise.
     robot : RobotProfile, optional
-        Geometry (default: the paper's robot).
-    rate_hz : float
-        Sample rate of the recordings [Hz].
-    noise_rpm : float
-        Standard deviation of white noise added to each wheel speed [rpm].
-    pose_noise_m, heading_noise_deg : float
-        Standard deviation of white noise on X, Y [m] and on the heading [deg].
+        Geometry and limits (default: the paper's robot).
+    calibration : Calibration, optional
+        The simulated truth's coefficients (default: the paper's).
+    command_rate_hz, telemetry_rate_hz : float
+        Rates [Hz].
+    link_delay_s : float
+        One-way transit time of the link [s] (default: a pseudo-terminal's); the host sees
+        the round trip, plus up to one controller tick, as dead time.
+    pose_noise : (float, float, float), optional
+        Standard deviation of the camera's X, Y [m] and heading [deg]; ``None`` for no pose.
     seed : int
-        Seed of the noise (the campaign is reproducible).
+        Seed of the pose noise.
     profiles : sequence of CommandProfile, optional
         Profiles to run (default :func:`campaign_profiles`).
-    distort : callable, optional
-        ``distort(recording, rng) -> recording`` applied to the noiseless simulation, for
-        effects outside the model's library (:func:`add_resonance`, :func:`add_roller_ripple`).
 
     Returns
     -------
     list of Recording
-        One recording per profile, with wheel speeds and pose; ``metadata["profile"]`` names it
-        and ``metadata["true_effects"]`` holds the hidden effects.
+        One per profile; ``metadata["profile"]`` names it, ``metadata["true_effects"]`` and
+        ``metadata["true_unmodelled"]`` hold what was hidden.
     """
+    from dataclasses import replace
+
+    from ..io.timing import retime_telemetry
+    from ..link.effects_file import load_sim_effects
+    from ..link.lockstep import record_lockstep
+
+    fx = effects if isinstance(effects, SimEffects) or effects is None else \
+        load_sim_effects(effects)
+    fx = fx or SimEffects()
     cal = calibration or Calibration()
     rob = robot or RobotProfile()
-    rng = np.random.default_rng(seed)
     out = []
-    for prof in profiles if profiles is not None else campaign_profiles():
-        t, cmd = prof.sample(rate_hz)
+    for i, prof in enumerate(profiles if profiles is not None else campaign_profiles()):
+        t, cmd = prof.sample(command_rate_hz)
         rob.check_commands(cmd, prof.name)
-        traj = simulate(cmd, t, cal, rob, initial_pose=DEFAULT_POSE)
-        rec = trajectory_to_recording(traj, {
-            "source": "mecanum-hil paper_campaign", "profile": prof.name,
-            "true_coefficients": {"A": cal.A, "B": cal.B, "C": cal.C},
-            "true_effects": cal.effects.active()})
-        if distort is not None:
-            rec = distort(rec, rng)
-        pose_sd = np.array([pose_noise_m, pose_noise_m, heading_noise_deg])
-        rec = rec.with_values(
-            wheel_rpm=rec.wheel_rpm + rng.normal(0.0, noise_rpm, rec.wheel_rpm.shape),
-            pose=rec.pose + rng.normal(0.0, 1.0, rec.pose.shape) * pose_sd)
-        out.append(rec)
+        rec = record_lockstep(
+            t, cmd, rob, calibration=cal, sim_effects=replace(fx, seed=fx.seed + i),
+            telemetry_rate_hz=telemetry_rate_hz, link_delay_s=link_delay_s,
+            pose_noise=pose_noise, pose_seed=seed + i,
+            metadata={"profile": prof.name, "command_rate_hz": command_rate_hz,
+                      "true_coefficients": {"A": cal.A, "B": cal.B, "C": cal.C},
+                      "true_effects": fx.initial_effects(cal.effects).active(),
+                      "true_unmodelled": fx.unmodelled})
+        out.append(retime_telemetry(rec))
     return out
-
-
-def add_resonance(natural_hz: float = 3.0, damping: float = 0.15
-                  ) -> Callable[[Recording, np.random.Generator], Recording]:
-    """An effect outside the library: a lightly damped mode between drive and encoder.
-
-    The measured wheel speed is the model's wheel speed passed through
-    ``wn^2 / (s^2 + 2 zeta wn s + wn^2)`` (exact zero-order-hold discretisation), as a flexible
-    coupling between motor and wheel would: every change of speed rings at ``natural_hz``.
-    The pose is left as simulated.
-
-    Parameters
-    ----------
-    natural_hz : float
-        Natural frequency of the mode [Hz].
-    damping : float
-        Damping ratio zeta [-].
-    """
-    from scipy.linalg import expm
-
-    wn = 2.0 * np.pi * natural_hz
-
-    def distort(rec: Recording, rng: np.random.Generator) -> Recording:
-        a = np.array([[0.0, 1.0], [-wn * wn, -2.0 * damping * wn]])
-        b = np.array([0.0, wn * wn])
-        out = np.empty_like(rec.wheel_rpm)
-        x = np.zeros((2, 4))
-        x[0] = rec.wheel_rpm[0]
-        out[0] = x[0]
-        for i in range(1, len(rec)):
-            h = rec.t_s[i] - rec.t_s[i - 1]
-            # exact ZOH: augmented matrix exponential [[a, b], [0, 0]]
-            m = np.zeros((3, 3))
-            m[:2, :2] = a
-            m[:2, 2] = b
-            e = expm(m * h)
-            x = e[:2, :2] @ x + np.outer(e[:2, 2], rec.wheel_rpm[i - 1])
-            out[i] = x[0]
-        return rec.with_values(wheel_rpm=out)
-
-    return distort
-
-
-def add_roller_ripple(amplitude: float = 0.08, per_turn: float = 8.0
-                      ) -> Callable[[Recording, np.random.Generator], Recording]:
-    """An effect outside the library: the rollers' periodic speed ripple.
-
-    A Mecanum wheel rolls on ``per_turn`` rollers per turn; as each roller takes over, the
-    effective radius and so the measured speed ripple by ``amplitude`` (relative). The measured
-    speed of wheel i is ``w_i (1 + amplitude sin(per_turn * angle_i))`` with ``angle_i`` the
-    wheel's angle integrated from its speed. No effect of the library is periodic in the wheel
-    angle, so none explains it.
-    """
-
-    def distort(rec: Recording, rng: np.random.Generator) -> Recording:
-        w = rec.wheel_rpm
-        dt = np.diff(rec.t_s, prepend=rec.t_s[0])[:, None]
-        angle = 2.0 * np.pi * np.cumsum(w / 60.0 * dt, axis=0) + rng.uniform(0, 2 * np.pi, 4)
-        return rec.with_values(wheel_rpm=w * (1.0 + amplitude * np.sin(per_turn * angle)))
-
-    return distort

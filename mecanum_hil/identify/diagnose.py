@@ -48,8 +48,8 @@ from ..io.recording import Recording
 from ..model.calibration import EFFECTS, Calibration
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
-from ..model.simulate import DEFAULT_POSE, simulate_batch
-from ..prediction import require_commands
+from ..model.simulate import simulate_batch
+from ..prediction import require_commands, start_pose
 from .fit import (
     DEFAULT_BOUNDS,
     FitResult,
@@ -118,10 +118,11 @@ def initial_pose_at_rest(rec: Recording) -> Recording:
 
     The model starts from the first pose; a camera's noise on it would rotate the whole
     predicted path (0.3 deg of heading noise is 10 cm after 20 m), so it is averaged over the
-    samples before the first command that moves the robot (headings as a circular mean).
+    samples before the first command that moves the robot (headings as a circular mean) and
+    put in the first row (which may be a command row without a pose of its own).
     """
     pose = rec.pose
-    if len(rec) < 3 or not np.isfinite(pose[0]).all():
+    if len(rec) < 3:
         return rec
     moving = (np.abs(rec.commands[:, 0]) > 1e-9) | (np.abs(rec.commands[:, 1]) > 1e-9)
     # the sample at which the first moving command takes effect is still at rest
@@ -149,8 +150,7 @@ class _Evaluator:
     def __init__(self, recordings: Sequence[Recording], robot: RobotProfile):
         self.recs = list(recordings)
         self.robot = robot
-        self.pose0 = np.array([r.pose[0] if np.isfinite(r.pose[0]).all() else DEFAULT_POSE
-                               for r in self.recs], dtype=float)
+        self.pose0 = np.array([start_pose(r) for r in self.recs], dtype=float)
         self.pose_scale = [pose_scale(r.t_s[-1] - r.t_s[0], robot) for r in self.recs]
         #: pose noise per recording and channel (in pose_scale units), see :meth:`set_pose_noise`
         self.pose_sd = np.ones((len(self.recs), 3))
@@ -529,9 +529,11 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
 
     The search starts from the effect's data-driven values (:func:`_start_values`). With
     ``two_stage`` (default) A, B, C (and accepted effects) are first refitted with the effect
-    held at that start, so they give back what they had absorbed (a fit without the effect can
-    sit in a degenerate corner, e.g. C at its bound, from which a joint search stalls); then
-    all are fitted jointly. Returns the fitted model; ``free`` lists the parameters fitted
+    held at that start, so they give back what they had absorbed; then all are fitted jointly.
+    A fit without the effect can sit in a degenerate corner (:func:`degenerate`, e.g. C at its
+    bound) from which neither stage leaves: then the joint search runs from the engine's coarse
+    grid of A, B, C (its best local minima, the effect at its start) and from the model as it
+    is, and the lowest SSE wins. Returns the fitted model; ``free`` lists the parameters fitted
     continuously (the deadband is fitted on a grid and held during the held-out evaluation).
     """
     if effect == "deadband":
@@ -539,31 +541,58 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
     new = effect_parameters(effect)
     guess = _start_values(effect, ev, noise_rpm)
     bounds = _candidate_bounds(effect, guess)
-    pw = 1.0 if effect == "slip" else 0.0
     cal = with_parameters(base, guess)
     if effect == "slip":
         # slip changes no wheel speed, and the wheel speeds are what pin A, B, C (they were
         # fitted on them); freeing them on the pose would credit slip with a coefficient
         # change, so only the efficiencies are fitted, on the pose channels
         res = fit_parameters(ev.recs, cal, ev.robot, list(new), x0=guess, bounds=bounds,
-                             pose_weight=pw, sources=sources)
+                             pose_weight=1.0, sources=sources)
         return _Fitted(effect, with_parameters(cal, res.parameters),
                        tuple(n for n in base_free if n.startswith("efficiency")) + new,
                        dict(res.ci95), res.warnings)
-    if two_stage and effect != "slip":  # slip does not touch the wheels: nothing absorbed
+    free = list(base_free) + list(new)
+    if degenerate(base):
+        # from a corner no local search leaves (C -> 0 mimics a ceiling with a lower gain):
+        # the engine's coarse grid restarts A, B, C with the effect at its start, and the
+        # joint search runs from each of the grid's best minima; the search from where the
+        # model is competes with them
+        x0 = {n: parameter_value(cal, n) for n in free if n not in _COEFFICIENTS}
+        res = _best_fit([
+            lambda: fit_parameters(ev.recs, cal, ev.robot, free, x0=x0, bounds=bounds,
+                                   sources=sources),
+            lambda: fit_parameters(ev.recs, cal, ev.robot, free,
+                                   x0={n: parameter_value(cal, n) for n in free},
+                                   bounds=bounds, sources=sources)])
+        return _Fitted(effect, with_parameters(cal, res.parameters), tuple(free),
+                       dict(res.ci95), res.warnings)
+    if two_stage:
         x0 = {n: parameter_value(cal, n) for n in base_free}
-        if degenerate(base):
-            # from a corner no local search leaves: the engine's coarse grid restarts A, B, C
-            x0 = {n: v for n, v in x0.items() if n not in _COEFFICIENTS}
         first = fit_parameters(ev.recs, cal, ev.robot, list(base_free), x0=x0,
                                sources=sources)
         cal = with_parameters(cal, first.parameters)
-    free = list(base_free) + list(new)
     res: FitResult = fit_parameters(ev.recs, cal, ev.robot, free,
                                     x0={n: parameter_value(cal, n) for n in free},
-                                    bounds=bounds, pose_weight=pw, sources=sources)
+                                    bounds=bounds, sources=sources)
     return _Fitted(effect, with_parameters(cal, res.parameters), tuple(free), dict(res.ci95),
                    res.warnings)
+
+
+def _best_fit(searches: Sequence[Callable[[], FitResult]]) -> FitResult:
+    """The lowest-SSE result of several searches; a search that fails is skipped (the error
+    of the first is raised when all fail)."""
+    best, errors = None, []
+    for search in searches:
+        try:
+            res = search()
+        except FitError as err:
+            errors.append(err)
+            continue
+        if best is None or res.sse < best.sse:
+            best = res
+    if best is None:
+        raise errors[0]
+    return best
 
 
 # --------------------------------------------------------------------------- results
@@ -901,7 +930,8 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
                 explained = (s0 - s1) / max(s0 - 1.0, 1e-12)
                 relative = (s0 - s1) / s0
                 f0, f1 = h0.fit_ms / scale2, h1.fit_ms / scale2
-                in_sample = (f0 - f1) / max(f0 - 1.0, 1e-12)
+                # no in-sample excess over the noise floor: nothing for a candidate to explain
+                in_sample = (f0 - f1) / (f0 - 1.0) if f0 - 1.0 > 0.02 * f0 else 0.0
                 fits[effect] = f
                 ci = {n: f.ci95[n] for n in (*effect_parameters(effect),) if n in f.ci95}
                 scores.append(CandidateScore(effect, _effect_values(f.calibration, effect), ci,

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..errors import MecanumHILError
 from ..io.recording import Recording
-from ..model.calibration import EFFECTS, Calibration, Effects, save_calibration
+from ..model.calibration import EFFECTS, Effects, save_calibration
 from ..model.robot import RobotProfile
 from ..prediction import predict
 from .diagnose import (
@@ -207,12 +207,14 @@ STORY_EFFECTS = Effects(top_speed_rpm=115.0)
 
 
 def diagnose_story(out_dir: str | Path, echo: Callable[[str], None] = print, *,
-                   hidden: Effects = STORY_EFFECTS, rate_hz: float = 100.0, seed: int = 0
-                   ) -> dict[str, Path]:
+                   hidden: Effects = STORY_EFFECTS, rate_hz: float = 100.0, seed: int = 0,
+                   noise_rpm: float = 1.0) -> dict[str, Path]:
     """The demo's end: a simulated robot with an effect the model lacks, found and added.
 
-    1. A campaign like the paper's (:func:`~mecanum_hil.identify.campaign.paper_campaign`) on a
-       simulated robot with the paper's coefficients and ``hidden`` effects, with noise.
+    1. A campaign like the paper's (:func:`~mecanum_hil.identify.campaign.paper_campaign`)
+       recorded from the simulated controller with the paper's coefficients, whose effects
+       file (written as ``robot-effects.toml``) hides ``hidden`` and adds ``noise_rpm`` of
+       wheel noise; telemetry at ``rate_hz``.
     2. A, B, C fitted on it as a user would (``fit``): the gap that remains.
     3. ``diagnose``: where the model fails, the effect named, its parameters, the gap shrunk.
 
@@ -220,18 +222,22 @@ def diagnose_story(out_dir: str | Path, echo: Callable[[str], None] = print, *,
     ``report.md`` with plots into ``out_dir``; returns the files by name.
     """
     from ..io.recording import write_recording
+    from ..link.effects_file import save_sim_effects, sim_effects_for
     from .campaign import paper_campaign
     from .diagnose import diagnose
     from .fit import fit
 
     out = Path(out_dir)
     robot = RobotProfile()
-    truth = Calibration(effects=hidden, source="<hidden robot>")
     echo(f"diagnose story: a simulated robot with {', '.join(hidden.active()) or 'no'} "
          f"effect(s) the model lacks ({hidden.active()})")
-    recs = paper_campaign(truth, robot, rate_hz=rate_hz, seed=seed)
-    names = [str(r.metadata["profile"]) for r in recs]
     files: dict[str, Path] = {}
+    files["effects"] = save_sim_effects(
+        sim_effects_for(hidden, wheel_rpm_std=noise_rpm, seed=seed),
+        out / "robot-effects.toml", "The simulated robot's hidden truth (sim-robot --effects); "
+        "fit and diagnose never read it.")
+    recs = paper_campaign(files["effects"], robot, telemetry_rate_hz=rate_hz, seed=seed)
+    names = [str(r.metadata["profile"]) for r in recs]
     for rec, name in zip(recs, names, strict=True):
         files[f"campaign/{name}"] = write_recording(rec, out / "campaign" / f"{name}.csv")
     user = fit(recs, robot, sources=names).calibration

@@ -15,7 +15,8 @@ from ..io.recording import Recording, read_recording
 from ..io.timing import read_for_analysis
 from ..model.calibration import Calibration, save_calibration
 from ..model.robot import RobotProfile
-from ..model.simulate import DEFAULT_POSE, simulate
+from ..model.simulate import simulate
+from ..prediction import start_pose
 from .fit import FitResult, fit
 
 
@@ -58,9 +59,8 @@ def plot_fit(result: FitResult, recordings: Sequence[Recording], robot: RobotPro
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for k, rec in enumerate(recordings):
         ax = axes[k // ncols, k % ncols]
-        first = rec.pose[0]
-        pose0 = first if np.isfinite(first).all() else DEFAULT_POSE
-        model = simulate(rec.commands, rec.t_s, cal, robot, initial_pose=pose0).wheel_rpm[0]
+        model = simulate(rec.commands, rec.t_s, cal, robot,
+                         initial_pose=start_pose(rec)).wheel_rpm[0]
         for i in range(4):
             meas = rec.wheel_rpm[:, i]
             if not np.isfinite(meas).any():

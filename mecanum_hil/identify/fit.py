@@ -32,8 +32,8 @@ from ..io.recording import Recording
 from ..model.calibration import Calibration
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
-from ..model.simulate import DEFAULT_POSE, simulate_batch
-from ..prediction import require_commands
+from ..model.simulate import simulate_batch
+from ..prediction import require_commands, start_pose
 from ..units import RPM_TO_RAD_S
 
 #: Every parameter :func:`fit_parameters` can estimate: the coefficients, then the effects'.
@@ -81,6 +81,10 @@ FINE_START_GRID: dict[str, np.ndarray] = {
 #: above the best grid point's SSE a further minimum may lie to be used.
 START_COUNT = 3
 START_SSE_RATIO = 1.25
+#: Restarts of a least-squares search that stopped on its step test, and the least relative
+#: decrease of the cost for which one more is tried.
+MAX_RESTARTS = 8
+RESTART_GAIN = 1e-4
 
 #: Largest condition number of the column-scaled Jacobian for which intervals are trusted.
 MAX_CONDITION = 1e8
@@ -247,8 +251,7 @@ def prepare(recordings: Sequence[Recording], robot: RobotProfile,
         require_commands(rec, src)
         wheel = np.asarray(rec.wheel_rpm, dtype=float)
         pose = np.asarray(rec.pose, dtype=float)
-        first = pose[0]
-        pose0 = tuple(float(v) for v in (first if np.isfinite(first).all() else DEFAULT_POSE))
+        pose0 = start_pose(rec)
         out.append(_Prepared(
             np.asarray(rec.t_s, dtype=float), np.asarray(rec.commands, dtype=float), wheel,
             np.isfinite(wheel), pose, np.isfinite(pose), pose0,
@@ -329,9 +332,8 @@ def residuals(recordings: Sequence[Recording], calibration: Calibration,
     out = []
     for rec in recordings:
         require_commands(rec)
-        first = rec.pose[0]
-        pose0 = first if np.isfinite(first).all() else DEFAULT_POSE
-        traj = simulate_batch(rec.commands, rec.t_s, calibration, robot, initial_pose=pose0)
+        traj = simulate_batch(rec.commands, rec.t_s, calibration, robot,
+                              initial_pose=start_pose(rec))
         out.append(np.asarray(rec.wheel_rpm, dtype=float) - traj.wheel_rpm[0])
     return out
 
@@ -654,6 +656,18 @@ def fit_parameters(
         try:
             sol = least_squares(problem.fun, x_start, jac=problem.jac, bounds=(lo, hi),
                                 x_scale="jac", method="trf", max_nfev=200 * len(free))
+            # Where a drive limit switches on, the cost is not smooth: the finite-difference
+            # Jacobian misleads the trust region, which shrinks until the step test (xtol,
+            # ftol) ends the search well before the minimum. A fresh trust region from there
+            # goes on; restart while that gains.
+            for _ in range(MAX_RESTARTS):
+                if sol.status not in (2, 3) or not np.isfinite(sol.cost):
+                    break
+                again = least_squares(problem.fun, sol.x, jac=problem.jac, bounds=(lo, hi),
+                                      x_scale="jac", method="trf", max_nfev=200 * len(free))
+                if not again.cost < (1.0 - RESTART_GAIN) * sol.cost:
+                    break
+                sol = again
         except (ValueError, np.linalg.LinAlgError) as err:
             failures.append(f"least squares failed: {err}")
             continue

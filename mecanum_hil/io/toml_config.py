@@ -114,3 +114,22 @@ class TableReader:
         for key in self.table:
             if key not in known:
                 raise self.fail(key, f"is not a known key (known: {', '.join(sorted(known))})")
+
+
+def toml_value(value: Any) -> str:
+    """``value`` (bool, number, string, list) as TOML text; floats round-trip exactly."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        v = float(value)
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        if math.isnan(v):
+            return "nan"
+        return repr(v) if isinstance(value, float) else str(value)
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+        return f'"{escaped}"'
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")

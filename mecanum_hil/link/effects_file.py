@@ -7,6 +7,13 @@ Layout (every table optional)::
     [effects.wheel_gain]
     gains = [1.0, 1.0, 1.0, 0.9]
 
+    [unmodelled.resonance]         # effects OUTSIDE the model's library, for checking that
+    natural_hz = 3.0               # diagnose reports them as unexplained: a lightly damped
+    damping = 0.15                 # mode between drive and encoder (a flexible coupling)
+    [unmodelled.roller_ripple]     # the rollers' periodic speed ripple: the measured speed
+    amplitude = 0.05               # times (1 + amplitude sin(per_turn * wheel angle))
+    per_turn = 8
+
     [noise]
     wheel_rpm_std = 0.5            # Gaussian measurement noise on reported wheel speeds [rpm]
     seed = 1                       # noise seed (default 0: runs are repeatable)
@@ -29,7 +36,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from ..io.toml_config import TableReader, load_toml
+from ..io.toml_config import TableReader, load_toml, toml_value
 from ..model.calibration import EFFECTS, Effects, read_effects_table
 
 
@@ -72,6 +79,9 @@ class SimEffects:
         Time-triggered faults, sorted by ``at_s``.
     source : str
         File the settings came from.
+    unmodelled : Mapping[str, dict]
+        Effects outside the model's library, by name (:data:`UNMODELLED`), with their
+        parameters; applied to the measured wheel speeds before the noise.
     """
 
     effects: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -79,10 +89,35 @@ class SimEffects:
     seed: int = 0
     faults: tuple[Fault, ...] = ()
     source: str = "<none>"
+    unmodelled: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def initial_effects(self, base: Effects) -> Effects:
         """The calibration's effects with this file's effects switched on."""
         return apply_effect_params(base, self.effects)
+
+
+#: Effects outside the model's library the simulated controller can play: name -> parameter ->
+#: (lower bound, strict lower bound?, upper bound or None).
+UNMODELLED: dict[str, dict[str, tuple[float, bool, float | None]]] = {
+    "resonance": {"natural_hz": (0.0, True, None), "damping": (0.0, True, None)},
+    "roller_ripple": {"amplitude": (0.0, False, 0.9), "per_turn": (0.0, True, None)},
+}
+
+
+def _unmodelled(doc: TableReader) -> dict[str, dict[str, float]]:
+    table = doc.sub("unmodelled", required=False)
+    if table is None:
+        return {}
+    table.reject_unknown(set(UNMODELLED))
+    out = {}
+    for name, params in UNMODELLED.items():
+        sub = table.sub(name, required=False)
+        if sub is None:
+            continue
+        sub.reject_unknown(set(params))
+        out[name] = {p: sub.number(p, minimum=lo, strict_minimum=strict, maximum=hi)
+                     for p, (lo, strict, hi) in params.items()}
+    return out
 
 
 def apply_effect_params(effects: Effects, named: dict[str, dict[str, Any]]) -> Effects:
@@ -110,7 +145,7 @@ def load_sim_effects(path: str | Path) -> SimEffects:
     """
     src = str(path)
     doc = TableReader(load_toml(path), src)
-    doc.reject_unknown({"effects", "noise", "faults"})
+    doc.reject_unknown({"effects", "noise", "faults", "unmodelled"})
     effects = _named_effects(doc.table["effects"], src, "effects") if "effects" in doc.table \
         else {}
     std, seed = 0.0, 0
@@ -136,4 +171,44 @@ def load_sim_effects(path: str | Path) -> SimEffects:
             raise f.fail("at_s", "fault changes nothing: give [faults.effects.<name>] or estop")
         faults.append(Fault(at_s, fx, estop))
     faults.sort(key=lambda fault: fault.at_s)
-    return SimEffects(effects, std, seed, tuple(faults), src)
+    return SimEffects(effects, std, seed, tuple(faults), src, _unmodelled(doc))
+
+
+def sim_effects_to_toml(sim: SimEffects, header: str = "") -> str:
+    """The text of an effects file for ``sim`` (layout in the module docstring); it loads
+    back equal (but for :attr:`SimEffects.source`)."""
+    lines = [f"# {line}" if line else "#" for line in header.splitlines()]
+
+    def table(name: str, params: dict[str, Any]) -> None:
+        lines.extend(["", f"[{name}]"] if lines else [f"[{name}]"])
+        lines.extend(f"{k} = {toml_value(v)}" for k, v in params.items())
+
+    for name, params in sim.effects.items():
+        table(f"effects.{name}", params)
+    for name, params in sim.unmodelled.items():
+        table(f"unmodelled.{name}", params)
+    table("noise", {"wheel_rpm_std": float(sim.wheel_rpm_std), "seed": int(sim.seed)})
+    for fault in sim.faults:
+        lines.extend(["", "[[faults]]", f"at_s = {toml_value(float(fault.at_s))}"])
+        if fault.estop:
+            lines.append("estop = true")
+        for name, params in fault.effects.items():
+            table(f"faults.effects.{name}", params)
+    return "\n".join(lines) + "\n"
+
+
+def save_sim_effects(sim: SimEffects, path: str | Path, header: str = "") -> Path:
+    """Write ``sim`` as an effects file for ``sim-robot --effects``."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(sim_effects_to_toml(sim, header))
+    return p
+
+
+def sim_effects_for(effects: Effects, *, wheel_rpm_std: float = 0.0, seed: int = 0,
+                    unmodelled: dict[str, dict[str, float]] | None = None) -> SimEffects:
+    """The effects file's content that hides ``effects`` (its active ones) in the robot."""
+    named = {name: {p: getattr(effects, p) for p in EFFECTS[name].parameters}
+             for name in effects.active()}
+    return SimEffects(named, float(wheel_rpm_std),
+                      int(seed), (), "<in memory>", dict(unmodelled or {}))

@@ -52,6 +52,75 @@ from .transport import Transport
 _ZERO = (0.0, 0.0, 0.0)
 
 
+class UnmodelledSensor:
+    """Effects outside the model's library, between the true and the reported wheel speeds.
+
+    ``resonance`` (``natural_hz``, ``damping``): the reported speed is the true one through
+    ``wn^2 / (s^2 + 2 zeta wn s + wn^2)``, a lightly damped mode between drive and encoder
+    (a flexible coupling); ``roller_ripple`` (``amplitude``, ``per_turn``): it is multiplied by
+    ``1 + amplitude sin(per_turn * wheel angle)``, the Mecanum rollers taking over one after
+    the other. Both are evaluated at the instants the speeds are reported, exactly for a true
+    speed held between them (zero-order hold), so calls must come in increasing tick order.
+
+    Parameters
+    ----------
+    params : Mapping[str, dict]
+        :attr:`SimEffects.unmodelled`.
+    dt_s : float
+        Duration of one tick [s].
+    rng : numpy.random.Generator
+        Draws the rollers' initial phases.
+    """
+
+    def __init__(self, params, dt_s: float, rng: np.random.Generator) -> None:
+        self.resonance = params.get("resonance")
+        self.ripple = params.get("roller_ripple")
+        self.dt_s = dt_s
+        self._angle = rng.uniform(0.0, 2.0 * np.pi, 4) if self.ripple else np.zeros(4)
+        self._discrete: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.reset()
+
+    @property
+    def active(self) -> bool:
+        """Whether any effect is switched on."""
+        return bool(self.resonance or self.ripple)
+
+    def reset(self) -> None:
+        """Forget the tick count (the clock restarts at HELLO); the next call starts afresh."""
+        self._tick: int | None = None
+        self._x = np.zeros((2, 4))
+        self._u = np.zeros(4)
+
+    def _zoh(self, ticks: int) -> tuple[np.ndarray, np.ndarray]:
+        if ticks not in self._discrete:
+            from scipy.linalg import expm
+
+            wn = 2.0 * np.pi * self.resonance["natural_hz"]
+            m = np.zeros((3, 3))
+            m[:2, :2] = [[0.0, 1.0], [-wn * wn, -2.0 * self.resonance["damping"] * wn]]
+            m[:2, 2] = [0.0, wn * wn]
+            e = expm(m * ticks * self.dt_s)
+            self._discrete[ticks] = (e[:2, :2], e[:2, 2])
+        return self._discrete[ticks]
+
+    def __call__(self, tick: int, wheel_rpm: np.ndarray) -> np.ndarray:
+        """The reported wheel speeds at ``tick`` for the true ones ``wheel_rpm`` [rpm]."""
+        w = np.asarray(wheel_rpm, dtype=float)
+        if self._tick is None or tick <= self._tick:
+            self._x = np.array([w, np.zeros(4)])
+        else:
+            n = tick - self._tick
+            if self.resonance:
+                a, b = self._zoh(n)
+                self._x = a @ self._x + np.outer(b, self._u)
+            self._angle += 2.0 * np.pi * self._u / 60.0 * n * self.dt_s
+        self._tick, self._u = tick, w.copy()
+        out = self._x[0].copy() if self.resonance else w.copy()
+        if self.ripple:
+            out *= 1.0 + self.ripple["amplitude"] * np.sin(self.ripple["per_turn"] * self._angle)
+        return out
+
+
 class ControllerModel:
     """The simulated robot on a fixed tick: commands in at ticks, wheel speeds out at ticks.
 
@@ -80,6 +149,7 @@ class ControllerModel:
         self.lookahead = int(lookahead)
         self.calls = 0
         self._rng = np.random.default_rng(self.sim_effects.seed)
+        self.sensor = UnmodelledSensor(self.sim_effects.unmodelled, self.dt_s, self._rng)
         self._state = np.zeros((1, 12))
         self._pose = np.array(DEFAULT_POSE, dtype=float)
         self._anchor_cmd = _ZERO
@@ -95,6 +165,7 @@ class ControllerModel:
         self._faults = list(self.sim_effects.faults)
         self.estop = False
         self._invalidate()
+        self.sensor.reset()
 
     @property
     def dead_time_ticks(self) -> int:
@@ -105,6 +176,7 @@ class ControllerModel:
         if from_tick is None:
             self._cache_end = self.anchor - 1
             self._wheels = np.zeros((0, 4))
+            self._poses = np.zeros((0, 3))
         else:
             self._cache_end = min(self._cache_end, from_tick)
 
@@ -182,12 +254,23 @@ class ControllerModel:
                 self._move_anchor(tick)
             traj = self._simulate(tick + self.lookahead)
             self._wheels = traj.wheel_rpm[0]
+            self._poses = traj.pose[0]
             self._cache_end = tick + self.lookahead
         return self._wheels[tick - self.anchor]
 
+    def pose(self, tick: int) -> np.ndarray:
+        """The true pose ``(X [m], Y [m], phi [deg])`` at ``tick``: what a camera or motion
+        capture would measure (the wire protocol carries none)."""
+        self.wheel_rpm(tick)
+        return self._poses[tick - self.anchor].copy()
+
     def measured_rpm(self, tick: int) -> np.ndarray:
-        """Wheel speeds at ``tick`` as the controller reports them (with noise) [rpm]."""
+        """Wheel speeds at ``tick`` as the controller reports them: through the effects outside
+        the library (:class:`UnmodelledSensor`), with noise [rpm]. Call in increasing ``tick``
+        order."""
         w = self.wheel_rpm(tick)
+        if self.sensor.active:
+            w = self.sensor(tick, w)
         std = self.sim_effects.wheel_rpm_std
         return w + self._rng.normal(0.0, std, 4) if std > 0 else w.copy()
 
@@ -209,12 +292,17 @@ class SimulatedController:
         Protocol version the controller speaks (another value lets tests exercise a mismatch).
     log : callable, optional
         Called with one line per notable event (HELLO, STOP, watchdog).
+    clock : callable, optional
+        Monotonic clock [s] (default :func:`time.monotonic`); a virtual one runs the firmware in
+        simulated time (:mod:`mecanum_hil.link.lockstep`).
     """
 
     def __init__(self, transport: Transport, model: ControllerModel,
                  telemetry_rate_hz: float = 100.0, name: str = "mecanum-hil sim-robot",
                  version: int = PROTOCOL_VERSION,
-                 log: Callable[[str], None] | None = None) -> None:
+                 log: Callable[[str], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
         self.transport = transport
         self.model = model
         self.telemetry_rate_hz = float(telemetry_rate_hz)
@@ -227,7 +315,7 @@ class SimulatedController:
         self.ack_seq = 0
         self.stops_received = 0
         self.commands_received = 0
-        self._t0 = time.monotonic()
+        self._t0 = clock()
         self._last_valid = -math.inf
         self._next_tlm_tick = 0
         # telemetry on whole ticks (1 kHz / 100 Hz -> every 10th tick); 0 Hz sends none
@@ -238,7 +326,7 @@ class SimulatedController:
 
     def now_s(self) -> float:
         """Controller time since the last HELLO [s]."""
-        return time.monotonic() - self._t0
+        return self.clock() - self._t0
 
     def _tick_now(self, rounding=math.floor) -> int:
         return max(int(rounding(self.now_s() * self.model.rate_hz - 1e-9)), self.model.anchor)
@@ -252,7 +340,7 @@ class SimulatedController:
                 self.log(f"HELLO of protocol version {msg.version} refused")
                 return
             self.transport.restart_sequences()
-            self._t0 = time.monotonic()
+            self._t0 = self.clock()
             self.model.restart()
             self._next_tlm_tick = 0
             self.connected = True
@@ -283,7 +371,8 @@ class SimulatedController:
             self.model.set_command(self._tick_now(math.ceil), _ZERO)
             self.log("STOP received")
 
-    def _check_watchdog(self) -> None:
+    def check_watchdog(self) -> None:
+        """Stop the wheels when no valid command came for the watchdog time."""
         if self.connected and not self.status & Status.WATCHDOG and \
                 self.now_s() - self._last_valid > WATCHDOG_S:
             self.status |= Status.WATCHDOG
@@ -315,7 +404,7 @@ class SimulatedController:
                 msg = self.transport.recv(max(0.0, wait))
                 if msg is not None:
                     self.handle(msg)
-                self._check_watchdog()
+                self.check_watchdog()
                 if self.connected and streaming:
                     now_tick = self._tick_now()
                     if now_tick >= self._next_tlm_tick:

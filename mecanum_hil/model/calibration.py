@@ -46,7 +46,7 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..io.resources import DEFAULT_CALIBRATION, resolve
-from ..io.toml_config import TableReader, load_toml
+from ..io.toml_config import TableReader, load_toml, toml_value
 
 
 @dataclass(frozen=True)
@@ -252,24 +252,6 @@ def load_calibration(name_or_path: str | Path = DEFAULT_CALIBRATION) -> Calibrat
     return Calibration(A=A, B=B, C=C, effects=effects, ci95=ci95, info=info, source=src)
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | float):
-        v = float(value)
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        if math.isnan(v):
-            return "nan"
-        return repr(v) if isinstance(value, float) else str(value)
-    if isinstance(value, str):
-        escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
-        return f'"{escaped}"'
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {type(value).__name__} to TOML")
-
-
 def calibration_to_toml(cal: Calibration, header: str = "") -> str:
     """The text of a calibration file for ``cal`` (see the module docstring for the layout)."""
     lines = [f"# {line}" if line else "#" for line in header.splitlines()]
@@ -277,19 +259,19 @@ def calibration_to_toml(cal: Calibration, header: str = "") -> str:
         lines.append("")
     lines += [
         "[motor]",
-        f"A = {_toml_value(float(cal.A))}   # [1/s]",
-        f"B = {_toml_value(float(cal.B))}   # [1/s]",
-        f"C = {_toml_value(float(cal.C))}   # [1/s^2]",
+        f"A = {toml_value(float(cal.A))}   # [1/s]",
+        f"B = {toml_value(float(cal.B))}   # [1/s]",
+        f"C = {toml_value(float(cal.C))}   # [1/s^2]",
     ]
     if cal.ci95:
         lines += ["", "[ci95]"]
-        lines += [f"{k} = {_toml_value(list(v))}" for k, v in cal.ci95.items()]
+        lines += [f"{k} = {toml_value(list(v))}" for k, v in cal.ci95.items()]
     if cal.info:
         lines += ["", "[fit]"]
-        lines += [f"{k} = {_toml_value(v)}" for k, v in cal.info.items()]
+        lines += [f"{k} = {toml_value(v)}" for k, v in cal.info.items()]
     for name, params in cal.effects.active().items():
         lines += ["", f"[effects.{name}]"]
-        lines += [f"{k} = {_toml_value(v)}" for k, v in params.items()]
+        lines += [f"{k} = {toml_value(v)}" for k, v in params.items()]
     return "\n".join(lines) + "\n"
 
 

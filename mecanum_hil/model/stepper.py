@@ -146,8 +146,60 @@ def _expm4(m):
 
 
 @njit(cache=True)
+def discretise_step(A, B, C, h, out):
+    """Closed-form exact discretisation of one wheel over ``h`` seconds into ``out[:10]``.
+
+    Same layout as :func:`mecanum_hil.model.motor.discretise` (without the trailing ``h``):
+    ``a11 a12 a21 a22 b1 b2 cq1 cq2 dq exp(-B h)``.
+    """
+    apb = A + B
+    s = -0.5 * apb  # half the trace of M = [[-(A+B), C], [-1, 0]]
+    d2 = s * s - C
+    x = d2 * h * h
+    if abs(x) < 1e-4:
+        # series of cosh/cos and sinh/sin over d: smooth through the repeated-pole case
+        c = 1.0 + x / 2.0 * (1.0 + x / 12.0 * (1.0 + x / 30.0))
+        g = h * (1.0 + x / 6.0 * (1.0 + x / 20.0 * (1.0 + x / 42.0)))
+    elif d2 > 0:
+        d = math.sqrt(d2)
+        c = math.cosh(d * h)
+        g = math.sinh(d * h) / d
+    else:
+        w = math.sqrt(-d2)
+        c = math.cos(w * h)
+        g = math.sin(w * h) / w
+    es = math.exp(s * h)
+    # exp(M h) = e^{s h} (c I + g (M - s I))
+    a11 = es * (c + g * (-apb - s))
+    a12 = es * g * C
+    a21 = -es * g
+    a22 = es * (c - g * s)
+    # P1 = M^-1 (Ad - I), P2 = M^-1 (P1 - h I), M^-1 = [[0, -1], [1/C, -(A+B)/C]]
+    d11 = a11 - 1.0
+    d22 = a22 - 1.0
+    p11 = -a21
+    p12 = -d22
+    p21 = (d11 - apb * a21) / C
+    p22 = (a12 - apb * d22) / C
+    q11 = -p21
+    q12 = -(p22 - h)
+    out[0] = a11
+    out[1] = a12
+    out[2] = a21
+    out[3] = a22
+    out[4] = p11 * A + p12
+    out[5] = p21 * A + p22
+    out[6] = p11
+    out[7] = p12
+    out[8] = q11 * A + q12
+    out[9] = math.exp(-B * h)
+
+
+
+@njit(cache=True)
 def _discretise_kernel(coeffs, h_s, out):
-    # serial: a few thousand rows take milliseconds, less than waking threads on a busy machine
+    # serial: a few thousand rows take milliseconds, less than waking threads on a busy machine;
+    # the closed form (~0.1 us) where it is well conditioned, the series (~1 us) elsewhere
     m = np.zeros((4, 4))
     for r in range(coeffs.shape[0]):
         A = coeffs[r, 0]
@@ -155,6 +207,12 @@ def _discretise_kernel(coeffs, h_s, out):
         C = coeffs[r, 2]
         for j in range(h_s.size):
             h = h_s[j]
+            # the closed form divides by C: only where C h^2 is not lost in rounding
+            ch2 = C * h * h
+            if (A + B) * h <= 40.0 and 1e-4 * max(1.0, (A + B) * h) <= ch2 <= 400.0:
+                discretise_step(A, B, C, h, out[r, j])
+                out[r, j, 10] = h
+                continue
             m[0, 0] = -(A + B) * h
             m[0, 1] = C * h
             m[0, 3] = A * h
@@ -189,7 +247,7 @@ def discretise_many(coefficients, h_s) -> np.ndarray:
     -------
     ndarray, shape (M, K, 11)
         Table rows as :func:`~mecanum_hil.model.motor.discretise` gives them (equal to
-        rounding); about a microsecond per row instead of SciPy's ``expm`` per matrix.
+        rounding); 0.1 to 1 microsecond per row instead of SciPy's ``expm`` per matrix.
     """
     co = np.ascontiguousarray(np.asarray(coefficients, dtype=float).reshape(-1, 3))
     h = np.ascontiguousarray(np.asarray(h_s, dtype=float).reshape(-1))

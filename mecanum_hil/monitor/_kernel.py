@@ -25,6 +25,7 @@ import numpy as np
 from numba import njit
 
 from ..model._kernels import _exp_se2
+from ..model.stepper import discretise_step
 
 _RPM_S_TO_RAD = 2.0 * math.pi / 60.0
 
@@ -74,56 +75,6 @@ E_WIDTH = 10
 MAX_EVENTS = 2 * N_CH
 
 # --- command queue ``queue`` (capacity, 4): t_apply, n, omega, theta; ``qi`` = (head, count)
-
-
-@njit(cache=True)
-def discretise_step(A, B, C, h, out):
-    """Closed-form exact discretisation of one wheel over ``h`` seconds into ``out[:10]``.
-
-    Same layout as :func:`mecanum_hil.model.motor.discretise` (without the trailing ``h``):
-    ``a11 a12 a21 a22 b1 b2 cq1 cq2 dq exp(-B h)``.
-    """
-    apb = A + B
-    s = -0.5 * apb  # half the trace of M = [[-(A+B), C], [-1, 0]]
-    d2 = s * s - C
-    x = d2 * h * h
-    if abs(x) < 1e-4:
-        # series of cosh/cos and sinh/sin over d: smooth through the repeated-pole case
-        c = 1.0 + x / 2.0 * (1.0 + x / 12.0 * (1.0 + x / 30.0))
-        g = h * (1.0 + x / 6.0 * (1.0 + x / 20.0 * (1.0 + x / 42.0)))
-    elif d2 > 0:
-        d = math.sqrt(d2)
-        c = math.cosh(d * h)
-        g = math.sinh(d * h) / d
-    else:
-        w = math.sqrt(-d2)
-        c = math.cos(w * h)
-        g = math.sin(w * h) / w
-    es = math.exp(s * h)
-    # exp(M h) = e^{s h} (c I + g (M - s I))
-    a11 = es * (c + g * (-apb - s))
-    a12 = es * g * C
-    a21 = -es * g
-    a22 = es * (c - g * s)
-    # P1 = M^-1 (Ad - I), P2 = M^-1 (P1 - h I), M^-1 = [[0, -1], [1/C, -(A+B)/C]]
-    d11 = a11 - 1.0
-    d22 = a22 - 1.0
-    p11 = -a21
-    p12 = -d22
-    p21 = (d11 - apb * a21) / C
-    p22 = (a12 - apb * d22) / C
-    q11 = -p21
-    q12 = -(p22 - h)
-    out[0] = a11
-    out[1] = a12
-    out[2] = a21
-    out[3] = a22
-    out[4] = p11 * A + p12
-    out[5] = p21 * A + p22
-    out[6] = p11
-    out[7] = p12
-    out[8] = q11 * A + q12
-    out[9] = math.exp(-B * h)
 
 
 @njit(cache=True)

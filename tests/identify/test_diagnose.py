@@ -1,9 +1,17 @@
 """diagnose on campaigns with hidden effects: it names them, recovers them, shrinks the gap.
 
-Every campaign is generated with the model itself (a hidden Effects, plus noise), A, B, C are
-fitted on it as a user would (``fit``), and ``diagnose`` is run without being told anything.
-The campaign is the paper's kind (small and large steps, the 5 rpm/s ramp to 130 rpm, a turn, a
-strafe, a diagonal) at 100 Hz with 0.25 rpm of wheel noise; steps held 1.5 s to keep it short.
+Every campaign is recorded from the simulated controller (``sim-robot``'s firmware and robot,
+in simulated time: :func:`~mecanum_hil.link.lockstep.record_lockstep`) whose effects file hides
+the effect: the file is written and read back as ``sim-robot --effects`` reads it. A, B, C are
+fitted on the campaign as a user would (``fit``), and ``diagnose`` is run without being told
+anything. The campaign is the paper's kind (small and large steps, the 5 rpm/s ramp to 130 rpm,
+a turn, a strafe, a diagonal): commands at 50 Hz, telemetry at 100 Hz with 0.25 rpm of wheel
+noise, a camera's pose with 3 mm / 0.3 deg of noise; steps held 1.5 s to keep it short.
+
+The link adds a latency of its own: a command reaches the controller one link delay (0.15 ms,
+a pseudo-terminal's) after it is sent and acts from the controller's next 1 ms tick, and its
+telemetry reaches the host one link delay after it is measured: the host sees about 0.8 ms
+more dead time than the robot has.
 """
 
 from __future__ import annotations
@@ -13,12 +21,7 @@ import math
 import numpy as np
 import pytest
 
-from mecanum_hil.identify.campaign import (
-    add_resonance,
-    add_roller_ripple,
-    campaign_profiles,
-    paper_campaign,
-)
+from mecanum_hil.identify.campaign import campaign_profiles, paper_campaign
 from mecanum_hil.identify.diagnose import (
     Diagnosis,
     diagnose,
@@ -28,6 +31,7 @@ from mecanum_hil.identify.diagnose import (
 from mecanum_hil.identify.diagnose_report import write_report
 from mecanum_hil.identify.fit import fit
 from mecanum_hil.identify.regimes import localise, noise_sd, pooled_noise_sd
+from mecanum_hil.link.effects_file import load_sim_effects, save_sim_effects, sim_effects_for
 from mecanum_hil.model import Calibration, Effects, RobotProfile
 from mecanum_hil.prediction import predict
 
@@ -35,11 +39,15 @@ ROBOT = RobotProfile()
 PROFILES = campaign_profiles(steps_rpm=(4.0, 8.0, 30.0, 100.0, 120.0), step_hold_s=1.5,
                              reverse=False)
 NOISE_RPM = 0.25
+#: The latency the link adds to the robot's own dead time as the host sees it [s].
+LINK_LATENCY_S = 0.0008
 
 
-def _campaign(effects: Effects, distort=None, seed: int = 1):
-    return paper_campaign(Calibration(effects=effects), ROBOT, rate_hz=100.0,
-                          noise_rpm=NOISE_RPM, seed=seed, profiles=PROFILES, distort=distort)
+def _campaign(tmp_path, effects: Effects, *, unmodelled=None, seed: int = 1):
+    fx = sim_effects_for(effects, wheel_rpm_std=NOISE_RPM, seed=seed, unmodelled=unmodelled)
+    path = save_sim_effects(fx, tmp_path / f"robot-effects-{seed}.toml")
+    assert load_sim_effects(path).effects == fx.effects
+    return paper_campaign(path, ROBOT, profiles=PROFILES, seed=seed)
 
 
 def _diagnose(recs) -> Diagnosis:
@@ -47,27 +55,29 @@ def _diagnose(recs) -> Diagnosis:
     return diagnose(recs, user, ROBOT)
 
 
-# hidden effect -> (its parameters, absolute tolerance of each)
+# hidden effect -> (its parameters, what diagnose should find, absolute tolerance of each)
 HIDDEN = {
-    "dead_time": (Effects(dead_time_s=0.045), {"dead_time_s": 0.003}),
-    "saturation": (Effects(top_speed_rpm=110.0), {"top_speed_rpm": 1.0}),
-    "rate_limit": (Effects(rate_limit_rpm_per_s=150.0), {"rate_limit_rpm_per_s": 5.0}),
-    "deadband": (Effects(deadband_rpm=6.0), {"deadband_rpm": 0.3}),
-    "wheel_gain": (Effects(gains=(1.0, 0.85, 1.0, 1.1)), {"gains": 0.01}),
-    "slip": (Effects(efficiency=(0.9, 0.75, 0.85)), {"efficiency": 0.02}),
+    "dead_time": (Effects(dead_time_s=0.045), {"dead_time_s": (0.045 + LINK_LATENCY_S, 0.003)}),
+    "saturation": (Effects(top_speed_rpm=110.0), {"top_speed_rpm": (110.0, 1.0)}),
+    "rate_limit": (Effects(rate_limit_rpm_per_s=150.0),
+                   {"rate_limit_rpm_per_s": (150.0, 5.0)}),
+    "deadband": (Effects(deadband_rpm=6.0), {"deadband_rpm": (6.0, 0.3)}),
+    "wheel_gain": (Effects(gains=(1.0, 0.85, 1.0, 1.1)),
+                   {"gains": ((1.0, 0.85, 1.0, 1.1), 0.01)}),
+    "slip": (Effects(efficiency=(0.9, 0.75, 0.85)), {"efficiency": ((0.9, 0.75, 0.85), 0.02)}),
 }
 
 
 @pytest.mark.parametrize("effect", list(HIDDEN))
-def test_names_and_recovers_each_hidden_effect(effect):
-    hidden, tol = HIDDEN[effect]
-    recs = _campaign(hidden)
+def test_names_and_recovers_each_hidden_effect(effect, tmp_path):
+    hidden, expect = HIDDEN[effect]
+    recs = _campaign(tmp_path, hidden)
     d = _diagnose(recs)
     assert d.effects == [effect], d.to_json()
     assert not d.unexplained
     step = d.steps[0]
-    for name, atol in tol.items():
-        np.testing.assert_allclose(step.parameters[name], getattr(hidden, name), atol=atol)
+    for name, (value, atol) in expect.items():
+        np.testing.assert_allclose(step.parameters[name], value, atol=atol)
     if effect == "slip":
         # slip changes no wheel speed: its gap is in the pose, which must shrink by half
         before = math.hypot(*step.pose_rmse_before[:2])
@@ -80,8 +90,8 @@ def test_names_and_recovers_each_hidden_effect(effect):
     assert d.calibration.effects.active().keys() == {effect}
 
 
-def test_no_hidden_effect_names_nothing():
-    d = _diagnose(_campaign(Effects(), seed=2))
+def test_no_hidden_effect_names_nothing(tmp_path):
+    d = _diagnose(_campaign(tmp_path, Effects(), seed=2))
     assert d.effects == []
     assert not d.unexplained
     assert d.to_json()["effects"] == []
@@ -89,12 +99,12 @@ def test_no_hidden_effect_names_nothing():
 
 
 @pytest.mark.slow
-def test_two_hidden_effects_are_both_named():
+def test_two_hidden_effects_are_both_named(tmp_path):
     hidden = Effects(dead_time_s=0.035, top_speed_rpm=110.0)
-    d = _diagnose(_campaign(hidden, seed=3))
+    d = _diagnose(_campaign(tmp_path, hidden, seed=3))
     assert sorted(d.effects) == ["dead_time", "saturation"], d.to_json()
     assert not d.unexplained
-    assert d.calibration.effects.dead_time_s == pytest.approx(0.035, abs=0.003)
+    assert d.calibration.effects.dead_time_s == pytest.approx(0.035 + LINK_LATENCY_S, abs=0.003)
     assert d.calibration.effects.top_speed_rpm == pytest.approx(110.0, abs=1.5)
     assert d.rmse_final <= 0.5 * d.rmse_initial
     # the JSON document of the issue, key for key
@@ -107,7 +117,8 @@ def test_two_hidden_effects_are_both_named():
 
 def test_effect_outside_the_library_is_unexplained_not_mislabelled(tmp_path):
     # the rollers' periodic speed ripple: nothing in the library is periodic in wheel angle
-    recs = _campaign(Effects(), distort=add_roller_ripple(0.05, 8.0), seed=4)
+    recs = _campaign(tmp_path, Effects(), seed=4,
+                     unmodelled={"roller_ripple": {"amplitude": 0.05, "per_turn": 8.0}})
     d = _diagnose(recs)
     assert d.unexplained
     assert d.effects == [], d.to_json()
@@ -118,16 +129,17 @@ def test_effect_outside_the_library_is_unexplained_not_mislabelled(tmp_path):
 
 
 @pytest.mark.slow
-def test_resonance_outside_the_library_is_unexplained_not_mislabelled():
+def test_resonance_outside_the_library_is_unexplained_not_mislabelled(tmp_path):
     # a lightly damped 3 Hz mode: a dead time and a ramp limit each mimic part of its lag,
     # but neither explains its share, so both are withdrawn and the residual is unexplained
-    d = _diagnose(_campaign(Effects(), distort=add_resonance(3.0, 0.15), seed=5))
+    d = _diagnose(_campaign(tmp_path, Effects(), seed=5,
+                            unmodelled={"resonance": {"natural_hz": 3.0, "damping": 0.15}}))
     assert d.unexplained
     assert d.effects == [], d.to_json()
 
 
-def test_localisation_points_at_the_regime_where_the_model_fails():
-    recs = _campaign(Effects(top_speed_rpm=110.0), seed=6)
+def test_localisation_points_at_the_regime_where_the_model_fails(tmp_path):
+    recs = _campaign(tmp_path, Effects(top_speed_rpm=110.0), seed=6)
     cal = Calibration()
     loc = localise(recs, [predict(r, cal, ROBOT) for r in recs], ROBOT,
                    [r.metadata["profile"] for r in recs])
@@ -135,7 +147,7 @@ def test_localisation_points_at_the_regime_where_the_model_fails():
     by_name = {r.name: r for r in loc.recordings}
     assert by_name["step-120rpm"].rmse_rpm > 5 * by_name["step-30rpm"].rmse_rpm
     assert loc.noise_rpm == pytest.approx(NOISE_RPM, rel=0.1)
-    recs = _campaign(Effects(dead_time_s=0.05), seed=6)
+    recs = _campaign(tmp_path, Effects(dead_time_s=0.05), seed=6)
     loc = localise(recs, [predict(r, cal, ROBOT) for r in recs], ROBOT)
     assert loc.worst_regimes()[0] == "transient"
 
@@ -152,18 +164,18 @@ def test_noise_level_from_differences():
     assert abs(lag1_autocorrelation([white])) < 0.05
 
 
-def test_initial_pose_is_averaged_over_the_rest():
-    recs = _campaign(Effects(), seed=7)
+def test_initial_pose_is_averaged_over_the_rest(tmp_path):
+    recs = _campaign(tmp_path, Effects(), seed=7)
     rec = initial_pose_at_rest(recs[0])
     # 0.3 s at rest: 30 samples, so the first pose is 5 times closer to the truth
     assert abs(rec.pose[0, 2] - 90.0) < 0.2
     np.testing.assert_array_equal(rec.pose[1:], recs[0].pose[1:])
 
 
-def test_bad_input_is_a_diagnose_error():
+def test_bad_input_is_a_diagnose_error(tmp_path):
     from mecanum_hil.errors import DiagnoseError
 
-    recs = _campaign(Effects(), seed=8)[:2]
+    recs = _campaign(tmp_path, Effects(), seed=8)[:2]
     with pytest.raises(DiagnoseError, match="at least two"):
         diagnose(recs[:1], Calibration(), ROBOT)
     with pytest.raises(DiagnoseError, match="unknown effect"):

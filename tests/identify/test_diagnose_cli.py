@@ -12,7 +12,8 @@ from mecanum_hil.identify.campaign import paper_campaign
 from mecanum_hil.identify.diagnose import diagnose
 from mecanum_hil.identify.fit import fit
 from mecanum_hil.io.recording import read_recording, write_recording
-from mecanum_hil.model import Calibration, Effects, RobotProfile, load_calibration
+from mecanum_hil.link.effects_file import sim_effects_for
+from mecanum_hil.model import Effects, RobotProfile, load_calibration
 from mecanum_hil.profiles import ramp, step
 
 ROBOT = RobotProfile()
@@ -29,8 +30,8 @@ def cli(*args):
 
 @pytest.fixture(scope="module")
 def campaign():
-    return paper_campaign(Calibration(effects=Effects(top_speed_rpm=110.0)), ROBOT,
-                          rate_hz=100.0, noise_rpm=0.25, seed=11, profiles=PROFILES)
+    hidden = sim_effects_for(Effects(top_speed_rpm=110.0), wheel_rpm_std=0.25, seed=11)
+    return paper_campaign(hidden, ROBOT, seed=11, profiles=PROFILES)
 
 
 def test_cli_json_out_and_report(tmp_path, campaign):

@@ -32,6 +32,20 @@ def test_compiled_discretisation_matches_scipy():
     np.testing.assert_allclose(discretise_many(co, h), ref, rtol=1e-12, atol=1e-12)
 
 
+def test_compiled_discretisation_matches_scipy_over_the_whole_range():
+    # real, repeated (C = ((A + B) / 2)^2) and complex poles, tiny C, long and short steps:
+    # the closed form where it is well conditioned and the series elsewhere both match
+    rows = [[a, b, c] for a in (0.0, 0.3, 14.7, 300.0, 3000.0) for b in (0.0, 1.0, 16.1, 800.0)
+            for c in (1e-6, 1e-3, 1.0, 303.0, 1e5)]
+    rows += [[14.7, 16.1, (30.8 / 2) ** 2 * (1 + e)] for e in (0.0, 1e-9, -1e-9, 1e-5, -1e-5)]
+    co = np.array(rows)
+    h = np.array([1e-4, 0.001, 0.0123, 0.1, 0.37, 2.0])
+    ref = discretise(co[:, 0:1], co[:, 1:2], co[:, 2:3], h[None, :])
+    got = discretise_many(co, h)
+    scale = np.maximum(1.0, np.abs(ref).max(axis=(0, 1)))
+    np.testing.assert_allclose(got / scale, ref / scale, rtol=1e-9, atol=1e-11)
+
+
 def test_tables_follow_each_robots_coefficients():
     co = np.array([[14.7, 16.1, 303.0], [20.0, 10.0, 200.0], [14.7, 16.1, 303.0]])
     tables = step_tables(co, [0.02])
