@@ -13,7 +13,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError, LinkError, LinkLostError
+import numpy as np
+
+from ..errors import ConfigError, LimitError, LinkError, LinkLostError
 from ..io.resources import resource_dir
 from .protocol import (
     Command,
@@ -142,6 +144,20 @@ class CanCodec:
                             "", seq)
         return ErrorMsg(int(v["code"]), "", seq)
 
+    def check_commands(self, commands, what: str = "commands to send") -> None:
+        """Refuse commands outside the ``MH_COMMAND`` signals' ranges (the DBC's min/max)."""
+        c = np.asarray(commands, dtype=float).reshape(-1, 3)
+        spec = self._by_name["MH_COMMAND"]
+        for col, (name, unit) in enumerate((("n_cmd", "rpm"), ("omega_cmd", "deg/s"),
+                                             ("theta_cmd", "deg"))):
+            sig = spec.get_signal_by_name(name)
+            bad = (c[:, col] < sig.minimum) | (c[:, col] > sig.maximum)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise LimitError(
+                    f"{what}: row {i} has {name.removesuffix('_cmd')} = {c[i, col]:g} {unit}, "
+                    f"outside what the CAN command carries [{sig.minimum:g}, {sig.maximum:g}]")
+
     def wire_command(self, n_rpm: float, omega_dps: float, theta_deg: float) -> Command:
         """The command after the DBC's scaling, as the controller will decode it."""
         ((fid, data),) = self.encode(Command(n_rpm, omega_dps, theta_deg))
@@ -201,6 +217,9 @@ class CanTransport(Transport):
 
     def wire_command(self, n_rpm: float, omega_dps: float, theta_deg: float) -> Command:
         return self._codec.wire_command(n_rpm, omega_dps, theta_deg)
+
+    def check_commands(self, commands, what: str = "commands to send") -> None:
+        self._codec.check_commands(commands, what)
 
     def _send(self, msg: Message) -> None:
         for fid, data in self._codec.encode(msg):

@@ -495,6 +495,7 @@ def run_record_session(
                           f"controller's watchdog stops the wheels after {WATCHDOG_S:g} s; use "
                           "a command rate of at least 5 Hz")
     robot.check_commands(cmd, "commands to send")
+    transport.check_commands(cmd, "commands to send")
     t = t - t[0]
     meta = {
         "source": "mecanum-hil record",

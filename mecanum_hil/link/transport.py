@@ -99,6 +99,19 @@ class Transport(ABC):
         """The command exactly as this transport's encoding will carry it (quantised)."""
         return Command(float(n_rpm), float(omega_dps), float(theta_deg))
 
+    def check_commands(self, commands: Any, what: str = "commands to send") -> None:
+        """Refuse commands this transport's encoding cannot carry, before anything is sent.
+
+        ``commands`` is ``(T, 3)``: ``(n [rpm], omega [deg/s], theta [deg])``. The base
+        accepts every finite value (the serial frame carries float32).
+
+        Raises
+        ------
+        LimitError
+            Naming the row and the range the encoding carries.
+        """
+        return None
+
     def send(self, msg: Message) -> Message:
         """Send ``msg`` with the next sequence number; return it as sent.
 

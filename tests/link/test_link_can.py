@@ -77,3 +77,26 @@ def test_send_on_a_failed_bus_raises_link_error_and_counts(virtual_channel):
         link.send(proto.Stop())
     assert link.stats.send_errors == 1 and link.stats.sent == 0
     link.close()
+
+
+def test_a_command_the_can_frame_cannot_carry_is_refused_before_sending(virtual_channel,
+                                                                        tmp_path):
+    import numpy as np
+
+    from mecanum_hil.errors import LimitError
+    from mecanum_hil.link.session import run_record_session
+    from mecanum_hil.model import RobotProfile
+
+    listener = can.Bus(interface="virtual", channel=virtual_channel)
+    host = CanTransport(interface="virtual", channel=virtual_channel)
+    try:
+        t = np.arange(10) * 0.02
+        cmd = np.tile([10.0, 0.0, 90.0], (10, 1))
+        cmd[5, 2] = 700.0  # a direction the robot can drive, beyond the signal's range
+        with pytest.raises(LimitError, match=r"row 5 has theta = 700 deg.*\[-655\.36, 655\.34\]"):
+            run_record_session(host, t, cmd, tmp_path / "r.csv", RobotProfile())
+        assert listener.recv(0.1) is None  # not one frame left: not even a HELLO
+        assert not (tmp_path / "r.csv").exists()
+    finally:
+        host.close()
+        listener.shutdown()
