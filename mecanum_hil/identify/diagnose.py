@@ -348,8 +348,7 @@ def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
                     lat.append(t[hit[0]] - t[j])
     if not lat:
         return 0.0
-    # whole microseconds: a difference of sample times can fall a hair below a whole number
-    # of samples, where the simulator's dead-time grid fails (see the IndexError note below)
+    # whole microseconds: differences of sample times carry rounding noise
     return round(max(float(np.median(lat)) - float(np.median(dts)), 0.0), 6)
 
 
@@ -894,7 +893,7 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
                             recs, current, rob, cur_free,
                             x0={n: parameter_value(current, n) for n in cur_free},
                             sources=names)
-                    except (FitError, ConfigError, IndexError):
+                    except (FitError, ConfigError):
                         break
                     sse_now = _rmse_per_recording(ev, current)[0] ** 2 * more.n_samples
                     if not more.sse < sse_now:
@@ -918,10 +917,7 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
                     f = fit_candidate(ev, effect, current, cur_free, names, noise)
                     h1 = heldout_score(ev, f.calibration, f.free if channel == "wheel" else [
                         n for n in f.free if n.startswith("efficiency")], channel)
-                except (FitError, ConfigError, IndexError) as err:
-                    # IndexError: the simulator's dead-time grid fails for a delay a hair below a
-                    # whole number of samples (reported to the model's owner); the candidate is
-                    # then recorded as failed rather than ending the diagnosis
+                except (FitError, ConfigError) as err:
                     scores.append(CandidateScore(effect, {}, {}, math.nan, math.nan, -math.inf,
                                                  -math.inf, note=str(err), in_sample=-math.inf))
                     say(f"  {effect:11s} failed: {err}")

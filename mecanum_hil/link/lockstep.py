@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..io.recording import Recording
 from ..model.calibration import Calibration
 from ..model.robot import RobotProfile
@@ -125,11 +126,20 @@ def record_lockstep(
     Recording
         Rows as ``record`` writes them: ``cmd`` rows at the send times, ``tlm`` rows at the
         receive times with the controller's time, a ``stop`` row after the last command.
+
+    Raises
+    ------
+    ConfigError
+        Times and commands of different lengths, or times not increasing.
+    LimitError
+        A command beyond ``robot``'s limits (before anything is simulated).
     """
     t = np.asarray(t_s, dtype=float).ravel()
     cmd = np.asarray(commands, dtype=float).reshape(-1, 3)
     if t.size == 0 or t.size != cmd.shape[0]:
-        raise ValueError("t_s and commands must have the same non-zero length")
+        raise ConfigError(f"{t.size} send times for {cmd.shape[0]} commands")
+    if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+        raise ConfigError("command times must be finite and increasing")
     robot.check_commands(cmd, "commands to send")
     t = t - t[0]
     cal = calibration or Calibration()
