@@ -34,9 +34,19 @@ def trajectory_to_recording(traj: Trajectory, metadata: dict[str, Any] | None = 
 
 
 def start_pose(rec: Recording) -> tuple[float, float, float]:
-    """Where the model starts a recording: its first measured pose, if measured before the
-    robot moves (a recording's first rows may be commands without a pose), else
-    ``(0 m, 0 m, 90 deg)`` [m, m, deg]."""
+    """Where the model starts a recording.
+
+    Parameters
+    ----------
+    rec : Recording
+
+    Returns
+    -------
+    (float, float, float)
+        The first measured pose ``(X [m], Y [m], phi [deg])`` if it was measured before the
+        robot moves (a recording's first rows may be commands without a pose), else
+        ``(0 m, 0 m, 90 deg)``.
+    """
     pose = np.asarray(rec.pose, dtype=float)
     rows = np.flatnonzero(np.isfinite(pose).all(axis=1))
     if rows.size:

@@ -15,6 +15,7 @@ says "unexplained" instead of naming the closest wrong effect.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 from ..io.recording import Recording
@@ -115,8 +116,6 @@ def paper_campaign(effects: SimEffects | str | Path | None = None,
         One per profile; ``metadata["profile"]`` names it, ``metadata["true_effects"]`` and
         ``metadata["true_unmodelled"]`` hold what was hidden.
     """
-    from dataclasses import replace
-
     from ..io.timing import retime_telemetry
     from ..link.effects_file import load_sim_effects
     from ..link.lockstep import record_lockstep

@@ -72,6 +72,9 @@ MIN_EXPLAINED = 0.5
 MIN_RELATIVE = 0.05
 #: When structured residual remains at the end, a step is kept only if it explained this much.
 CONFIRM_EXPLAINED = 0.75
+#: Smallest in-sample excess over the noise floor, as a share of the in-sample score, for which
+#: a candidate's in-sample share is computed (below it there is nothing to explain: 0).
+MIN_EXCESS = 0.02
 #: Held-out score (mean square / sigma^2) at or below which nothing significant is left.
 NOISE_FLOOR_SCORE = 1.1
 #: Remaining residual is "structured" above this RMSE / noise ratio ...
@@ -119,7 +122,8 @@ def initial_pose_at_rest(rec: Recording) -> Recording:
     The model starts from the first pose; a camera's noise on it would rotate the whole
     predicted path (0.3 deg of heading noise is 10 cm after 20 m), so it is averaged over the
     samples before the first command that moves the robot (headings as a circular mean) and
-    put in the first row (which may be a command row without a pose of its own).
+    put in the first row. That row may be a command row without a pose of its own: it then
+    gains one pose sample (the robot is at rest there, so it is a true one).
     """
     pose = rec.pose
     if len(rec) < 3:
@@ -927,7 +931,7 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
                 relative = (s0 - s1) / s0
                 f0, f1 = h0.fit_ms / scale2, h1.fit_ms / scale2
                 # no in-sample excess over the noise floor: nothing for a candidate to explain
-                in_sample = (f0 - f1) / (f0 - 1.0) if f0 - 1.0 > 0.02 * f0 else 0.0
+                in_sample = (f0 - f1) / (f0 - 1.0) if f0 - 1.0 > MIN_EXCESS * f0 else 0.0
                 fits[effect] = f
                 ci = {n: f.ci95[n] for n in (*effect_parameters(effect),) if n in f.ci95}
                 scores.append(CandidateScore(effect, _effect_values(f.calibration, effect), ci,

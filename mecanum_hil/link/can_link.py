@@ -145,7 +145,20 @@ class CanCodec:
         return ErrorMsg(int(v["code"]), "", seq)
 
     def check_commands(self, commands, what: str = "commands to send") -> None:
-        """Refuse commands outside the ``MH_COMMAND`` signals' ranges (the DBC's min/max)."""
+        """Refuse commands outside the ``MH_COMMAND`` signals' ranges (the DBC's min/max).
+
+        Parameters
+        ----------
+        commands : array_like, shape (T, 3)
+            ``(n [rpm], omega [deg/s], theta [deg])``.
+        what : str
+            Name used in the error message.
+
+        Raises
+        ------
+        LimitError
+            Naming the first row outside a range, and the range.
+        """
         c = np.asarray(commands, dtype=float).reshape(-1, 3)
         spec = self._by_name["MH_COMMAND"]
         for col, (name, unit) in enumerate((("n_cmd", "rpm"), ("omega_cmd", "deg/s"),

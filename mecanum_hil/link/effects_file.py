@@ -36,6 +36,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from ..errors import ConfigError
 from ..io.toml_config import TableReader, load_toml, toml_value
 from ..model.calibration import EFFECTS, Effects, read_effects_table
 
@@ -198,16 +199,55 @@ def sim_effects_to_toml(sim: SimEffects, header: str = "") -> str:
 
 
 def save_sim_effects(sim: SimEffects, path: str | Path, header: str = "") -> Path:
-    """Write ``sim`` as an effects file for ``sim-robot --effects``."""
+    """Write ``sim`` as an effects file for ``sim-robot --effects``.
+
+    Parameters
+    ----------
+    sim : SimEffects
+        What the file sets.
+    path : str or Path
+        File to write (its folder is created).
+    header : str
+        Comment lines at the top.
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    ConfigError
+        When the file cannot be written.
+    """
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(sim_effects_to_toml(sim, header))
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(sim_effects_to_toml(sim, header))
+    except OSError as err:
+        raise ConfigError(f"{p}: cannot write the effects file: {err}") from err
     return p
 
 
 def sim_effects_for(effects: Effects, *, wheel_rpm_std: float = 0.0, seed: int = 0,
                     unmodelled: dict[str, dict[str, float]] | None = None) -> SimEffects:
-    """The effects file's content that hides ``effects`` (its active ones) in the robot."""
+    """The effects file's content that hides ``effects`` in the simulated robot.
+
+    Parameters
+    ----------
+    effects : Effects
+        Its active effects become ``[effects.<name>]`` tables.
+    wheel_rpm_std : float
+        Noise on the reported wheel speeds [rpm].
+    seed : int
+        Seed of the noise.
+    unmodelled : Mapping, optional
+        Effects outside the library (``{"resonance": {"natural_hz": .., "damping": ..}}``,
+        ``{"roller_ripple": {"amplitude": .., "per_turn": ..}}``).
+
+    Returns
+    -------
+    SimEffects
+    """
     named = {name: {p: getattr(effects, p) for p in EFFECTS[name].parameters}
              for name in effects.active()}
     return SimEffects(named, float(wheel_rpm_std),

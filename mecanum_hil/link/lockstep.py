@@ -38,7 +38,7 @@ from ..model.calibration import Calibration
 from ..model.robot import RobotProfile
 from .effects_file import SimEffects
 from .protocol import PROTOCOL_VERSION, Hello, Message, Stop, StreamDecoder, encode
-from .session import EXTRA_COLUMNS
+from .session import EXTRA_COLUMNS, check_command_stream
 from .simulated import ControllerModel, SimulatedController
 from .transport import Transport
 
@@ -130,29 +130,29 @@ def record_lockstep(
     Raises
     ------
     ConfigError
-        Times and commands of different lengths, or times not increasing.
+        As ``record``: times and commands of different lengths, times not increasing, a gap
+        the watchdog would stop the wheels in; or a rate or delay out of range.
     LimitError
         A command beyond ``robot``'s limits (before anything is simulated).
     """
-    t = np.asarray(t_s, dtype=float).ravel()
-    cmd = np.asarray(commands, dtype=float).reshape(-1, 3)
-    if t.size == 0 or t.size != cmd.shape[0]:
-        raise ConfigError(f"{t.size} send times for {cmd.shape[0]} commands")
-    if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
-        raise ConfigError("command times must be finite and increasing")
-    robot.check_commands(cmd, "commands to send")
-    t = t - t[0]
+    if not (internal_rate_hz > 0 and telemetry_rate_hz >= 0 and link_delay_s >= 0):
+        raise ConfigError(f"rates must be positive and the link delay >= 0, got "
+                          f"{internal_rate_hz!r} Hz, {telemetry_rate_hz!r} Hz, "
+                          f"{link_delay_s!r} s")
+    to_ctrl = FramedLoopback()
+    t, cmd = check_command_stream(t_s, commands, robot, to_ctrl)
     cal = calibration or Calibration()
     fx = sim_effects or SimEffects()
     model = ControllerModel(cal, robot, fx, rate_hz=internal_rate_hz)
     clock = VirtualClock()
-    to_host, to_ctrl = FramedLoopback(), FramedLoopback()
+    to_host = FramedLoopback()
     ctrl = SimulatedController(to_host, model, telemetry_rate_hz, clock=clock)
     d = float(link_delay_s)
 
-    # HELLO leaves the host 0.1 s before the first command; its arrival is controller time 0,
-    # so host time h and controller time c are related by c = h + lead - d
-    lead = 0.1
+    # as with record, HELLO leaves the host one round trip before the first command (its
+    # answer comes back just as the first command leaves); its arrival is controller time 0,
+    # so host time h and controller time c are related by c = h + lead - d = h + d
+    lead = 2.0 * d
     to_ctrl.send(Hello(PROTOCOL_VERSION))
     ctrl.handle(to_ctrl.delivered.popleft())
     hello_ack = to_host.delivered.popleft()
@@ -193,7 +193,7 @@ def record_lockstep(
         ctrl.send_telemetry(tick)
         tlm = to_host.delivered.popleft()
         h = c_tlm - lead + 2 * d
-        if h >= 0.0:  # the host records telemetry from its first command on
+        if k > 0:  # the host records telemetry from its first command on
             pose = nan3
             if pose_sd is not None:
                 pose = model.pose(tick) + rng.normal(0.0, 1.0, 3) * pose_sd

@@ -437,6 +437,51 @@ class _ObserverStopError(Exception):
     pass
 
 
+def check_command_stream(t_s, commands, robot: RobotProfile,
+                         transport: Transport | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Check a command stream before anything is sent; return it with times from 0.
+
+    Parameters
+    ----------
+    t_s : array_like, shape (T,)
+        Send times [s].
+    commands : array_like, shape (T, 3)
+        ``(n [rpm], omega [deg/s], theta [deg])``.
+    robot : RobotProfile
+        Limits every command is checked against.
+    transport : Transport, optional
+        Its encoding's ranges are checked too (:meth:`Transport.check_commands`).
+
+    Returns
+    -------
+    t_s : ndarray, shape (T,)
+        Send times from the first command [s].
+    commands : ndarray, shape (T, 3)
+
+    Raises
+    ------
+    ConfigError
+        Lengths that differ, times not finite and increasing, or a gap the controller's
+        watchdog would stop the wheels in.
+    LimitError
+        A command beyond the robot's limits or the transport's ranges.
+    """
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    cmd = np.asarray(commands, dtype=float).reshape(-1, 3)
+    if t.size == 0 or t.size != cmd.shape[0]:
+        raise ConfigError(f"{t.size} send times for {cmd.shape[0]} commands")
+    if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+        raise ConfigError("command times must be finite and increasing")
+    if t.size > 1 and np.diff(t).max() >= WATCHDOG_S:
+        raise ConfigError(f"commands are {np.diff(t).max():.3f} s apart somewhere: the "
+                          f"controller's watchdog stops the wheels after {WATCHDOG_S:g} s; use "
+                          "a command rate of at least 5 Hz")
+    robot.check_commands(cmd, "commands to send")
+    if transport is not None:
+        transport.check_commands(cmd, "commands to send")
+    return t - t[0], cmd
+
+
 def run_record_session(
     transport: Transport,
     t_s,
@@ -484,19 +529,7 @@ def run_record_session(
         Times that do not increase, or gaps longer than the controller's watchdog.
     """
     config = config or SessionConfig()
-    t = np.asarray(t_s, dtype=float).reshape(-1)
-    cmd = np.asarray(commands, dtype=float).reshape(-1, 3)
-    if t.size == 0 or t.size != cmd.shape[0]:
-        raise ConfigError(f"{t.size} send times for {cmd.shape[0]} commands")
-    if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
-        raise ConfigError("command times must be finite and increasing")
-    if t.size > 1 and np.diff(t).max() >= WATCHDOG_S:
-        raise ConfigError(f"commands are {np.diff(t).max():.3f} s apart somewhere: the "
-                          f"controller's watchdog stops the wheels after {WATCHDOG_S:g} s; use "
-                          "a command rate of at least 5 Hz")
-    robot.check_commands(cmd, "commands to send")
-    transport.check_commands(cmd, "commands to send")
-    t = t - t[0]
+    t, cmd = check_command_stream(t_s, commands, robot, transport)
     meta = {
         "source": "mecanum-hil record",
         "tool_version": __version__,

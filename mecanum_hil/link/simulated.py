@@ -22,7 +22,7 @@ import math
 import threading
 import time
 from bisect import bisect_right
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 
 import numpy as np
@@ -59,12 +59,12 @@ class UnmodelledSensor:
     ``wn^2 / (s^2 + 2 zeta wn s + wn^2)``, a lightly damped mode between drive and encoder
     (a flexible coupling); ``roller_ripple`` (``amplitude``, ``per_turn``): it is multiplied by
     ``1 + amplitude sin(per_turn * wheel angle)``, the Mecanum rollers taking over one after
-    the other. Both are evaluated at the instants the speeds are reported, exactly for a true
-    speed held between them (zero-order hold), so calls must come in increasing tick order.
+    the other. Both advance on every controller tick (exact for the true speed held over the
+    tick), so what is reported does not depend on the telemetry rate.
 
     Parameters
     ----------
-    params : Mapping[str, dict]
+    params : Mapping[str, Mapping[str, float]]
         :attr:`SimEffects.unmodelled`.
     dt_s : float
         Duration of one tick [s].
@@ -72,12 +72,22 @@ class UnmodelledSensor:
         Draws the rollers' initial phases.
     """
 
-    def __init__(self, params, dt_s: float, rng: np.random.Generator) -> None:
+    def __init__(self, params: Mapping[str, Mapping[str, float]], dt_s: float,
+                 rng: np.random.Generator) -> None:
         self.resonance = params.get("resonance")
         self.ripple = params.get("roller_ripple")
-        self.dt_s = dt_s
+        self.dt_s = float(dt_s)
         self._angle = rng.uniform(0.0, 2.0 * np.pi, 4) if self.ripple else np.zeros(4)
-        self._discrete: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._ad = self._bd = None
+        if self.resonance:
+            from scipy.linalg import expm
+
+            wn = 2.0 * np.pi * self.resonance["natural_hz"]
+            m = np.zeros((3, 3))
+            m[:2, :2] = [[0.0, 1.0], [-wn * wn, -2.0 * self.resonance["damping"] * wn]]
+            m[:2, 2] = [0.0, wn * wn]
+            e = expm(m * self.dt_s)
+            self._ad, self._bd = e[:2, :2], e[:2, 2]
         self.reset()
 
     @property
@@ -89,36 +99,36 @@ class UnmodelledSensor:
         """Forget the tick count (the clock restarts at HELLO); the next call starts afresh."""
         self._tick: int | None = None
         self._x = np.zeros((2, 4))
-        self._u = np.zeros(4)
+        self._out = np.zeros(4)
 
-    def _zoh(self, ticks: int) -> tuple[np.ndarray, np.ndarray]:
-        if ticks not in self._discrete:
-            from scipy.linalg import expm
+    def __call__(self, tick: int, true_rpm: Callable[[int], np.ndarray]) -> np.ndarray:
+        """The reported wheel speeds at ``tick`` [rpm].
 
-            wn = 2.0 * np.pi * self.resonance["natural_hz"]
-            m = np.zeros((3, 3))
-            m[:2, :2] = [[0.0, 1.0], [-wn * wn, -2.0 * self.resonance["damping"] * wn]]
-            m[:2, 2] = [0.0, wn * wn]
-            e = expm(m * ticks * self.dt_s)
-            self._discrete[ticks] = (e[:2, :2], e[:2, 2])
-        return self._discrete[ticks]
-
-    def __call__(self, tick: int, wheel_rpm: np.ndarray) -> np.ndarray:
-        """The reported wheel speeds at ``tick`` for the true ones ``wheel_rpm`` [rpm]."""
-        w = np.asarray(wheel_rpm, dtype=float)
-        if self._tick is None or tick <= self._tick:
+        ``true_rpm(k)`` gives the true wheel speeds at tick ``k`` [rpm]; it is called for every
+        tick since the previous call, in order. A call for an earlier tick than the previous
+        one starts afresh (in the steady state of that tick's speed).
+        """
+        if self._tick is not None and tick == self._tick:
+            return self._out.copy()
+        if self._tick is None or tick < self._tick:
+            w = np.asarray(true_rpm(tick), dtype=float)
             self._x = np.array([w, np.zeros(4)])
         else:
-            n = tick - self._tick
-            if self.resonance:
-                a, b = self._zoh(n)
-                self._x = a @ self._x + np.outer(b, self._u)
-            self._angle += 2.0 * np.pi * self._u / 60.0 * n * self.dt_s
-        self._tick, self._u = tick, w.copy()
+            u = np.asarray(true_rpm(self._tick), dtype=float)
+            for k in range(self._tick + 1, tick + 1):
+                if self.resonance:
+                    self._x = self._ad @ self._x + np.outer(self._bd, u)
+                self._angle += 2.0 * np.pi * u / 60.0 * self.dt_s
+                u = np.asarray(true_rpm(k), dtype=float)
+            w = u
+            if not self.resonance:
+                self._x[0] = w
+        self._tick = tick
         out = self._x[0].copy() if self.resonance else w.copy()
         if self.ripple:
             out *= 1.0 + self.ripple["amplitude"] * np.sin(self.ripple["per_turn"] * self._angle)
-        return out
+        self._out = out
+        return out.copy()
 
 
 class ControllerModel:
@@ -268,9 +278,9 @@ class ControllerModel:
         """Wheel speeds at ``tick`` as the controller reports them: through the effects outside
         the library (:class:`UnmodelledSensor`), with noise [rpm]. Call in increasing ``tick``
         order."""
-        w = self.wheel_rpm(tick)
-        if self.sensor.active:
-            w = self.sensor(tick, w)
+        # the sensor walks the ticks since its last call in order, before the model's anchor
+        # may move on to this one
+        w = self.sensor(tick, self.wheel_rpm) if self.sensor.active else self.wheel_rpm(tick)
         std = self.sim_effects.wheel_rpm_std
         return w + self._rng.normal(0.0, std, 4) if std > 0 else w.copy()
 

@@ -28,11 +28,25 @@ def test_a_recording_already_in_motion_is_refused():
         fit([steady()], ROBOT)
 
 
+def test_one_noisy_first_sample_at_rest_is_not_motion():
+    # 1 rpm of encoder noise: a first sample of 2.5 rpm on one wheel is noise, not motion
+    t = np.arange(301) / 100.0
+    rng = np.random.default_rng(1)
+    cmds = np.tile([0.0, 0.0, 90.0], (t.size, 1))
+    cmds[30:, 0] = 30.0
+    clean = np.where(t[:, None] >= 0.3, 30.0 * (1 - np.exp(-(t[:, None] - 0.3) / 0.1)), 0.0)
+    wheels = clean + rng.normal(0, 1.0, (t.size, 4))
+    wheels[0, 2] = 2.5
+    res = fit([Recording(t, cmds, wheels, np.full((t.size, 3), np.nan))], ROBOT)
+    assert res.fit_percent > 80
+
+
 def test_a_model_worse_than_the_mean_is_refused():
     rec = steady()
     t = rec.t_s
     # the wheels move, but nothing like the commands: a step command, a sine response
-    wheels = np.zeros((t.size, 4)) + 20 * np.sin(2 * np.pi * 3 * t)[:, None]
+    sine = np.where(t >= 0.5, 20 * np.sin(2 * np.pi * 3 * t), 0.0)
+    wheels = np.zeros((t.size, 4)) + sine[:, None]
     cmds = rec.commands.copy()
     cmds[:50, 0] = 0.0
     with pytest.raises(FitError, match="worse than their mean"):

@@ -34,10 +34,10 @@ def _profile():
     return p.sample(50.0)
 
 
-def _tick_reference(t, cmd, effects: Effects, lead_s=0.1, rate=1000.0):
+def _tick_reference(t, cmd, effects: Effects, lead_s=0.0, rate=1000.0):
     """The controller's robot, rebuilt by hand: each command acts from the first 1 ms tick
-    after it arrives (send time + lead), then the model on the tick grid (STOP after the
-    last command)."""
+    after it arrives (controller time = send time + lead, the round trip: 0 for a link
+    without delay), then the model on the tick grid (STOP after the last command)."""
     sent_s = np.append(t, t[-1] + 1e-6)
     sent = np.vstack([cmd, [0.0, 0.0, cmd[-1, 2]]])
     arrive = np.ceil((sent_s + lead_s) * rate - 1e-9).astype(int)
