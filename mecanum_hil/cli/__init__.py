@@ -11,7 +11,7 @@ import sys
 import typer
 
 from ..errors import MecanumHILError
-from . import demo, measure_video, record, render_video, shadow, sim_robot, simulate
+from . import campaign, demo, measure_video, record, render_video, shadow, sim_robot, simulate
 from . import diagnose as diagnose_cmd
 from . import fit as fit_cmd
 
@@ -40,6 +40,7 @@ app.command("measure-video")(measure_video.command)
 app.command("render-video")(render_video.command)
 app.command("record")(record.command)
 app.command("sim-robot")(sim_robot.command)
+app.command("campaign")(campaign.command)
 app.command("shadow")(shadow.command)
 
 
