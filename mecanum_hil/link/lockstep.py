@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import __version__
 from ..errors import ConfigError
 from ..io.recording import Recording
 from ..model.calibration import Calibration
@@ -221,6 +222,7 @@ def record_lockstep(
             extra[name].append(str(v))
     meta = {
         "source": "mecanum-hil record_lockstep",
+        "tool_version": __version__,
         "transport": "lockstep",
         "protocol_version": PROTOCOL_VERSION,
         "robot_profile": robot.source,
