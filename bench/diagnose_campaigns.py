@@ -5,8 +5,10 @@ Every campaign is recorded from the simulated controller (in simulated time) who
 hides the effect; A, B, C are fitted with ``fit`` as a user would, then ``diagnose`` runs without
 being told anything. Prints one markdown row per case, with the time each took.
 
-Usage: ``python bench/diagnose_campaigns.py [--quick]`` (``--quick``: the tests' shorter
-campaign, steps held 1.5 s, no 15/60 rpm steps and no reversing step).
+Usage: ``python bench/diagnose_campaigns.py [--quick] [--seeds N]`` (``--quick``: the tests'
+shorter campaign, steps held 1.5 s, no 15/60 rpm steps and no reversing step; ``--seeds N``:
+each case with N noise seeds, printing how often diagnose gave the right answer and the range
+of what it recovered, instead of one row per case).
 """
 
 from __future__ import annotations
@@ -48,10 +50,13 @@ def _fmt(value) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--seeds", type=int, default=0)
     args = ap.parse_args()
     robot = RobotProfile()
     profiles = campaign_profiles(steps_rpm=(4.0, 8.0, 30.0, 100.0, 120.0), step_hold_s=1.5,
                                  reverse=False) if args.quick else campaign_profiles()
+    if args.seeds > 0:
+        return reliability(robot, profiles, args.seeds)
     print("| hidden | named | recovered | wheel RMSE [rpm] | unexplained | time [s] |")
     print("|---|---|---|---|---|---|")
     for seed, (label, effects, unmodelled) in enumerate(CASES, start=1):
@@ -73,6 +78,41 @@ def main() -> None:
             rmse += f" (pose {1e3 * before:.1f} -> {1e3 * after:.1f} mm)"
         print(f"| {label} | {named} | {got} | {rmse} | {str(d.unexplained).lower()} | "
               f"{took:.0f} |", flush=True)
+
+
+def _expected(effects: Effects, unmodelled) -> tuple[list[str], bool]:
+    return sorted(effects.active()), bool(unmodelled)
+
+
+def reliability(robot: RobotProfile, profiles, seeds: int) -> None:
+    """Each case with ``seeds`` noise seeds: how often the answer is right."""
+    print(f"| hidden | right answer in {seeds} seeds | recovered (min .. max) | "
+          "RMSE final / noise (max) | time per run [s] |")
+    print("|---|---|---|---|---|")
+    for label, effects, unmodelled in CASES:
+        want, unexplained = _expected(effects, unmodelled)
+        right, values, ratio, took = 0, [], [], []
+        for seed in range(100, 100 + seeds):
+            t0 = time.perf_counter()
+            fx = sim_effects_for(effects, wheel_rpm_std=NOISE_RPM, seed=seed,
+                                 unmodelled=unmodelled)
+            recs = paper_campaign(fx, robot, profiles=profiles, seed=seed)
+            d = diagnose(recs, fit(recs, robot).calibration, robot)
+            took.append(time.perf_counter() - t0)
+            ok = sorted(d.effects) == want and d.unexplained == unexplained
+            right += ok
+            if not ok:
+                print(f"<!-- {label}, seed {seed}: named {d.effects}, unexplained "
+                      f"{d.unexplained} -->", flush=True)
+            values.append([v for s in d.steps for p in s.parameters.values()
+                           for v in (p if isinstance(p, list | tuple) else [p])])
+            ratio.append(d.rmse_final / NOISE_RPM)
+        got = "-"
+        if want and all(len(v) == len(values[0]) for v in values):
+            arr = list(zip(*values, strict=True))
+            got = "; ".join(f"{_fmt(min(a))} .. {_fmt(max(a))}" for a in arr)
+        print(f"| {label} | {right}/{seeds} | {got} | {max(ratio):.2f} | "
+              f"{sum(took) / len(took):.0f} |", flush=True)
 
 
 if __name__ == "__main__":
