@@ -208,7 +208,7 @@ STORY_EFFECTS = Effects(top_speed_rpm=115.0)
 
 def diagnose_story(out_dir: str | Path, echo: Callable[[str], None] = print, *,
                    hidden: Effects = STORY_EFFECTS, rate_hz: float = 100.0, seed: int = 0,
-                   noise_rpm: float = 1.0) -> dict[str, Path]:
+                   noise_rpm: float = 1.0, profiles=None) -> dict[str, Path]:
     """The demo's end: a simulated robot with an effect the model lacks, found and added.
 
     1. A campaign like the paper's (:func:`~mecanum_hil.identify.campaign.paper_campaign`)
@@ -218,8 +218,9 @@ def diagnose_story(out_dir: str | Path, echo: Callable[[str], None] = print, *,
     2. A, B, C fitted on it as a user would (``fit``): the gap that remains.
     3. ``diagnose``: where the model fails, the effect named, its parameters, the gap shrunk.
 
-    Writes the campaign's recordings, the user's and the extended calibration, and
-    ``report.md`` with plots into ``out_dir``; returns the files by name.
+    ``profiles`` are the campaign's (default: the paper-like campaign). Writes the campaign's
+    recordings, the user's and the extended calibration, and ``report.md`` with plots into
+    ``out_dir``; returns the files by name.
     """
     from ..io.recording import write_recording
     from ..link.effects_file import save_sim_effects, sim_effects_for
@@ -236,7 +237,8 @@ def diagnose_story(out_dir: str | Path, echo: Callable[[str], None] = print, *,
         sim_effects_for(hidden, wheel_rpm_std=noise_rpm, seed=seed),
         out / "robot-effects.toml", "The simulated robot's hidden truth (sim-robot --effects); "
         "fit and diagnose never read it.")
-    recs = paper_campaign(files["effects"], robot, telemetry_rate_hz=rate_hz, seed=seed)
+    recs = paper_campaign(files["effects"], robot, telemetry_rate_hz=rate_hz, seed=seed,
+                          profiles=profiles)
     names = [str(r.metadata["profile"]) for r in recs]
     for rec, name in zip(recs, names, strict=True):
         files[f"campaign/{name}"] = write_recording(rec, out / "campaign" / f"{name}.csv")

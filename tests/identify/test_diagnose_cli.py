@@ -87,7 +87,10 @@ def test_demo_story_finds_the_hidden_ceiling(tmp_path):
     from mecanum_hil.identify.diagnose_report import STORY_EFFECTS, diagnose_story
 
     lines: list[str] = []
-    files = diagnose_story(tmp_path, echo=lines.append)
+    from mecanum_hil.identify.campaign import SHORT_CAMPAIGN, campaign_profiles
+
+    files = diagnose_story(tmp_path, echo=lines.append,
+                           profiles=campaign_profiles(**SHORT_CAMPAIGN))
     cal = load_calibration(files["diagnosed"])
     assert cal.effects.active().keys() == {"saturation"}
     assert cal.effects.top_speed_rpm == pytest.approx(STORY_EFFECTS.top_speed_rpm, abs=1.5)
