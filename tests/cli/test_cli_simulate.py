@@ -74,7 +74,7 @@ def test_demo_runs_the_whole_loop(tmp_path):
     """`demo --quick`: model, record over a pty, video, fit, diagnose, shadow, one report.
 
     Each stage's own conclusions are tested in its own area; here the loop's: the hidden
-    115 rpm ceiling, recorded through the serial path, is named by diagnose from the two
+    115 rpm ceiling, recorded through the serial path, is named first by diagnose from the two
     recordings of the quick demo.
     """
     r = cli("demo", "--quick", "--out", tmp_path / "demo")
@@ -92,8 +92,13 @@ def test_demo_runs_the_whole_loop(tmp_path):
     assert (out / "fit" / "calibration.toml").exists() and (out / "fit" / "report.png").exists()
     assert (out / "diagnose" / "report.md").exists()
     diagnosed = load_calibration(out / "diagnose" / "calibration.toml")
-    assert diagnosed.effects.active().keys() == {"saturation"}
+    assert diagnosed.info["effects_added"][0] == "saturation"
     assert diagnosed.effects.top_speed_rpm == pytest.approx(115.0, abs=1.5)
+    # The link's own latency is real too: a command acts from the controller's next 1 ms tick
+    # after the controller reads it from the pty, later still on a loaded machine. With the
+    # noise the quick demo has, diagnose may name it (a CI run found 1.1 ms); nothing else.
+    assert set(diagnosed.effects.active()) <= {"saturation", "dead_time"}
+    assert diagnosed.effects.dead_time_s < 0.005
     # shadow mode watched the faulty run and stopped it
     shadow = read_recording(out / "shadow" / "paper-step-60-fault.csv")
     assert shadow.metadata["end_reason"] == "observer_stop"
