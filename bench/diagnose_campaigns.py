@@ -17,7 +17,7 @@ import argparse
 import math
 import time
 
-from mecanum_hil.identify.campaign import campaign_profiles, paper_campaign
+from mecanum_hil.identify.campaign import SHORT_CAMPAIGN, campaign_profiles, paper_campaign
 from mecanum_hil.identify.diagnose import diagnose
 from mecanum_hil.identify.fit import fit
 from mecanum_hil.link.effects_file import sim_effects_for
@@ -53,8 +53,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=0)
     args = ap.parse_args()
     robot = RobotProfile()
-    profiles = campaign_profiles(steps_rpm=(4.0, 8.0, 30.0, 100.0, 120.0), step_hold_s=1.5,
-                                 reverse=False) if args.quick else campaign_profiles()
+    profiles = campaign_profiles(**SHORT_CAMPAIGN) if args.quick else campaign_profiles()
     if args.seeds > 0:
         return reliability(robot, profiles, args.seeds)
     print("| hidden | named | recovered | wheel RMSE [rpm] | unexplained | time [s] |")

@@ -3,6 +3,7 @@ in simulated time, with a hidden truth from an effects file."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -20,7 +21,7 @@ def _pose_noise(text: str):
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
         values = ()
-    if len(values) != 3 or not all(v >= 0 for v in values):
+    if len(values) != 3 or not all(math.isfinite(v) and v >= 0 for v in values):
         raise ConfigError(f"--pose-noise must be X_M,Y_M,PHI_DEG (three numbers >= 0) or none, "
                           f"got {text!r}")
     return values
@@ -30,7 +31,8 @@ def command(
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the recordings.")],
     effects: Annotated[Path | None, typer.Option(
         "--effects", help="The simulated controller's effects file: the hidden truth "
-        "([effects.*], [unmodelled.*], [noise], [[faults]]).", metavar="FX.toml")] = None,
+        "(tables effects.*, unmodelled.*, noise, faults; docs/link.md).",
+        metavar="FX.toml")] = None,
     calibration: CalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",
     profile: Annotated[list[str] | None, typer.Option(
@@ -39,12 +41,14 @@ def command(
     short: Annotated[bool, typer.Option(
         "--short", help="The shorter campaign (steps of 4, 8, 30, 100, 120 rpm held 1.5 s, "
         "the ramp, turn, strafe, diagonal).")] = False,
-    command_rate_hz: Annotated[float, typer.Option("--command-rate", help="[Hz]")] = 50.0,
-    telemetry_rate_hz: Annotated[float, typer.Option("--telemetry-rate", help="[Hz]")] = 100.0,
+    command_rate_hz: Annotated[float, typer.Option(
+        "--command-rate", help="Command rate in Hz (at least 5: the watchdog).")] = 50.0,
+    telemetry_rate_hz: Annotated[float, typer.Option(
+        "--telemetry-rate", help="Telemetry rate in Hz.")] = 100.0,
     pose_noise: Annotated[str, typer.Option(
-        "--pose-noise", help="The camera's noise X [m], Y [m], heading [deg], or none "
+        "--pose-noise", help="The camera's noise: X in m, Y in m, heading in deg, or none "
         "(no pose).")] = "0.003,0.003,0.3",
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the pose noise.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the pose noise.")] = 0,
     json_out: JsonOpt = False,
 ) -> None:
     """Record a campaign like the paper's from the simulated controller, in simulated time.
@@ -64,19 +68,34 @@ def command(
 
     if profile and short:
         raise ConfigError("give --profile or --short, not both")
+    if not (math.isfinite(telemetry_rate_hz) and telemetry_rate_hz > 0):
+        raise ConfigError(f"--telemetry-rate must be a positive number of Hz, got "
+                          f"{telemetry_rate_hz:g}")
+    if out.exists() and any(out.glob("*.csv")):
+        raise ConfigError(f"{out} already holds recordings: fit and diagnose on {out}/*.csv "
+                          "would mix two campaigns; choose a new folder")
     noise = _pose_noise(pose_noise)
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
     fx = load_sim_effects(effects) if effects is not None else None
     profiles = [resolve_profile(p) for p in profile] if profile else \
         campaign_profiles(**SHORT_CAMPAIGN) if short else campaign_profiles()
+    names = [p.name for p in profiles]
+    for name in names:
+        if names.count(name) > 1:
+            raise ConfigError(f"two profiles are named {name!r}: each is written to "
+                              "<name>.csv")
+        if not name or name != Path(name).name or name.startswith("."):
+            raise ConfigError(f"profile name {name!r} cannot be a file name")
     recs = paper_campaign(fx, rob, calibration=cal, command_rate_hz=command_rate_hz,
                           telemetry_rate_hz=telemetry_rate_hz, pose_noise=noise, seed=seed,
                           profiles=profiles, retime=False)
     files = []
     for rec in recs:
         name = str(rec.metadata["profile"])
-        files.append(write_recording(rec, out / f"{name}.csv"))
+        # as record writes them: the truth stays in the effects file, not in the recordings
+        meta = {k: v for k, v in rec.metadata.items() if not k.startswith("true_")}
+        files.append(write_recording(rec.with_values(metadata=meta), out / f"{name}.csv"))
         if not json_out:
             tlm = sum(1 for e in rec.extra["event"] if e == "tlm")
             typer.echo(f"{name:18s} {rec.t_s[-1]:6.1f} s, {tlm:5d} telemetry samples -> "

@@ -136,7 +136,9 @@ def record_lockstep(
     LimitError
         A command beyond ``robot``'s limits (before anything is simulated).
     """
-    if not (internal_rate_hz > 0 and telemetry_rate_hz >= 0 and link_delay_s >= 0):
+    if not (math.isfinite(internal_rate_hz) and internal_rate_hz > 0
+            and math.isfinite(telemetry_rate_hz) and telemetry_rate_hz >= 0
+            and math.isfinite(link_delay_s) and link_delay_s >= 0):
         raise ConfigError(f"rates must be positive and the link delay >= 0, got "
                           f"{internal_rate_hz!r} Hz, {telemetry_rate_hz!r} Hz, "
                           f"{link_delay_s!r} s")
@@ -194,7 +196,7 @@ def record_lockstep(
         ctrl.send_telemetry(tick)
         tlm = to_host.delivered.popleft()
         h = c_tlm - lead + 2 * d
-        if k > 0:  # the host records telemetry from its first command on
+        if k > 0 or h > 0.0:  # the host records telemetry received after its first command
             pose = nan3
             if pose_sd is not None:
                 pose = model.pose(tick) + rng.normal(0.0, 1.0, 3) * pose_sd

@@ -41,6 +41,10 @@ def test_campaign_fit_diagnose_from_the_command_line(tmp_path):
     assert [e["effect"] for e in doc["effects"]] == ["deadband"]
     assert doc["effects"][0]["parameters"]["deadband_rpm"] == pytest.approx(6.0, abs=0.3)
     assert doc["rmse_final"] <= 0.5 * doc["rmse_initial"] and not doc["unexplained"]
+    # the truth stays in the effects file; a second campaign into the same folder is refused
+    assert not any(k.startswith("true_") for k in rec.metadata)
+    r = cli("campaign", "--short", "--out", camp)
+    assert r.returncode == 1 and "already holds recordings" in r.stderr
 
 
 @pytest.mark.parametrize("args, message", [
@@ -48,6 +52,9 @@ def test_campaign_fit_diagnose_from_the_command_line(tmp_path):
     (("--pose-noise", "1,2"), "--pose-noise"),
     (("--profile", "paper-turn", "--short"), "not both"),
     (("--profile", "no-such-profile"), "unknown profile"),
+    (("--profile", "paper-turn", "--profile", "paper-turn"), "two profiles are named"),
+    (("--telemetry-rate", "0"), "--telemetry-rate"),
+    (("--pose-noise", "inf,0,0"), "--pose-noise"),
 ])
 def test_bad_input_is_one_line(tmp_path, args, message):
     r = cli("campaign", "--out", tmp_path / "c", *args)

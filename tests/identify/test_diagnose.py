@@ -9,9 +9,9 @@ a turn, a strafe, a diagonal): commands at 50 Hz, telemetry at 100 Hz with 0.25 
 noise, a camera's pose with 3 mm / 0.3 deg of noise; steps held 1.5 s to keep it short.
 
 The link adds a latency of its own: a command reaches the controller one link delay (0.15 ms,
-a pseudo-terminal's) after it is sent and acts from the controller's next 1 ms tick, and its
-telemetry reaches the host one link delay after it is measured: the host sees about 0.8 ms
-more dead time than the robot has.
+a pseudo-terminal's) after it is sent and acts from the controller's next 1 ms tick (commands
+at 50 Hz arrive just after a tick: a whole tick later), and its telemetry reaches the host one
+link delay after it is measured: the host sees about 1 ms more dead time than the robot has.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import math
 import numpy as np
 import pytest
 
-from mecanum_hil.identify.campaign import campaign_profiles, paper_campaign
+from mecanum_hil.identify.campaign import SHORT_CAMPAIGN, campaign_profiles, paper_campaign
 from mecanum_hil.identify.diagnose import (
     Diagnosis,
     diagnose,
@@ -36,11 +36,10 @@ from mecanum_hil.model import Calibration, Effects, RobotProfile
 from mecanum_hil.prediction import predict
 
 ROBOT = RobotProfile()
-PROFILES = campaign_profiles(steps_rpm=(4.0, 8.0, 30.0, 100.0, 120.0), step_hold_s=1.5,
-                             reverse=False)
+PROFILES = campaign_profiles(**SHORT_CAMPAIGN)
 NOISE_RPM = 0.25
 #: The latency the link adds to the robot's own dead time as the host sees it [s].
-LINK_LATENCY_S = 0.0008
+LINK_LATENCY_S = 0.001
 
 
 def _campaign(tmp_path, effects: Effects, *, unmodelled=None, seed: int = 1):
@@ -57,7 +56,8 @@ def _diagnose(recs) -> Diagnosis:
 
 # hidden effect -> (its parameters, what diagnose should find, absolute tolerance of each)
 HIDDEN = {
-    "dead_time": (Effects(dead_time_s=0.045), {"dead_time_s": (0.045 + LINK_LATENCY_S, 0.003)}),
+    "dead_time": (Effects(dead_time_s=0.045),
+                  {"dead_time_s": (0.045 + LINK_LATENCY_S, 0.003)}),
     "saturation": (Effects(top_speed_rpm=110.0), {"top_speed_rpm": (110.0, 1.0)}),
     "rate_limit": (Effects(rate_limit_rpm_per_s=150.0),
                    {"rate_limit_rpm_per_s": (150.0, 5.0)}),

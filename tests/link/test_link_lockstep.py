@@ -47,13 +47,20 @@ def _tick_reference(t, cmd, effects: Effects, lead_s=0.0, rate=1000.0):
     return simulate(cmds, ticks / rate, Calibration(effects=effects), ROBOT).wheel_rpm[0]
 
 
-def test_lockstep_equals_the_controllers_robot_tick_for_tick():
+@pytest.mark.parametrize("delay_s", [0.0, 0.0026])
+def test_lockstep_equals_the_controllers_robot_tick_for_tick(delay_s):
     t, cmd = _profile()
     fx = sim_effects_for(HIDDEN)
-    rec = record_lockstep(t, cmd, ROBOT, sim_effects=fx, link_delay_s=0.0)
+    rec = record_lockstep(t, cmd, ROBOT, sim_effects=fx, link_delay_s=delay_s,
+                          telemetry_rate_hz=1000.0)
     ev = np.asarray(rec.extra["event"])
     tlm = ev == "tlm"
-    ref = _tick_reference(t, cmd, HIDDEN)
+    # the controller's clock runs one link delay ahead of the host's: a command arrives two
+    # link delays after the host's clock says it was sent; telemetry is kept from the first
+    # sample received after the first command (the first tick after the first command)
+    ref = _tick_reference(t, cmd, HIDDEN, lead_s=2 * delay_s)
+    ctrl_t = rec.extra_numeric("controller_time_s")[tlm]
+    assert ctrl_t[0] == pytest.approx(0.0 if delay_s == 0 else 0.001)
     ticks = np.round(rec.extra_numeric("controller_time_s")[tlm] * 1000).astype(int)
     # what the wire carries (float32) equals the robot simulated on its ticks
     np.testing.assert_allclose(rec.wheel_rpm[tlm], ref[ticks], atol=1e-4)
@@ -112,6 +119,23 @@ def test_lockstep_agrees_with_sim_robot_over_a_pty(tmp_path):
         steady = tlm & (rec.t_s > 1.0) & (rec.t_s < 1.15)
         rec.metadata["steady"] = np.median(rec.wheel_rpm[steady], axis=0)
     np.testing.assert_allclose(real.metadata["steady"], lock.metadata["steady"], atol=0.05)
+
+
+def test_unmodelled_effects_do_not_depend_on_the_telemetry_rate():
+    # they advance on every controller tick, whatever the rate the speeds are reported at
+    t, cmd = _profile()
+    fx = SimEffects(unmodelled={"resonance": {"natural_hz": 3.0, "damping": 0.15},
+                                "roller_ripple": {"amplitude": 0.05, "per_turn": 8.0}}, seed=3)
+    by_tick = []
+    for rate in (50.0, 1000.0):
+        rec = record_lockstep(t, cmd, ROBOT, sim_effects=fx, telemetry_rate_hz=rate)
+        tlm = np.asarray(rec.extra["event"]) == "tlm"
+        ticks = np.round(rec.extra_numeric("controller_time_s")[tlm] * 1000).astype(int)
+        by_tick.append(dict(zip(ticks.tolist(), rec.wheel_rpm[tlm], strict=True)))
+    common = sorted(set(by_tick[0]) & set(by_tick[1]))
+    assert len(common) > 50
+    np.testing.assert_array_equal([by_tick[0][k] for k in common],
+                                  [by_tick[1][k] for k in common])
 
 
 def test_unmodelled_effects_from_the_effects_file(tmp_path):
