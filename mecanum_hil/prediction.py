@@ -33,6 +33,14 @@ def trajectory_to_recording(traj: Trajectory, metadata: dict[str, Any] | None = 
                      traj.pose[0].copy(), dict(extra or {}), dict(metadata or {}))
 
 
+def first_moving_row(rec: Recording) -> int:
+    """Index of the first row whose command moves the robot (``n`` or ``omega`` not zero);
+    ``len(rec)`` when none does."""
+    c = np.asarray(rec.commands, dtype=float)
+    moving = (np.abs(c[:, 0]) > 1e-9) | (np.abs(c[:, 1]) > 1e-9)  # NaN: not moving
+    return int(np.argmax(moving)) if moving.any() else len(rec)
+
+
 def start_pose(rec: Recording) -> tuple[float, float, float]:
     """Where the model starts a recording.
 
@@ -49,13 +57,9 @@ def start_pose(rec: Recording) -> tuple[float, float, float]:
     """
     pose = np.asarray(rec.pose, dtype=float)
     rows = np.flatnonzero(np.isfinite(pose).all(axis=1))
-    if rows.size:
-        moving = (np.abs(np.nan_to_num(rec.commands[:, 0])) > 1e-9) | \
-            (np.abs(np.nan_to_num(rec.commands[:, 1])) > 1e-9)
-        first_move = int(np.argmax(moving)) if moving.any() else len(rec)
-        # the row at which the first moving command is sent is still at rest
-        if rows[0] <= first_move:
-            return tuple(float(v) for v in pose[rows[0]])
+    # the row at which the first moving command is sent is still at rest
+    if rows.size and rows[0] <= first_moving_row(rec):
+        return tuple(float(v) for v in pose[rows[0]])
     return tuple(DEFAULT_POSE)
 
 

@@ -49,7 +49,7 @@ from ..model.calibration import EFFECTS, Calibration
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
 from ..model.simulate import simulate_batch
-from ..prediction import require_commands, start_pose
+from ..prediction import first_moving_row, require_commands, start_pose
 from .fit import (
     DEFAULT_BOUNDS,
     FitResult,
@@ -128,10 +128,8 @@ def initial_pose_at_rest(rec: Recording) -> Recording:
     pose = rec.pose
     if len(rec) < 3:
         return rec
-    moving = (np.abs(rec.commands[:, 0]) > 1e-9) | (np.abs(rec.commands[:, 1]) > 1e-9)
     # the sample at which the first moving command takes effect is still at rest
-    k = int(np.argmax(moving)) + 1 if moving.any() else len(rec)
-    rest = pose[:k]
+    rest = pose[:first_moving_row(rec) + 1]
     rest = rest[np.isfinite(rest).all(axis=1)]
     if len(rest) < 2:
         return rec

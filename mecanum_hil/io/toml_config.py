@@ -133,3 +133,20 @@ def toml_value(value: Any) -> str:
     if isinstance(value, list | tuple):
         return "[" + ", ".join(toml_value(v) for v in value) + "]"
     raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def write_toml(path: str | Path, text: str, what: str) -> Path:
+    """Write ``text`` to ``path`` (its folder created); ``what`` names it in the error.
+
+    Raises
+    ------
+    ConfigError
+        When the file cannot be written.
+    """
+    p = Path(path)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(text)
+    except OSError as err:
+        raise ConfigError(f"{p}: cannot write {what}: {err.strerror or err}") from err
+    return p

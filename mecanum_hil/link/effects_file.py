@@ -36,8 +36,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigError
-from ..io.toml_config import TableReader, load_toml, toml_value
+from ..io.toml_config import TableReader, load_toml, toml_value, write_toml
 from ..model.calibration import EFFECTS, Effects, read_effects_table
 
 
@@ -130,9 +129,12 @@ def apply_effect_params(effects: Effects, named: dict[str, dict[str, Any]]) -> E
     return replace(effects, **values)
 
 
+def _parameters_by_name(effects: Effects, names) -> dict[str, dict[str, Any]]:
+    return {name: {p: getattr(effects, p) for p in EFFECTS[name].parameters} for name in names}
+
+
 def _named_effects(table: Any, source: str, prefix: str) -> dict[str, dict[str, Any]]:
-    parsed = read_effects_table(table, f"{source} [{prefix}]")
-    return {name: {p: getattr(parsed, p) for p in EFFECTS[name].parameters} for name in table}
+    return _parameters_by_name(read_effects_table(table, f"{source} [{prefix}]"), table)
 
 
 def load_sim_effects(path: str | Path) -> SimEffects:
@@ -219,13 +221,7 @@ def save_sim_effects(sim: SimEffects, path: str | Path, header: str = "") -> Pat
     ConfigError
         When the file cannot be written.
     """
-    p = Path(path)
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(sim_effects_to_toml(sim, header))
-    except OSError as err:
-        raise ConfigError(f"{p}: cannot write the effects file: {err}") from err
-    return p
+    return write_toml(path, sim_effects_to_toml(sim, header), "the effects file")
 
 
 def sim_effects_for(effects: Effects, *, wheel_rpm_std: float = 0.0, seed: int = 0,
@@ -248,7 +244,6 @@ def sim_effects_for(effects: Effects, *, wheel_rpm_std: float = 0.0, seed: int =
     -------
     SimEffects
     """
-    named = {name: {p: getattr(effects, p) for p in EFFECTS[name].parameters}
-             for name in effects.active()}
+    named = _parameters_by_name(effects, effects.active())
     return SimEffects(named, float(wheel_rpm_std),
                       int(seed), (), "<in memory>", dict(unmodelled or {}))

@@ -39,7 +39,7 @@ from ..model.calibration import Calibration
 from ..model.robot import RobotProfile
 from .effects_file import SimEffects
 from .protocol import PROTOCOL_VERSION, Hello, Message, Stop, StreamDecoder, encode
-from .session import EXTRA_COLUMNS, check_command_stream
+from .session import COLUMN_NOTES, EXTRA_COLUMNS, check_command_stream, next_row_time
 from .simulated import ControllerModel, SimulatedController
 from .transport import Transport
 
@@ -212,11 +212,7 @@ def record_lockstep(
     last_t = -math.inf
     force = np.full(3, np.nan)
     for i, (h, c, w, p, ex) in enumerate(rows):
-        # as record writes them: six decimals, strictly increasing
-        tt = round(max(h, last_t + 1e-6), 6)
-        if tt <= last_t:
-            tt = round(last_t + 1e-6, 6)
-        last_t = times[i] = tt
+        last_t = times[i] = next_row_time(h, last_t)  # as record writes them
         if c is not None:
             force = c
         cmds[i], wheels[i], poses[i] = force, w, p
@@ -232,9 +228,7 @@ def record_lockstep(
         "telemetry_rate_hz": ctrl.telemetry_rate_hz,
         "sample_rate_hz": ctrl.telemetry_rate_hz,
         "link_delay_s": d,
-        "columns": {"t_s": "host time since the first command",
-                    "controller_time_s": "controller clock of a telemetry row",
-                    "event": "cmd: command sent, tlm: telemetry received, stop: STOP sent"},
+        "columns": dict(COLUMN_NOTES),
         "simulated_controller": {"effects": fx.source,
                                  "pose_noise": None if pose_sd is None else pose_sd.tolist()},
         "end_reason": "completed",

@@ -59,6 +59,17 @@ EXIT_CODES = {"completed": 0, "error": 1, "observer_stop": 3, "link_lost": 4,
 
 #: Extra columns of a recording made by a session, after the pinned ones.
 EXTRA_COLUMNS = ("event", "seq", "controller_time_s", "status")
+#: What the sidecar says of the columns a recording session adds or redefines.
+COLUMN_NOTES = {"t_s": "host time since the first command",
+                "controller_time_s": "controller clock of a telemetry row",
+                "event": "cmd: command sent, tlm: telemetry received, stop: STOP sent"}
+
+
+def next_row_time(t_s: float, last_t_s: float) -> float:
+    """The time written for a row at ``t_s`` after one at ``last_t_s`` [s]: six decimals on
+    disk, so rows closer than 1 us are pushed apart to keep the times increasing there."""
+    t = round(max(t_s, last_t_s + 1e-6), 6)
+    return t if t > last_t_s else round(last_t_s + 1e-6, 6)
 
 
 @runtime_checkable
@@ -276,12 +287,8 @@ class _Session:
 
     # -- rows --------------------------------------------------------------------------------
     def _row_time(self, now: float) -> float:
-        # six decimals on disk: rows closer than 1 us would not increase there
-        t = round(max(now - self.t0, self.last_t + 1e-6), 6)
-        if t <= self.last_t:
-            t = round(self.last_t + 1e-6, 6)
-        self.last_t = t
-        return t
+        self.last_t = next_row_time(now - self.t0, self.last_t)
+        return self.last_t
 
     def _controller_time_s(self, time_us: int) -> float:
         if self._ctrl_last is not None and time_us < self._ctrl_last - (1 << 31):
@@ -538,9 +545,7 @@ def run_record_session(
         "protocol_version": PROTOCOL_VERSION,
         "robot_profile": robot.source,
         "started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-        "columns": {"t_s": "host time since the first command",
-                    "controller_time_s": "controller clock of a telemetry row",
-                    "event": "cmd: command sent, tlm: telemetry received, stop: STOP sent"},
+        "columns": dict(COLUMN_NOTES),
         "notes": "",
         **(metadata or {}),
     }

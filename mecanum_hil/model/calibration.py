@@ -46,7 +46,7 @@ from typing import Any
 
 from ..errors import ConfigError
 from ..io.resources import DEFAULT_CALIBRATION, resolve
-from ..io.toml_config import TableReader, load_toml, toml_value
+from ..io.toml_config import TableReader, load_toml, toml_value, write_toml
 
 
 @dataclass(frozen=True)
@@ -277,11 +277,5 @@ def calibration_to_toml(cal: Calibration, header: str = "") -> str:
 
 def save_calibration(cal: Calibration, path: str | Path, header: str = "") -> Path:
     """Write ``cal`` as a calibration file; the result loads back equal."""
-    p = Path(path)
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(calibration_to_toml(cal, header))
-    except OSError as err:
-        raise ConfigError(f"{p}: cannot write calibration: {err.strerror or err}") from err
-    return p
+    return write_toml(path, calibration_to_toml(cal, header), "calibration")
 
