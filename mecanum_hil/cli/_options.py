@@ -19,3 +19,21 @@ RobotOpt = Annotated[
 ]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Recording (CSV) to write.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout.")]
+
+#: Options whose value may be left out (``--foxglove`` alone serves on localhost:8765); typer
+#: has no such options, so :func:`fill_optional_values` gives them an empty value first.
+OPTIONAL_VALUE = ("--foxglove",)
+
+FoxgloveOpt = Annotated[str | None, typer.Option(
+    "--foxglove", metavar="[HOST:PORT]", help="Serve a live view for Foxglove (WebSocket) at "
+    "HOST:PORT; alone: 127.0.0.1:8765, this machine only (docs/ros2.md).")]
+
+
+def fill_optional_values(args: list[str]) -> list[str]:
+    """``--foxglove`` followed by nothing or by another option gets the empty value."""
+    out: list[str] = []
+    for i, arg in enumerate(args):
+        out.append(arg)
+        if arg in OPTIONAL_VALUE and (i + 1 == len(args) or args[i + 1].startswith("-")):
+            out.append("")
+    return out

@@ -12,7 +12,7 @@ from typing import Annotated
 
 import typer
 
-from ._options import CalibrationOpt, JsonOpt, RobotOpt
+from ._options import CalibrationOpt, FoxgloveOpt, JsonOpt, RobotOpt
 
 #: Exit code when the monitor raised at least one alarm.
 EXIT_ALARM = 3
@@ -24,15 +24,6 @@ def build_config(noise_rpm: float | None, drift: float, threshold: float, warmup
 
     return ShadowConfig(drift_k=drift, threshold_h=threshold, warmup_s=warmup_s,
                         noise_rpm=noise_rpm)
-
-
-def alarm_line(event: dict) -> str:
-    """One terminal line for an alarm or recovery event."""
-    if event["event"] == "alarm":
-        return (f"ALARM t={event['t_s']:.3f}s {event['channel']}: residual "
-                f"{event['residual']:+.3g} {event['unit']} (onset {event['onset_t_s']:.3f}s, "
-                f"noise {event['noise']:.3g} {event['unit']})")
-    return f"recovered t={event['t_s']:.3f}s {event['channel']}"
 
 
 NoiseOpt = Annotated[float | None, typer.Option(
@@ -82,6 +73,7 @@ def command(
     on_divergence: Annotated[str, typer.Option(
         "--on-divergence", help="Live: 'none' (only report) or 'stop' (send STOP on the bus at "
         "the first alarm).")] = "none",
+    foxglove: FoxgloveOpt = None,
 ) -> None:
     """Run the model beside the robot and flag persistent divergence (exit 3 on alarms)."""
     from ..errors import ConfigError
@@ -91,6 +83,9 @@ def command(
     if on_divergence not in ("none", "stop"):
         raise ConfigError(f"--on-divergence must be 'none' or 'stop', got '{on_divergence}'")
     config = build_config(noise_rpm, drift, threshold, warmup)
+    if replay_path is not None and foxglove is not None:
+        raise ConfigError("--foxglove serves a live run (--transport can); for a recording, "
+                          "export it: mecanum-hil export REC.csv --out RUN.mcap")
     if replay_path is not None:
         n_alarms = _replay(replay_path, calibration, robot, config, json_out,
                            None if no_events else events, no_events, plot)
@@ -103,7 +98,7 @@ def command(
         n_alarms = listen_can(interface, channel, bitrate, calibration, robot, config,
                               out=out, events=None if no_events else events,
                               duration_s=duration, stop_on_divergence=on_divergence == "stop",
-                              echo=typer.echo)
+                              echo=typer.echo, foxglove=foxglove)
     if n_alarms:
         raise typer.Exit(EXIT_ALARM)
 
@@ -115,7 +110,7 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile
     from ..monitor import replay
-    from ..monitor.eventlog import EventLog, event_log_path
+    from ..monitor.eventlog import EventLog, alarm_line, event_log_path
 
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)

@@ -18,6 +18,7 @@ import json
 import math
 import os
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -25,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import RecordingError
+from ..errors import MecanumHILWarning, RecordingError
 
 COLUMNS = (
     "t_s", "n_cmd_rpm", "omega_cmd_dps", "theta_cmd_deg",
@@ -34,6 +35,10 @@ COLUMNS = (
 COMMAND_COLUMNS = COLUMNS[1:4]
 WHEEL_COLUMNS = COLUMNS[4:8]
 POSE_COLUMNS = COLUMNS[8:11]
+
+
+class TimeRepairWarning(MecanumHILWarning):
+    """Logged time was repaired on reading (repeated stamps, jitter, a wrapping counter)."""
 
 
 @dataclass(frozen=True)
@@ -156,6 +161,31 @@ def _drop_cut_last_line(text: str) -> tuple[str, str]:
     return text, ""
 
 
+def _numeric_body(text: str) -> np.ndarray | None:
+    """The rows of a recording without extra columns, parsed by numpy; None to take the slow path.
+
+    Only well-formed text is read here (what ``write_recording`` writes: no blank lines, no
+    quotes, no ``nan``/``inf``, a time in every row, the header's field count); anything else
+    returns None and goes through the row-by-row reader, whose messages name line and column.
+    """
+    body = text.partition("\n")[2]
+    if not body or "\n\n" in body or '"' in body or "\r" in body:
+        return None
+    if any(c in body for c in "nNiI"):  # nan, inf, infinity (or any other word)
+        return None
+    if body.startswith(",") or "\n," in body:
+        return None  # a missing time
+    filled = body.replace(",,", ",nan,").replace(",,", ",nan,").replace(",\n", ",nan\n")
+    if filled.endswith(","):
+        filled += "nan"
+    try:
+        arr = np.loadtxt(io.StringIO(filled), delimiter=",", ndmin=2, dtype=float,
+                         comments=None)
+    except ValueError:
+        return None
+    return arr if arr.shape[1] == len(COLUMNS) else None
+
+
 def read_recording(path: str | Path) -> Recording:
     """Read a recording (CSV and, when present, its JSON sidecar).
 
@@ -163,10 +193,18 @@ def read_recording(path: str | Path) -> Recording:
     ------
     RecordingError
         For a missing file, a header that differs from the pinned columns, a row with the wrong
-        number of fields, a non-numeric value, a missing time or time that does not increase;
+        number of fields, a non-numeric value, a missing time, time that runs back by more
+        than its resolution or a gap over the sidecar's ``time_repair.max_gap_s``;
         the message names the file, line and column. A last line cut off mid-row (no final
         newline: a crash while writing) is not an error: it is dropped, and the metadata's
         ``truncated_last_line`` holds it.
+
+    Warns
+    -----
+    TimeRepairWarning
+        Time that is not strictly increasing the way loggers write it (repeated stamps, jitter
+        within the resolution, a wrapping counter) is repaired in memory (the file is not
+        changed), said in one line and kept in the metadata's ``time_repair``.
     """
     p = Path(path)
     try:
@@ -196,8 +234,13 @@ def read_recording(path: str | Path) -> Recording:
         raise RecordingError(f"{p}, line 1: duplicate column names")
     values: list[list[float]] = []
     extra: list[list[str]] = [[] for _ in extra_names]
-    last_t = -math.inf
+    lines: list[int] = []
     line = 1
+    fast = None if extra_names else _numeric_body(text)
+    if fast is not None:
+        values = fast  # type: ignore[assignment]
+        lines = range(2, len(fast) + 2)  # type: ignore[assignment]
+        rows = iter(())
     try:
         for line, row in enumerate(rows, start=2):
             if not row or all(not f.strip() for f in row):
@@ -207,15 +250,10 @@ def read_recording(path: str | Path) -> Recording:
                     f"{p}, line {line}: {len(row)} fields, header has {len(header)}")
             nums = [_parse_float(row[i], f"{p}, line {line}, column '{COLUMNS[i]}'")
                     for i in range(len(COLUMNS))]
-            t = nums[0]
-            if math.isnan(t):
+            if math.isnan(nums[0]):
                 raise RecordingError(f"{p}, line {line}, column 't_s': time is missing")
-            if t <= last_t:
-                raise RecordingError(
-                    f"{p}, line {line}, column 't_s': time {t:g} does not increase "
-                    f"(previous {last_t:g})")
-            last_t = t
             values.append(nums)
+            lines.append(line)
             for j in range(len(extra_names)):
                 extra[j].append(row[len(COLUMNS) + j])
     except csv.Error as err:
@@ -232,8 +270,41 @@ def read_recording(path: str | Path) -> Recording:
             raise RecordingError(f"{side}: the sidecar must hold a JSON object")
     if truncated:
         metadata = {**metadata, "truncated_last_line": truncated}
-    return Recording(arr[:, 0].copy(), arr[:, 1:4].copy(), arr[:, 4:8].copy(),
+    t, repair = _repaired_time(arr[:, 0], metadata,
+                               lambda i: f"{p}, line {lines[i]}, column 't_s'", str(p), text)
+    if repair is not None:
+        metadata = {**metadata, "time_repair": repair}
+    return Recording(t.copy(), arr[:, 1:4].copy(), arr[:, 4:8].copy(),
                      arr[:, 8:11].copy(), dict(zip(extra_names, extra, strict=True)), metadata)
+
+
+def _repaired_time(t: np.ndarray, metadata: Mapping[str, Any], row_name, source: str,
+                   text: str):
+    """``(t, None)`` when ``t`` is strictly increasing, else ``(repaired t, summary)``.
+
+    Time as loggers write it (repeated stamps, jitter within the resolution, a wrapping counter)
+    is repaired by :func:`mecanum_hil.io.time_repair.repair_time` and said in one warning line; time
+    that runs back by more than the resolution is an error naming the line. The gap limit is the
+    one the sidecar states (``time_repair.max_gap_s``, written by ``import``), if any.
+    """
+    limit = None
+    prior = metadata.get("time_repair")
+    if isinstance(prior, Mapping) and isinstance(prior.get("max_gap_s"), (int, float)):
+        limit = float(prior["max_gap_s"])
+    increasing = t.size < 2 or bool(np.all(np.diff(t) > 0))
+    if increasing and limit is None:
+        return t, None
+    from .time_repair import decimal_resolution, repair_time
+
+    # the resolution is what the file writes (6 decimals from write_recording: 1 us), not
+    # what a clean grid of stamps happens to be a multiple of
+    sample = text.partition("\n")[2][:200_000].split("\n")[:2000]
+    res = decimal_resolution(line.partition(",")[0] for line in sample)
+    rep = repair_time(t, resolution_s=res, max_gap_s=limit, row_name=row_name)
+    if not rep.changed:
+        return t, None
+    warnings.warn(f"{source}: {rep.note}", TimeRepairWarning, stacklevel=3)
+    return rep.t_s, rep.summary
 
 
 def format_value(value: float, digits: int = 9) -> str:
@@ -247,34 +318,127 @@ def _row(t: float, values: Sequence[float], extra: Sequence[str]) -> list[str]:
     return [f"{t:.6f}"] + [format_value(float(v)) for v in values] + list(extra)
 
 
+def _metadata_text(metadata: Mapping[str, Any]) -> str:
+    return json.dumps(dict(metadata), indent=2, sort_keys=True, default=str) + "\n"
+
+
+def _remove(*paths: Path) -> None:
+    """Remove temporary files left by a failed write (quietly: the write's error is the one
+    to report)."""
+    for tmp in paths:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+
 def write_metadata(path: str | Path, metadata: Mapping[str, Any]) -> Path:
-    """Write the JSON sidecar of a recording."""
+    """Write the JSON sidecar of a recording (atomically: a reader never sees half of it)."""
     side = sidecar_path(path)
+    tmp = side.with_name(side.name + ".tmp")
     try:
-        side.write_text(json.dumps(dict(metadata), indent=2, sort_keys=True, default=str) + "\n")
+        tmp.write_text(_metadata_text(metadata))
+        os.replace(tmp, side)
     except OSError as err:
+        _remove(tmp)
         raise RecordingError(f"{side}: cannot write: {err.strerror or err}") from err
     return side
+
+
+def _text_column(values: np.ndarray) -> list[str] | np.ndarray | None:
+    """A value column as CSV fields (:func:`format_value`); None when every value is missing.
+
+    Logged commands and quantised speeds repeat a few values many times: each distinct value is
+    formatted once.
+    """
+    finite = np.isfinite(values)
+    if not finite.any():
+        return None
+    same = (values[1:] == values[:-1]) | (~finite[1:] & ~finite[:-1])
+    starts = np.flatnonzero(np.concatenate(([True], ~same)))
+    if starts.size <= values.size // 8:  # runs (held commands): format each run once
+        text = np.array([format_value(v) for v in values[starts].tolist()], dtype=object)
+        return np.repeat(text, np.diff(np.append(starts, values.size)))
+    uniq, inverse = np.unique(values, return_inverse=True)
+    if uniq.size > values.size // 4:
+        return [format_value(v) for v in values.tolist()]
+    return np.array([format_value(v) for v in uniq.tolist()], dtype=object)[inverse]
+
+
+def _write_body(fh, rec: Recording, rows: slice, chunk: int = 200_000) -> None:
+    """Write rows as CSV text: the same text as csv.writer with :func:`_row`, column-wise."""
+    if rec.extra:  # text extras need the csv module's quoting: row by row
+        w = csv.writer(fh, lineterminator="\n")
+        body = np.column_stack([rec.commands, rec.wheel_rpm, rec.pose])
+        extra_cols = list(rec.extra.values())
+        for i in range(len(rec))[rows]:
+            w.writerow(_row(float(rec.t_s[i]), body[i], [c[i] for c in extra_cols]))
+        return
+    start, stop, _ = rows.indices(len(rec))
+    body = np.column_stack([rec.commands, rec.wheel_rpm, rec.pose])
+    width = body.shape[1] + 1
+    for a in range(start, stop, chunk):
+        b = min(a + chunk, stop)
+        cols: list = [_time_column(rec.t_s[a:b])]
+        cols += [_text_column(body[a:b, j]) for j in range(body.shape[1])]
+        while cols[-1] is None:  # trailing empty columns: one constant end of line
+            cols.pop()
+        # one join over the interleaved fields and separators: no per-row Python
+        parts: list = [None] * ((b - a) * 2 * len(cols))
+        step = 2 * len(cols)
+        for j, c in enumerate(cols):
+            parts[2 * j::step] = [""] * (b - a) if c is None else c
+            parts[2 * j + 1::step] = [","] * (b - a)
+        parts[step - 1::step] = ["," * (width - len(cols)) + "\n"] * (b - a)
+        fh.write("".join(parts))
+
+
+def _time_column(t: np.ndarray) -> list[str]:
+    """Times as ``%.6f`` fields; whole microseconds (the usual case) without per-value format."""
+    us = np.rint(t * 1e6)
+    exact = (np.abs(t * 1e6 - us) < 1e-3) & (t >= 0) & (us < 2**52)
+    if np.count_nonzero(exact) < max(1000, t.size // 2):
+        return [f"{v:.6f}" for v in t.tolist()]
+    sec, frac = np.divmod(np.where(exact, us, 0).astype(np.int64), 1_000_000)
+    s_u, s_i = np.unique(sec, return_inverse=True)
+    f_u, f_i = np.unique(frac, return_inverse=True)
+    s_txt = np.array([f"{v}." for v in s_u.tolist()], dtype=object)[s_i]
+    f_txt = np.array([f"{v:06d}" for v in f_u.tolist()], dtype=object)[f_i]
+    out = s_txt + f_txt
+    for i in np.flatnonzero(~exact).tolist():  # stamps re-spaced between whole microseconds
+        out[i] = f"{t[i]:.6f}"
+    return out.tolist()
+
+
+def format_rows(rec: Recording, n_rows: int) -> str:
+    """The header and first ``n_rows`` rows exactly as :func:`write_recording` writes them."""
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(list(COLUMNS) + list(rec.extra))
+    _write_body(buf, rec, slice(0, min(n_rows, len(rec))))
+    return buf.getvalue()
 
 
 def write_recording(rec: Recording, path: str | Path) -> Path:
     """Write a recording CSV (atomically: a temporary file renamed into place) and its sidecar."""
     p = Path(path)
     tmp = p.with_name(p.name + ".tmp")
+    side = sidecar_path(p)
+    side_tmp = side.with_name(side.name + ".tmp")
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
         with tmp.open("w", newline="") as fh:
-            w = csv.writer(fh, lineterminator="\n")
-            w.writerow(list(COLUMNS) + list(rec.extra))
-            body = np.column_stack([rec.commands, rec.wheel_rpm, rec.pose])
-            extra_cols = list(rec.extra.values())
-            for i in range(len(rec)):
-                w.writerow(_row(float(rec.t_s[i]), body[i], [c[i] for c in extra_cols]))
+            csv.writer(fh, lineterminator="\n").writerow(list(COLUMNS) + list(rec.extra))
+            _write_body(fh, rec, slice(0, len(rec)))
+        # both files are complete before either replaces the old one; the sidecar goes
+        # first, so a sidecar that cannot be written leaves the old recording untouched
+        if rec.metadata:
+            side_tmp.write_text(_metadata_text(rec.metadata))
+            os.replace(side_tmp, side)
         os.replace(tmp, p)
     except OSError as err:
-        raise RecordingError(f"{p}: cannot write: {err.strerror or err}") from err
-    if rec.metadata:
-        write_metadata(p, rec.metadata)
+        _remove(tmp, side_tmp)
+        where = side if err.filename in (str(side), str(side_tmp)) else p
+        raise RecordingError(f"{where}: cannot write: {err.strerror or err}") from err
     return p
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .recording import Recording
+from .recording import Recording, read_recording
 
 CONTROLLER_TIME = "controller_time_s"
 
@@ -81,6 +81,4 @@ def read_for_analysis(path) -> Recording:
 
     What ``fit``, ``diagnose`` and ``shadow --replay`` read: the file itself is not changed.
     """
-    from .recording import read_recording
-
     return retime_telemetry(read_recording(path))

@@ -23,6 +23,15 @@ from .core import ShadowConfig
 EVENT_LOG_SUFFIX = ".shadow.jsonl"
 
 
+def alarm_line(event: dict) -> str:
+    """One terminal line for an alarm or recovery event (the terminal's view of the log)."""
+    if event["event"] == "alarm":
+        return (f"ALARM t={event['t_s']:.3f}s {event['channel']}: residual "
+                f"{event['residual']:+.3g} {event['unit']} (onset {event['onset_t_s']:.3f}s, "
+                f"noise {event['noise']:.3g} {event['unit']})")
+    return f"recovered t={event['t_s']:.3f}s {event['channel']}"
+
+
 def event_log_path(recording_path: str | Path) -> Path:
     """The event log belonging to a recording: ``run.csv`` -> ``run.shadow.jsonl``."""
     p = Path(recording_path)

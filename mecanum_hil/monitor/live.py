@@ -19,12 +19,10 @@ import numpy as np
 from ..model.calibration import Calibration
 from ..model.robot import RobotProfile
 from .core import ShadowConfig, ShadowMonitor
-from .eventlog import EventLog, event_log_path
+from .eventlog import EventLog, alarm_line, event_log_path
 
 
 def _alarm_echo(echo: Callable[[str], None]) -> Callable[[dict[str, Any]], None]:
-    from ..cli.shadow import alarm_line
-
     def listener(event: dict[str, Any]) -> None:
         if event["event"] in ("alarm", "recovered"):
             echo("shadow: " + alarm_line(event))
@@ -193,7 +191,7 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
                out: str | Path | None = None, events: str | Path | None = None,
                duration_s: float | None = None, stop_on_divergence: bool = False,
                echo: Callable[[str], None] = print, bus=None,
-               status_every_s: float = 0.5) -> int:
+               status_every_s: float = 0.5, foxglove: str | None = None) -> int:
     """Listen passively to a CAN bus where another host commands the controller.
 
     Commands (``MH_COMMAND``, ``MH_STOP``) act from their frames' bus timestamps; telemetry
@@ -220,6 +218,8 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
         Terminal output (alarm lines, the status line, the summary).
     status_every_s : float
         Period of the status line [s].
+    foxglove : str, optional
+        Also serve the live view for Foxglove at ``HOST:PORT`` ("": localhost:8765).
 
     Returns
     -------
@@ -245,8 +245,13 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
                                          "recording": str(out) if out else None})
     link = None
     writer = None
+    view = None
     heard = {"commands": 0, "stops": 0, "telemetry": 0, "stops_sent": 0, "bad_frames": 0}
     try:
+        if foxglove is not None:
+            from .foxglove import start_live_view
+
+            view = start_live_view(foxglove, live, echo=echo)
         link = CanTransport(interface, channel, bitrate, bus=bus)
         codec = CanCodec()
         clock = ControllerClock()
@@ -295,6 +300,8 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
                     heard["stops"] += 1
                     cmd = np.array([0.0, 0.0, 90.0 if cmd is None else cmd[2]])
                 live.monitor.on_command(t, cmd)
+                if view is not None:
+                    view.on_command(t, cmd)
                 if writer is not None and t > last_t:
                     writer.write(t, cmd, extra=("cmd" if isinstance(msg, Command) else "stop",
                                                 msg.seq, "", ""))
@@ -316,6 +323,8 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
                     continue  # the command in force is unknown until one is heard
                 was = live.stop_requested
                 live.on_telemetry(t, cmd, wheels)
+                if view is not None:
+                    view.on_telemetry(t, cmd, wheels)
                 if live.stop_requested and not was:
                     _send_stop(link, live, max(time.time() - t0, t), cmd, heard)
     except KeyboardInterrupt:
@@ -327,6 +336,8 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
             writer.close({"heard": heard})
         if link is not None:
             link.close()
+        if view is not None:
+            view.live.close()
         summary = live.close(**heard)
     echo(f"heard {heard['commands']} commands, {heard['stops']} stops, {heard['telemetry']} "
          f"telemetry samples" + (f"; sent {heard['stops_sent']} STOP" if heard["stops_sent"]

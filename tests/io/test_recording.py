@@ -58,8 +58,12 @@ def test_recording_without_sidecar_is_valid(tmp_path):
         ("t_s,n_cmd_rpm\n0,1\n", "missing column 'omega_cmd_dps'"),
         (HEADER.replace("wheel2_rpm", "wheel_2") + "\n", "column 6: expected 'wheel2_rpm'"),
         (HEADER + "\n0,1,2,3,,,,,,,\n0.1,abc,2,3,,,,,,,\n", "line 3, column 'n_cmd_rpm'"),
-        (HEADER + "\n0,1,2,3,,,,,,,\n0,1,2,3,,,,,,,\n", "line 3, column 't_s': time 0 does not"),
-        (HEADER + "\n0.2,1,2,3,,,,,,,\n0.1,1,2,3,,,,,,,\n", "does not increase"),
+        (HEADER + "\n0,1,2,3,,,,,,,\n0,1,2,3,,,,,,,\n", "line 3, column 't_s': time never"),
+        (HEADER + "\n0.2,1,2,3,,,,,,,\n0.1,1,2,3,,,,,,,\n", "line 3, column 't_s': time 0.1 s"
+         " does not increase: it runs back"),
+        (HEADER + "\n0,1,2,3,,,,,,,\n0.001,1,2,3,,,,,,,\n0.002,1,2,3,,,,,,,\n"
+         "0.0005,1,2,3,,,,,,,\n",
+         "line 5, column 't_s': time 0.0005 s does not increase: it runs back 1.500 ms"),
         (HEADER + "\n0,1,2,3,,,,,,\n", "line 2: 10 fields, header has 11"),
         (HEADER + "\n,1,2,3,,,,,,,\n", "time is missing"),
         (HEADER + "\n0,1,2,3,nan,,,,,,\n", "not a finite number"),

@@ -1,0 +1,135 @@
+"""``mecanum-hil import``: a foreign log (text, rosbag, CAN log, motion capture) as a recording.
+
+One command for every format (``mecanum_hil.io.importers``); each format's options are declared
+here and passed on only when the user gave them, so a format refuses an option it does not take.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+#: Rows that ``--dry-run`` prints.
+DRY_RUN_ROWS = 10
+
+
+def command(
+    source: Annotated[Path, typer.Argument(help="The log to import (a file or a bag directory).",
+                                           metavar="SOURCE")],
+    out: Annotated[Path | None, typer.Option(
+        "--out", "-o", help="Recording (CSV, with its JSON sidecar) to write.")] = None,
+    fmt: Annotated[str, typer.Option(
+        "--format", "-f", help="auto (detect by content) or a format name: text, ...")] = "auto",
+    map_path: Annotated[Path | None, typer.Option(
+        "--map", help="MAP.toml: which source column is which recording column, in which unit "
+        "(docs/formats.md).", metavar="MAP.toml")] = None,
+    dry_run: Annotated[bool, typer.Option(
+        "--dry-run", help="Print the first rows as they would be written; write nothing.")] = False,
+    cmd_topic: Annotated[str | None, typer.Option(
+        "--cmd-topic", help="rosbag: Twist or TwistStamped commands (default /cmd_vel).")] = None,
+    joint_topic: Annotated[str | None, typer.Option(
+        "--joint-topic", help="rosbag: JointState wheel velocities (default /joint_states).")
+    ] = None,
+    joints: Annotated[str | None, typer.Option(
+        "--joints", metavar="FL,FR,RL,RR", help="rosbag: joint names of wheels 1 FL, 2 FR, "
+        "3 RL, 4 RR (default: detected by name).")] = None,
+    wheel_signs: Annotated[str | None, typer.Option(
+        "--wheel-signs", metavar="S1,S2,S3,S4", help="rosbag: +1/-1 per wheel 1..4, -1 for a "
+        "joint whose positive axis turns the wheel backwards.")] = None,
+    odom_topic: Annotated[str | None, typer.Option(
+        "--odom-topic", help="rosbag: Odometry giving the pose (optional).")] = None,
+    robot: Annotated[str | None, typer.Option(
+        "--robot", metavar="ROBOT", help="rosbag: robot profile whose wheel radius turns m/s "
+        "into wheel rpm (default tdam-stm).")] = None,
+    dbc_path: Annotated[Path | None, typer.Option(
+        "--dbc", metavar="DBC", help="canlog: the DBC decoding the frames (default: "
+        "drivers/mecanum_hil.dbc; with your own, --map says which signal is which column).")
+    ] = None,
+    recording: Annotated[Path | None, typer.Option(
+        "--recording", metavar="REC.csv", help="mocap: fill this recording's pose columns "
+        "(resampled to its times, never across an occlusion).")] = None,
+    start_s: Annotated[str | None, typer.Option(
+        "--start-s", metavar="S|auto", help="mocap: recording time of the capture's first "
+        "sample \\[s], or auto (motion onset against the commands; the default with "
+        "--recording).")] = None,
+) -> None:
+    """Import a log into a recording (CSV + JSON sidecar)."""
+    import sys
+
+    from ..errors import ConfigError
+    from ..io.importers import import_source, with_notes
+    from ..io.recording import format_rows, write_recording
+
+    if out is None and not dry_run:
+        raise ConfigError("give --out REC.csv (or --dry-run)")
+    options = {}
+    if map_path is not None:
+        options["map_path"] = map_path
+    for key, value in (("cmd_topic", cmd_topic), ("joint_topic", joint_topic), ("joints", joints),
+                       ("wheel_signs", wheel_signs), ("odom_topic", odom_topic),
+                       ("dbc_path", dbc_path), ("recording", recording),
+                       ("start_s", start_s)):
+        if value is not None:
+            options[key] = value
+    fmt = _with_robot(source, fmt, robot, options)
+    _with_model_pose(fmt, options)
+    res = import_source(source, fmt, **options)
+    used = res.recording.metadata.get("import")
+    if robot is None and isinstance(used, dict) and used.get("wheel_radius_m"):
+        # m/s became wheel rpm with a radius the user did not choose: say which
+        res = with_notes(res, f"speeds in m/s converted with the wheel radius "
+                              f"{options['wheel_radius_m']:g} m of robot profile tdam-stm "
+                              "(give --robot for your robot's)")
+    rec = res.recording
+    for note in res.notes:
+        print(f"warning: {note}", file=sys.stderr)
+    if dry_run:
+        typer.echo(format_rows(rec, DRY_RUN_ROWS), nl=False)
+        typer.echo(f"({len(rec)} rows; nothing written)")
+        return
+    write_recording(rec, out)
+    span = float(rec.t_s[-1] - rec.t_s[0]) if len(rec) else 0.0
+    typer.echo(f"wrote {out} ({len(rec)} samples, {span:.3f} s)")
+
+
+def _with_robot(source: Path, fmt: str, robot: str | None, options: dict) -> str:
+    """Resolve the format; give a format that converts speeds [m/s] the robot's wheel radius."""
+    import inspect
+
+    from ..errors import ConfigError
+    from ..io.importers import detect_format, format_module
+
+    name = detect_format(source) if fmt == "auto" else fmt
+    if "wheel_radius_m" in inspect.signature(format_module(name).read).parameters:
+        from ..model import load_robot_profile
+
+        options["wheel_radius_m"] = load_robot_profile(robot or "tdam-stm").wheel_radius_m
+    elif robot is not None:
+        raise ConfigError(f"format '{name}' does not take --robot")
+    return name
+
+
+def _with_model_pose(name: str, options: dict) -> None:
+    """mocap with ``--recording`` and an automatic start: give the format the model's
+    prediction for the recording's commands (calibration and robot from the map)."""
+    import inspect
+
+    from ..io.importers import format_module
+
+    start = options.get("start_s")
+    if ("model_pose" not in inspect.signature(format_module(name).read).parameters
+            or options.get("recording") is None
+            or (start is not None and str(start).strip().lower() != "auto")):
+        return
+    from ..io.importers.mocap import load_mocap_map
+    from ..io.recording import read_recording
+    from ..model import load_calibration, load_robot_profile
+    from ..prediction import predict
+
+    m = load_mocap_map(options.get("map_path"))
+    rec = read_recording(options["recording"])
+    model = predict(rec, load_calibration(m.calibration), load_robot_profile(m.robot),
+                    source=str(options["recording"]))
+    options["model_pose"] = (model.t_s, model.pose)

@@ -1,0 +1,153 @@
+"""Importers: foreign logs in, recordings out (``mecanum-hil import``).
+
+Each format lives in its own module, listed in :data:`FORMATS` by name and imported only when
+needed (a format's own libraries are imported inside its functions). A format module defines:
+
+``NAME: str``
+    The format's name (the key in :data:`FORMATS`).
+``sniff(path: Path, head: bytes) -> bool``
+    Whether the file is of this format, judged by its content (``head`` is the file's first
+    :data:`HEAD_BYTES` bytes) and, where that helps, its name.
+``read(path: Path, **options) -> ImportResult``
+    The recording; keyword options only (``map_path``, ``cmd_topic``, ``dbc_path`` ...). The
+    result's notes are also the sidecar's ``notes`` (:func:`import_source` puts them there
+    when the format does not).
+``GENERIC: bool`` (optional, default False)
+    A catch-all format (plain text) that ``auto`` chooses only when no specific format claims
+    the file: a motion-capture CSV is also text, and must not be ambiguous with it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+
+from ...errors import ConfigError, RecordingError
+from ..recording import Recording
+
+#: Format name -> module path; one line per format, added by whoever writes the module.
+FORMATS: dict[str, str] = {
+    "text": "mecanum_hil.io.importers.text",
+    "rosbag": "mecanum_hil.io.importers.rosbag",
+    "mcap": "mecanum_hil.io.importers.mcap_run",
+    "canlog": "mecanum_hil.io.importers.canlog",
+    "mocap": "mecanum_hil.io.importers.mocap",
+}
+
+#: How much of the file's beginning ``sniff`` sees [bytes].
+HEAD_BYTES = 65536
+
+
+@dataclass(frozen=True)
+class ImportResult:
+    """What an importer returns.
+
+    Attributes
+    ----------
+    recording : Recording
+        The imported recording (its metadata becomes the JSON sidecar).
+    notes : tuple of str
+        One-line warnings and what was done to the data (also in the sidecar's ``notes``).
+    """
+
+    recording: Recording
+    notes: tuple[str, ...] = ()
+
+
+def format_module(name: str) -> ModuleType:
+    """The module of a format, imported by name."""
+    if name not in FORMATS:
+        raise ConfigError(f"unknown import format '{name}' (known: {', '.join(sorted(FORMATS))})")
+    return importlib.import_module(FORMATS[name])
+
+
+def _head(path: Path) -> bytes:
+    try:
+        with path.open("rb") as fh:
+            return fh.read(HEAD_BYTES)
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        return b""  # a directory (a ROS 2 bag) is sniffed by its path
+    except OSError as err:
+        raise RecordingError(f"{path}: cannot read: {err.strerror or err}") from err
+
+
+def detect_format(path: str | Path) -> str:
+    """The format of a file, asked of every format's ``sniff``.
+
+    Raises
+    ------
+    RecordingError
+        When no format, or more than one specific format, claims the file.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise RecordingError(f"{p}: file not found")
+    head = _head(p)
+    specific: list[str] = []
+    generic: list[str] = []
+    for name in FORMATS:
+        try:
+            mod = format_module(name)
+        except ImportError:  # a format whose module needs a missing extra cannot claim files
+            continue
+        if mod.sniff(p, head):
+            (generic if getattr(mod, "GENERIC", False) else specific).append(name)
+    found = specific or generic
+    if not found:
+        raise RecordingError(f"{p}: format not recognised (known: {', '.join(sorted(FORMATS))}); "
+                             "give --format")
+    if len(found) > 1:
+        raise RecordingError(f"{p}: ambiguous format ({', '.join(found)}); give --format")
+    return found[0]
+
+
+#: Options whose command-line flag is not the option's name with dashes.
+_FLAGS = {"map_path": "--map", "dbc_path": "--dbc"}
+
+
+def _flag(option: str) -> str:
+    return _FLAGS.get(option, "--" + option.replace("_", "-"))
+
+
+def import_source(path: str | Path, fmt: str = "auto", **options) -> ImportResult:
+    """Import a log with the format's ``read``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The log (a file, or a directory for formats that are directories).
+    fmt : str
+        A name in :data:`FORMATS`, or ``"auto"`` to detect it.
+    **options
+        Keyword options of the format's ``read``; one it does not take is refused.
+    """
+    p = Path(path)
+    name = detect_format(p) if fmt == "auto" else fmt
+    mod = format_module(name)
+    params = inspect.signature(mod.read).parameters
+    takes = [k for k, v in params.items()
+             if k != "path" and v.kind in (v.KEYWORD_ONLY, v.POSITIONAL_OR_KEYWORD)]
+    for key in options:
+        if key not in takes:
+            known = ", ".join(_flag(t) for t in takes) or "no options"
+            raise ConfigError(f"format '{name}' does not take {_flag(key)} (it takes: {known})")
+    if not p.exists():
+        raise RecordingError(f"{p}: file not found")
+    res = mod.read(p, **options)
+    if "notes" not in res.recording.metadata:  # a format that keeps them only in the result
+        res = with_notes(res)
+    return res
+
+
+def with_notes(res: ImportResult, *notes: str) -> ImportResult:
+    """``res`` with ``notes`` added, in its notes and in its sidecar's ``notes`` (which then
+    hold every note of the result, as the module docstring promises)."""
+    all_notes = tuple(dict.fromkeys((*res.notes, *notes)))
+    kept = list(res.recording.metadata.get("notes") or [])
+    meta = {**res.recording.metadata, "notes": kept + [n for n in all_notes if n not in kept]}
+    return ImportResult(res.recording.with_values(metadata=meta), all_notes)

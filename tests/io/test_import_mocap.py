@@ -1,0 +1,177 @@
+"""Motion capture into the pose columns (issue 20): Motive's CSV export and the plain layout,
+written here from a known path, import exactly; a recording is filled on its own times."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mecanum_hil.cli import main
+from mecanum_hil.io.importers import detect_format, import_source
+from mecanum_hil.io.recording import empty_like_times, read_recording, write_recording
+from mecanum_hil.model import load_calibration, load_robot_profile
+from mecanum_hil.prediction import predict
+
+
+def path_truth():
+    """The model driving diagonally while turning from rest (pose at 100 Hz)."""
+    t = np.arange(0.0, 4.0 + 1e-9, 0.01)
+    cmd = np.zeros((t.size, 3))
+    cmd[:, 2] = 60.0
+    on = (t >= 0.5) & (t < 3.0)
+    cmd[on, 0], cmd[on, 1] = 60.0, 30.0
+    return predict(empty_like_times(t).with_values(commands=cmd), load_calibration(),
+                   load_robot_profile())
+
+
+def quat_z(yaw_rad):
+    """Quaternions (x, y, z, w) of turns about z."""
+    return np.column_stack([np.zeros_like(yaw_rad), np.zeros_like(yaw_rad),
+                            np.sin(yaw_rad / 2), np.cos(yaw_rad / 2)])
+
+
+def write_motive(path, t, pose, occluded=()):
+    """Motive's export of rigid body 'robot' (Y up, millimetres) plus a second body and a
+    marker to be ignored; the body's own x axis is the robot's forward axis."""
+    yaw = np.radians(pose[:, 2])
+    # floor (X, Y, Z up) -> Motive (X, Y up, Z = -floor Y); a turn about floor z is one about
+    # Motive's y by the same angle
+    q = np.column_stack([np.zeros_like(yaw), np.sin(yaw / 2), np.zeros_like(yaw),
+                         np.cos(yaw / 2)])
+    px, py, pz = pose[:, 0] * 1000, np.full(len(t), 230.0), -pose[:, 1] * 1000
+    head = ("Format Version,1.23,Take Name,Take 2026-11-23,Take Notes,,Capture Frame Rate,"
+            "100.000000,Export Frame Rate,100.000000,Capture Start Time,2026-11-23 05.00.00.000"
+            " AM,Total Frames in Take,{n},Total Exported Frames,{n},Rotation Type,Quaternion,"
+            "Length Units,Millimeters,Coordinate Space,Global").format(n=len(t))
+    rb = ["Rigid Body"] * 8
+    lines = [head, "",
+             ",Type," + ",".join(rb + ["Rigid Body"] * 7 + ["Marker"] * 3),
+             ",Name," + ",".join(["robot"] * 8 + ["cart"] * 7 + ["robot:Marker1"] * 3),
+             ",ID," + ",".join(["1"] * 8 + ["2"] * 7 + ["3"] * 3),
+             ",," + ",".join(["Rotation"] * 4 + ["Position"] * 3 + ["Mean Marker Error"]
+                             + ["Rotation"] * 4 + ["Position"] * 3 + ["Position"] * 3),
+             "Frame,Time (Seconds)," + ",".join(list("XYZW") + list("XYZ") + [""]
+                                                + list("XYZW") + list("XYZ") + list("XYZ"))]
+    for i in range(len(t)):
+        if i in occluded:
+            body = [""] * 8
+        else:
+            body = [f"{v:.9f}" for v in (*q[i], px[i], py[i], pz[i])] + ["0.000213"]
+        other = ["0", "0", "0", "1", "500.0", "0.0", "200.0"]
+        marker = ["1.0", "2.0", "3.0"]
+        lines.append(f"{i},{t[i]:.6f}," + ",".join(body + other + marker))
+    path.write_text("\r\n".join(lines) + "\r\n")
+
+
+def test_motive_export_imports_exactly(tmp_path, capsys):
+    truth = path_truth()
+    t = np.arange(0.0, 3.5, 0.01)
+    pose = np.column_stack([np.interp(t, truth.t_s, truth.pose[:, k]) for k in range(3)])
+    src = tmp_path / "take.csv"
+    write_motive(src, t, pose, occluded={40, 41, 42})
+    assert detect_format(src) == "mocap"
+    with pytest.raises(Exception, match="several rigid bodies"):
+        import_source(src)
+    mp = tmp_path / "map.toml"
+    mp.write_text('[mocap]\nrigid_body = "robot"\n')
+    res = import_source(src, map_path=mp)
+    rec = res.recording
+    ok = np.isfinite(rec.pose).all(axis=1)
+    assert (~ok).sum() == 3 and not ok[40:43].any()
+    np.testing.assert_allclose(rec.t_s, t, atol=1e-9)
+    np.testing.assert_allclose(rec.pose[ok, :2], pose[ok, :2], atol=1e-8)
+    np.testing.assert_allclose(rec.pose[ok, 2], pose[ok, 2], atol=1e-6)
+    assert any("occluded" in n for n in res.notes)
+    assert rec.metadata["rigid_body"] == "robot"
+    # through the command, into a recording's own times, the start given
+    base = tmp_path / "rec.csv"
+    write_recording(truth.with_values(pose=np.full_like(truth.pose, np.nan)), base)
+    out = tmp_path / "with_pose.csv"
+    assert main(["import", str(src), "--map", str(mp), "--recording", str(base), "--start-s", "0.2",
+                 "--out", str(out)]) == 0
+    got = read_recording(out)
+    np.testing.assert_allclose(got.commands, truth.commands)
+    inside = (got.t_s >= 0.2) & (got.t_s <= 0.2 + t[-1])
+    gap = (got.t_s > 0.2 + t[39]) & (got.t_s < 0.2 + t[43])
+    have = np.isfinite(got.pose).all(axis=1)
+    assert not have[~inside].any() and not have[gap].any()  # no extrapolation, no bridging
+    assert have[inside & ~gap].all()
+    expect = np.column_stack([np.interp(got.t_s[have] - 0.2, t, pose[:, k]) for k in range(3)])
+    np.testing.assert_allclose(got.pose[have], expect, atol=1e-6)
+    assert got.metadata["pose_import"]["capture_start_s"] == 0.2
+
+
+def test_plain_csv_with_a_transform_and_auto_start(tmp_path):
+    truth = path_truth()
+    t = np.arange(0.0, 3.6, 1 / 120)
+    pose = np.column_stack([np.interp(t, truth.t_s + 0.3, truth.pose[:, k]) for k in range(3)])
+    # the capture frame: z up, turned 30 deg from the floor's and shifted; units mm; the body's
+    # forward axis is its y axis, and the robot's centre 0.1 m behind the body's pivot
+    a = math.radians(30.0)
+    rot = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    shift = np.array([1.5, -0.4, 0.0])
+    phi = np.radians(pose[:, 2])
+    centre = np.column_stack([pose[:, :2], np.full(len(t), 0.23)])
+    pivot = centre + 0.1 * np.column_stack([np.cos(phi), np.sin(phi), np.zeros(len(t))])
+    cap = (pivot - shift) @ rot  # rot.T @ (floor - shift): floor = rot @ capture + shift
+    body_yaw = phi - a - math.pi / 2  # its y axis along the robot's forward axis
+    q = quat_z(body_yaw)
+    src = tmp_path / "mocap.csv"
+    rows = ["t, x, y, z, qx, qy, qz, qw"]
+    for i in range(len(t)):
+        rows.append(",".join(f"{v:.10g}" for v in (t[i] + 12.0, *(cap[i] * 1000), *q[i])))
+    src.write_text("\n".join(rows) + "\n")
+    mp = tmp_path / "map.toml"
+    mp.write_text(f"""[mocap]
+units = "mm"
+rotation = [[{float(rot[0, 0])!r}, {float(rot[0, 1])!r}, 0.0],
+            [{float(rot[1, 0])!r}, {float(rot[1, 1])!r}, 0.0], [0.0, 0.0, 1.0]]
+translation_m = [1.5, -0.4, 0.0]
+forward_axis = [0.0, 1.0, 0.0]
+centre_m = [0.0, -0.1, 0.0]   # in the body's frame: 0.1 m behind, along its y axis
+""")
+    assert detect_format(src) == "mocap"
+    rec = import_source(src, map_path=mp).recording
+    np.testing.assert_allclose(rec.t_s, t, atol=1e-7)  # from the first sample
+    np.testing.assert_allclose(rec.pose[:, :2], pose[:, :2], atol=1e-7)
+    np.testing.assert_allclose(rec.pose[:, 2], pose[:, 2], atol=1e-6)
+    # auto start: the capture began 0.3 s before the recording; found from the motion onset
+    base = tmp_path / "rec.csv"
+    write_recording(truth.with_values(pose=np.full_like(truth.pose, np.nan)), base)
+    out = tmp_path / "with_pose.csv"
+    assert main(["import", str(src), "--map", str(mp), "--recording", str(base),
+                 "--out", str(out)]) == 0  # auto is the default with --recording
+    got = read_recording(out)
+    assert got.metadata["pose_import"]["capture_start_s"] == pytest.approx(-0.3, abs=0.01)
+    assert got.metadata["pose_import"]["capture_start_method"].startswith("auto")
+    have = np.isfinite(got.pose).all(axis=1)
+    err = np.hypot(*(got.pose[have, :2] - truth.pose[have, :2]).T)
+    assert err.max() < 0.01
+    # the library alone has no model (it is a layer above): auto then asks for it
+    with pytest.raises(Exception, match="model's prediction"):
+        import_source(src, map_path=mp, recording=base, start_s="auto")
+
+
+def test_bad_mocap_input(tmp_path, capsys):
+    src = tmp_path / "m.csv"
+    src.write_text("t, x, y, z, qx, qy, qz, qw\n0, 0, 0, 0, 0, 0, 0, 1\n0.1, 0, zero, 0, 0, 0, "
+                   "0, 1\n")
+    assert main(["import", str(src), "--out", str(tmp_path / "o.csv")]) == 1
+    err = capsys.readouterr().err
+    assert "line 3" in err and "'y'" in err
+    mp = tmp_path / "map.toml"
+    mp.write_text("[mocap]\nrotation = [[1, 0, 0], [0, 1, 0], [0, 0, -1]]\n")
+    src.write_text("t, x, y, z, qx, qy, qz, qw\n0, 0, 0, 0, 0, 0, 0, 1\n0.1, 0, 0, 0, 0, 0, 0, 1\n")
+    assert main(["import", str(src), "--map", str(mp), "--out", str(tmp_path / "o.csv")]) == 1
+    assert "determinant" in capsys.readouterr().err
+    assert main(["import", str(src), "--start-s", "auto", "--out", str(tmp_path / "o.csv")]) == 1
+    assert "needs --recording" in capsys.readouterr().err
+    motive = tmp_path / "take.csv"
+    write_motive(motive, np.arange(3) * 0.01, np.zeros((3, 3)))
+    motive.write_text(motive.read_text().replace("Quaternion", "XYZ"))
+    mp.write_text('[mocap]\nrigid_body = "robot"\n')
+    args = ["import", str(motive), "--map", str(mp), "--out", str(tmp_path / "o.csv")]
+    assert main(args) == 1
+    assert "Rotation Type = Quaternion" in capsys.readouterr().err

@@ -1,0 +1,43 @@
+"""Every command imports only what it uses, when it uses it (issue 19).
+
+Each command's module is imported in a fresh interpreter; none of the heavy libraries may be
+loaded by that import alone (they are imported inside the functions that need them), so
+``mecanum-hil --help`` and every command's start-up stay fast.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+CLI = Path(__file__).resolve().parents[2] / "mecanum_hil" / "cli"
+
+#: Libraries no command module may load at import time.
+HEAVY = ("scipy", "numba", "matplotlib", "cv2", "can", "cantools", "gymnasium", "serial",
+         "dask", "distributed", "rosbags", "mcap", "foxglove", "cma", "pandas", "pyarrow")
+
+COMMAND_MODULES = sorted(
+    f"mecanum_hil.cli.{p.stem}" for p in CLI.glob("*.py") if p.stem != "__init__"
+)
+
+
+def _loaded_after_import(module: str) -> list[str]:
+    code = (
+        "import importlib, json, sys\n"
+        f"importlib.import_module({module!r})\n"
+        "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("module", ["mecanum_hil.cli", *COMMAND_MODULES])
+def test_command_module_loads_no_heavy_library(module):
+    loaded = set(_loaded_after_import(module))
+    heavy = sorted(loaded.intersection(HEAVY))
+    assert not heavy, f"importing {module} loads {heavy}: import them where they are used"
