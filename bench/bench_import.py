@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mecanum_hil.io.importers import import_source
+from mecanum_hil.importers import import_source
 from mecanum_hil.io.recording import read_recording, write_recording
 
 MAP = """

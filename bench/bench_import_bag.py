@@ -27,7 +27,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from mecanum_hil.io.importers import import_source
+from mecanum_hil.importers import import_source
 from mecanum_hil.io.recording import write_recording
 from mecanum_hil.model import Calibration, RobotProfile, simulate
 from mecanum_hil.model.kinematics import command_to_twist

@@ -27,3 +27,16 @@ def shared_real_data() -> Path:
     if not path.is_dir():
         pytest.skip("../shared/data/real is not present beside this checkout")
     return path
+
+
+@pytest.fixture
+def one_line_error(capsys):
+    """Run the CLI on ``argv``: it must fail with one ``error: ...`` line; returns the line."""
+    from mecanum_hil.cli import main
+
+    def run(argv) -> str:
+        code = main(argv)
+        err = capsys.readouterr().err.strip()
+        assert code != 0 and err.startswith("error: ") and "\n" not in err, err
+        return err
+    return run

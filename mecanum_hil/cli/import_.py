@@ -1,6 +1,6 @@
 """``mecanum-hil import``: a foreign log (text, rosbag, CAN log, motion capture) as a recording.
 
-One command for every format (``mecanum_hil.io.importers``); each format's options are declared
+One command for every format (``mecanum_hil.importers``); each format's options are declared
 here and passed on only when the user gave them, so a format refuses an option it does not take.
 """
 
@@ -59,7 +59,7 @@ def command(
     import sys
 
     from ..errors import ConfigError
-    from ..io.importers import import_source, with_notes
+    from ..importers import import_source, with_notes
     from ..io.recording import format_rows, write_recording
 
     if out is None and not dry_run:
@@ -99,7 +99,7 @@ def _with_robot(source: Path, fmt: str, robot: str | None, options: dict) -> str
     import inspect
 
     from ..errors import ConfigError
-    from ..io.importers import detect_format, format_module
+    from ..importers import detect_format, format_module
 
     name = detect_format(source) if fmt == "auto" else fmt
     if "wheel_radius_m" in inspect.signature(format_module(name).read).parameters:
@@ -116,14 +116,14 @@ def _with_model_pose(name: str, options: dict) -> None:
     prediction for the recording's commands (calibration and robot from the map)."""
     import inspect
 
-    from ..io.importers import format_module
+    from ..importers import format_module
 
     start = options.get("start_s")
     if ("model_pose" not in inspect.signature(format_module(name).read).parameters
             or options.get("recording") is None
             or (start is not None and str(start).strip().lower() != "auto")):
         return
-    from ..io.importers.mocap import load_mocap_map
+    from ..importers.mocap import load_mocap_map
     from ..io.recording import read_recording
     from ..model import load_calibration, load_robot_profile
     from ..prediction import predict

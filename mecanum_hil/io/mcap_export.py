@@ -8,7 +8,7 @@ the 3D panel, ``foxglove.Log`` in the Log panel). The same channels serve the li
 
 A message's log time is the row's time on the source's clock: ``start_time_ns`` of the sidecar
 (an imported bag's start) plus ``t_s``, else ``t_s`` itself from the epoch; every message also
-carries its ``t_s`` [s] exactly, so that :mod:`mecanum_hil.io.importers.mcap_run` gives the
+carries its ``t_s`` [s] exactly, so that :mod:`mecanum_hil.importers.mcap_run` gives the
 recording back. ``mcap`` (the ``foxglove`` extra) is imported inside :func:`export_mcap` only.
 """
 

@@ -1,9 +1,10 @@
 """The package's import graph points down and has no circles (issue 19).
 
-Layers, top to bottom: cli -> demo -> monitor/identify -> link/vision/fleet/policy -> envs ->
-model (with prediction, profiles) -> io (with plots) -> units/errors. A module may import from
-its own layer or any layer below; an import that reaches up, or a circle between modules
-(imports inside functions included: they form a circle just the same when they run), fails.
+Layers, top to bottom: cli -> demo -> monitor/identify/fleet -> link/vision/importers/policy
+(where data enters) -> envs -> model (with prediction, profiles) -> io (with plots) ->
+units/errors. A module may import from its own layer or any layer below; an import that reaches
+up, or a circle between modules (imports inside functions included: they form a circle just the
+same when they run), fails.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ PACKAGE = Path(__file__).resolve().parents[2] / "mecanum_hil"
 LAYERS = {
     "__main__": 10, "cli": 9, "demo": 8,
     "monitor": 7, "identify": 7, "fleet": 7,
-    "link": 6, "vision": 6, "policy": 6,
+    "link": 6, "vision": 6, "importers": 6, "policy": 6,
     "envs": 5,
     "model": 4, "prediction": 4, "profiles": 4,
     "io": 3, "plots": 3,

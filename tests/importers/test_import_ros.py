@@ -15,8 +15,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from mecanum_hil.cli import main
 from mecanum_hil.errors import RecordingError
-from mecanum_hil.io.importers import detect_format, import_source
-from mecanum_hil.io.importers.rosbag import (
+from mecanum_hil.importers import detect_format, import_source
+from mecanum_hil.importers.rosbag import (
     parse_wheel_signs,
     twist_to_commands,
     wheel_corner,
@@ -279,7 +279,7 @@ def test_truncated_bag(tmp_path, one_line_error, kind):
 def test_joint_state_block_decoder_matches_rosbags():
     """The CDR block decoder reads what rosbags deserializes, for any name lengths, frame,
     positions or none, and sends what it cannot read as a block to the deserializer."""
-    from mecanum_hil.io.importers.rosbag import (
+    from mecanum_hil.importers.rosbag import (
         _joint_state_values,
         _Samples,
         joint_state_layout,
@@ -318,7 +318,7 @@ def test_joint_state_block_decoder_matches_rosbags():
 def test_merge_puts_no_sample_from_before_the_first_command_on_its_row():
     """Wheel samples before the first command are dropped (a note says so), not moved onto
     the first command's row at the wrong time; two samples in one microsecond are named."""
-    from mecanum_hil.io.importers._streams import Stream, merge_streams
+    from mecanum_hil.importers._streams import Stream, merge_streams
 
     cmds = Stream.of([10_000, 20_000], [[1.0, 0.0, 90.0], [2.0, 0.0, 90.0]], 3)
     wheels = Stream.of([0, 5_000, 15_000, 15_000, 15_400],

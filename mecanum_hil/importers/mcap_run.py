@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import ConfigError, MecanumHILError, RecordingError
-from ..mcap_export import CHANNELS, METADATA_NAME
-from ..recording import COMMAND_COLUMNS, POSE_COLUMNS, WHEEL_COLUMNS, Recording
+from ..errors import ConfigError, MecanumHILError, RecordingError
+from ..io.mcap_export import CHANNELS, METADATA_NAME
+from ..io.recording import COMMAND_COLUMNS, POSE_COLUMNS, WHEEL_COLUMNS, Recording
 from .rosbag import mcap_profile
 
 NAME = "mcap"

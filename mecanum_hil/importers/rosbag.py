@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import ConfigError, MecanumHILError, RecordingError
-from ...units import RPM_TO_RAD_S, mps_to_rpm
+from ..errors import ConfigError, MecanumHILError, RecordingError
+from ..units import RPM_TO_RAD_S, mps_to_rpm
 from ._streams import Stream, merge_streams
 
 NAME = "rosbag"

@@ -25,16 +25,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
-from ...errors import ConfigError, RecordingError
-from ..recording import Recording
+from ..errors import ConfigError, RecordingError
+from ..io.recording import Recording
 
 #: Format name -> module path; one line per format, added by whoever writes the module.
 FORMATS: dict[str, str] = {
-    "text": "mecanum_hil.io.importers.text",
-    "rosbag": "mecanum_hil.io.importers.rosbag",
-    "mcap": "mecanum_hil.io.importers.mcap_run",
-    "canlog": "mecanum_hil.io.importers.canlog",
-    "mocap": "mecanum_hil.io.importers.mocap",
+    "text": "mecanum_hil.importers.text",
+    "rosbag": "mecanum_hil.importers.rosbag",
+    "mcap": "mecanum_hil.importers.mcap_run",
+    "canlog": "mecanum_hil.importers.canlog",
+    "mocap": "mecanum_hil.importers.mocap",
 }
 
 #: How much of the file's beginning ``sniff`` sees [bytes].

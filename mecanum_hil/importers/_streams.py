@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...errors import RecordingError
-from ..recording import Recording
+from ..errors import RecordingError
+from ..io.recording import Recording
 
 
 @dataclass(frozen=True)

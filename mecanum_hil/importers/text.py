@@ -19,17 +19,17 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import ConfigError, RecordingError
-from ...units import DPS_PER_RPM, SPEED_UNITS, TIME_UNITS_S, speed_to_rpm
-from ..recording import Recording
-from ..time_repair import (
+from ..errors import ConfigError, RecordingError
+from ..io.recording import Recording
+from ..io.time_repair import (
     DEFAULT_MAX_GAP_PERIODS,
     MIN_DEFAULT_MAX_GAP_S,
     decimal_resolution,
     detect_resolution,
     repair_time,
 )
-from ..toml_config import load_toml
+from ..io.toml_config import load_toml
+from ..units import DPS_PER_RPM, SPEED_UNITS, TIME_UNITS_S, speed_to_rpm
 from . import ImportResult
 
 NAME = "text"
@@ -532,7 +532,7 @@ def wheel_setpoints_to_commands(wheels_rpm: np.ndarray, k: float) -> tuple[np.nd
     """
     # The importer sits at the data edge but must invert the model's kinematics exactly, so
     # it uses them rather than a second copy.
-    from ...model.kinematics import twist_to_wheels, wheels_to_twist
+    from ..model.kinematics import twist_to_wheels, wheels_to_twist
 
     twist = wheels_to_twist(wheels_rpm, k)
     residual = np.max(np.abs(wheels_rpm - twist_to_wheels(twist, k)), axis=-1)
@@ -548,7 +548,7 @@ def wheel_setpoints_to_commands(wheels_rpm: np.ndarray, k: float) -> tuple[np.nd
 def _kinematic_k(m: TextMap) -> float:
     if m.k is not None:
         return m.k
-    from ...model.robot import load_robot_profile
+    from ..model.robot import load_robot_profile
 
     return load_robot_profile(m.robot or "tdam-stm").k
 

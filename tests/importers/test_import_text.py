@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from mecanum_hil.errors import ConfigError, RecordingError
-from mecanum_hil.io.importers import detect_format, import_source
-from mecanum_hil.io.importers.text import wheel_setpoints_to_commands
+from mecanum_hil.importers import detect_format, import_source
+from mecanum_hil.importers.text import wheel_setpoints_to_commands
 from mecanum_hil.io.recording import (
     COLUMNS,
     Recording,
@@ -326,7 +326,7 @@ def test_a_last_line_cut_off_mid_row_is_dropped_with_a_note(tmp_path):
 def test_the_log_is_streamed_in_blocks_with_the_same_result(tmp_path, monkeypatch, chunk):
     """The file is parsed block by block (never held whole): block edges inside rows, before
     an empty first cell, among comment and blank lines, change nothing."""
-    from mecanum_hil.io.importers import text as text_format
+    from mecanum_hil.importers import text as text_format
 
     rows = ["\ufeff# exported", "time_ms,cmd,w_fl,w_fr"]
     for i in range(40):

@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ...errors import ConfigError, MecanumHILError, RecordingError
-from ..recording import COMMAND_COLUMNS, POSE_COLUMNS, WHEEL_COLUMNS
-from ..resources import resource_dir
-from ..toml_config import load_toml
+from ..errors import ConfigError, MecanumHILError, RecordingError
+from ..io.recording import COMMAND_COLUMNS, POSE_COLUMNS, WHEEL_COLUMNS
+from ..io.resources import resource_dir
+from ..io.toml_config import load_toml
 from ._streams import Stream, merge_streams
 
 NAME = "canlog"

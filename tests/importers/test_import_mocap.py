@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mecanum_hil.cli import main
-from mecanum_hil.io.importers import detect_format, import_source
+from mecanum_hil.importers import detect_format, import_source
 from mecanum_hil.io.recording import empty_like_times, read_recording, write_recording
 from mecanum_hil.model import load_calibration, load_robot_profile
 from mecanum_hil.prediction import predict

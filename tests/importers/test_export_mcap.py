@@ -16,7 +16,7 @@ pytest.importorskip("mcap")
 from mcap.reader import make_reader
 
 from mecanum_hil.cli import main
-from mecanum_hil.io.importers import detect_format
+from mecanum_hil.importers import detect_format
 from mecanum_hil.io.mcap_export import CHANNELS, LIBRARY
 from mecanum_hil.io.recording import read_recording
 

@@ -10,9 +10,9 @@ import pytest
 
 from mecanum_hil.cli import main
 from mecanum_hil.errors import ConfigError, RecordingError
-from mecanum_hil.io.importers import detect_format, import_source
-from mecanum_hil.io.importers.canlog import default_dbc
-from mecanum_hil.io.importers.rosbag import twist_to_commands
+from mecanum_hil.importers import detect_format, import_source
+from mecanum_hil.importers.canlog import default_dbc
+from mecanum_hil.importers.rosbag import twist_to_commands
 from mecanum_hil.io.recording import read_recording
 from mecanum_hil.model import Calibration, RobotProfile, simulate
 from mecanum_hil.model.kinematics import command_to_twist
