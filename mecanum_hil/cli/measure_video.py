@@ -32,7 +32,13 @@ def command(
     window_s: Annotated[float, typer.Option(
         "--window", help="Speed regression window \\[s].")] = 0.1,
     min_found: Annotated[float, typer.Option(
-        "--min-found", help="Smallest share of frames with the marker (0..1).")] = 0.5,
+        "--min-found", help="Smallest share of frames with the marker (0..1).")] = 0.3,
+    speed_range: Annotated[str | None, typer.Option(
+        "--speed-range", metavar="LO,HI", help="Expected speed range \\[rpm] (after --invert); "
+        "one side may be empty: '0,' forwards only, ',0' backwards only. Resolves speeds beyond "
+        "half a turn per frame (aliasing), refused without it.")] = None,
+    fixed_camera: Annotated[bool, typer.Option(
+        "--fixed-camera", help="Do not follow the hub: the camera is on a tripod.")] = False,
     recording: Annotated[Path | None, typer.Option(
         "--recording", help="Recording from `record` to align with and merge into.")] = None,
     merged: Annotated[Path | None, typer.Option(
@@ -49,6 +55,7 @@ def command(
     from ..io.recording import read_recording, write_recording
     from ..vision.detect import MarkerSpec, parse_hsv, parse_roi
     from ..vision.measure import MeasureOptions, align_with_recording, measure_video
+    from ..vision.speed import parse_speed_range
 
     if marker not in ("auto", "aruco"):
         raise VideoError(f"--marker must be auto or aruco, got '{marker}'")
@@ -57,7 +64,9 @@ def command(
     spec = parse_hsv(marker_hsv) if marker_hsv is not None else MarkerSpec(marker)
     rois = tuple(parse_roi(r, wheel) for r in roi) if roi else ((wheel, None),)
     opts = MeasureOptions(rois=rois, marker=spec, invert=invert, fps=fps, window_s=window_s,
-                          min_found=min_found)
+                          min_found=min_found, track_hub=not fixed_camera,
+                          expected_rpm=None if speed_range is None
+                          else parse_speed_range(speed_range))
     rec = read_recording(recording) if recording is not None else None
     if recording is not None:
         merged_target = merged or out.with_name(out.stem + ".merged.csv")
@@ -98,6 +107,11 @@ def command(
         mean = "-" if w["mean_rpm"] is None else f"{w['mean_rpm']:.2f}"
         typer.echo(f"  wheel {w['wheel']}: marker found in {100 * w['found_fraction']:.1f}% of "
                    f"frames, mean {mean} rpm, max |{w['max_abs_rpm']}| rpm")
+        if w.get("gaps"):
+            typer.echo(f"    {len(w['gaps'])} gap(s) without the marker, "
+                       f"{w['gaps_unbridged']} not bridged (see --json 'gaps')")
+        if w.get("aliasing"):
+            typer.echo(f"    aliasing: no speed for {w['aliased_frames']} frames")
     if summary.get("alignment"):
         a = summary["alignment"]
         typer.echo(f"  offset: recording time = video time + {a['offset_s']:.4f} s "

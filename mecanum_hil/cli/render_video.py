@@ -13,7 +13,8 @@ from ._options import JsonOpt
 
 def command(
     recording: Annotated[Path, typer.Option(
-        "--recording", help="Recording whose wheel columns drive the wheels.")],
+        "--recording", help="Recording whose wheel columns drive the wheels, or "
+        "scenario:NAME (slow-start, stop-restart, reverse, through-limit).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Video to write (.mp4 or .avi).")],
     wheels: Annotated[str, typer.Option(
         "--wheels", help="Wheels to show side by side, e.g. 1 or 1,2.")] = "1",
@@ -44,9 +45,32 @@ def command(
     marker: Annotated[str, typer.Option(
         "--marker", help="dot (saturated dot near the rim) or aruco (ArUco marker on the hub).")
     ] = "dot",
+    fender: Annotated[float, typer.Option(
+        "--fender", help="Share of each wheel's height hidden by a fender from the top.")] = 0.0,
+    hide: Annotated[list[str] | None, typer.Option(
+        "--hide", help="A card hides the wheels from A to B \\[s] (video clock), e.g. 2-2.5.",
+        metavar="A-B")] = None,
+    shake: Annotated[float, typer.Option(
+        "--shake", help="Camera shake: random offset of each frame, SD per axis \\[px].")] = 0.0,
+    drift: Annotated[float, typer.Option(
+        "--drift", help="Camera drift: amplitude of a slow wandering \\[px].")] = 0.0,
+    flicker: Annotated[float, typer.Option(
+        "--flicker", help="Mains-light flicker, relative amplitude (0..1).")] = 0.0,
+    flicker_hz: Annotated[float, typer.Option(
+        "--flicker-hz", help="Flicker frequency \\[Hz] (100 or 120).")] = 100.0,
+    hue_shift: Annotated[float, typer.Option(
+        "--hue-shift", help="Marker colour drifting under the light, amplitude \\[deg].")] = 0.0,
     truth: Annotated[Path | None, typer.Option(
-        "--truth", help="Also write the true wheel speeds at the frame times (video clock).")
+        "--truth", help="Also write the true wheel speeds at the frame times (video clock), "
+        "with each marker's share in view and the camera's offset.")
     ] = None,
+    overhead: Annotated[bool, typer.Option(
+        "--overhead", help="Draw an overhead camera's view of the robot (its pose columns) "
+        "with floor markers instead of wheels; --tilt is the camera's tilt from straight down; "
+        "writes V.camera.toml, V.scene.toml and the pose truth (--truth, default V.truth.csv)."
+    )] = False,
+    distortion: Annotated[str | None, typer.Option(
+        "--distortion", help="--overhead: the lens's k1,k2,p1,p2,k3 (OpenCV).")] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Render wheels with markers turning as a recording's wheel speeds say."""
@@ -54,20 +78,39 @@ def command(
     from rich.progress import BarColumn, Progress, TextColumn
 
     from ..errors import VideoError
-    from ..io.recording import empty_like_times, read_recording, write_recording
+    from ..io.recording import empty_like_times, write_recording
     from ..vision.render import RenderSettings, render_video
 
+    if overhead:
+        unused = [flag for flag, value, default in (
+            ("--wheels", wheels, "1"), ("--blur", blur, 0.0), ("--lighting-drift", lighting, 0.0),
+            ("--tilt-axis", tilt_axis, 0.0), ("--distractors", distractors, 0),
+            ("--mirror", mirror, False), ("--marker", marker, "dot"), ("--fender", fender, 0.0),
+            ("--hide", hide or None, None), ("--shake", shake, 0.0), ("--drift", drift, 0.0),
+            ("--flicker", flicker, 0.0), ("--hue-shift", hue_shift, 0.0)) if value != default]
+        if unused:
+            raise VideoError(f"{', '.join(unused)}: not used with --overhead")
+        _overhead(recording, out, fps, size, start_s, duration_s, noise, tilt, jpeg, seed,
+                  distortion, truth, as_json)
+        return
+    if distortion is not None:
+        raise VideoError("--distortion is for --overhead")
     try:
         shown = tuple(int(w) for w in wheels.split(","))
         width, height = (int(v) for v in size.lower().split("x"))
     except ValueError:
         raise VideoError(f"--wheels '{wheels}' / --size '{size}': expected e.g. 1,2 and 320x240"
                          ) from None
+    from ..vision.scenarios import parse_hide, recording_or_scenario
+
     settings = RenderSettings(width, height, fps, shown, start_s, duration_s, mirror=mirror,
                               noise_std=noise, exposure=blur, lighting_drift=lighting,
                               tilt_deg=tilt, tilt_axis_deg=tilt_axis, jpeg_quality=jpeg,
-                              distractors=distractors, seed=seed, marker=marker)
-    rec = read_recording(recording)
+                              distractors=distractors, seed=seed, marker=marker, fender=fender,
+                              occlusions_s=parse_hide(hide or []), shake_px=shake,
+                              drift_px=drift, flicker=flicker, flicker_hz=flicker_hz,
+                              hue_shift_deg=hue_shift)
+    rec = recording_or_scenario(recording)
     with Progress(TextColumn("rendering"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} frames"),
                   console=Console(stderr=True), transient=True) as bar:
@@ -78,10 +121,12 @@ def command(
         w = empty_like_times(result.frame_t_s).wheel_rpm
         for k, wheel in enumerate(shown):
             w[:, wheel - 1] = result.wheel_rpm[:, k]
+        from ..vision.scenarios import truth_extra
+
         write_recording(empty_like_times(result.frame_t_s, {
             "source": "mecanum-hil render-video (truth)", "video": str(out),
-            "recording": str(recording), "camera_start_s": start_s}).with_values(wheel_rpm=w),
-            truth)
+            "recording": str(recording), "camera_start_s": start_s}).with_values(
+                wheel_rpm=w, extra=truth_extra(result)), truth)
     summary = {"video": str(out), "frames": int(result.frame_t_s.size), "fps": fps,
                "size_px": [width, height], "wheels": list(shown),
                "rois": {str(p.wheel): list(p.roi) for p in result.placements},
@@ -92,3 +137,58 @@ def command(
     rois = " ".join(f"--roi {p.wheel}:{','.join(map(str, p.roi))}" for p in result.placements)
     typer.echo(f"wrote {out} ({summary['frames']} frames, {fps:g} fps, {width}x{height}); "
                f"wheel regions: {rois}")
+
+
+def _overhead(recording: Path, out: Path, fps: float, size: str, start_s: float,
+              duration_s: float | None, noise: float, tilt: float, jpeg: int | None, seed: int,
+              distortion: str | None, truth: Path | None, as_json: bool) -> None:
+    """``render-video --overhead``: the video, its camera and scene files, the pose truth."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from ..errors import VideoError
+    from ..io.recording import empty_like_times, read_recording, write_recording
+    from ..vision.camera import save_camera
+    from ..vision.overhead import OverheadSettings, render_overhead
+    from ..vision.scene import save_scene
+
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+        lens = {} if distortion is None else {
+            "distortion": tuple(float(v) for v in distortion.split(","))}
+    except ValueError:
+        raise VideoError(f"--size '{size}' / --distortion '{distortion}': expected e.g. "
+                         "1280x720 and -0.2,0.06,0,0,0") from None
+    if len(lens.get("distortion", (0,) * 5)) != 5:
+        raise VideoError("--distortion needs five numbers k1,k2,p1,p2,k3")
+    settings = OverheadSettings(width, height, fps, start_s, duration_s, tilt_deg=tilt,
+                                noise_std=noise, jpeg_quality=jpeg, seed=seed, **lens)
+    rec = read_recording(recording)
+    with Progress(TextColumn("rendering"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total} frames"),
+                  console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("render", total=None)
+        res = render_overhead(rec, out, settings,
+                              progress=lambda d, t: bar.update(task, completed=d, total=t))
+    stem = out.with_suffix("")
+    camera_path = save_camera(res.camera, f"{stem}.camera.toml",
+                              "the renderer's camera (exact intrinsics and distortion)")
+    scene_path = save_scene(res.scene, f"{stem}.scene.toml", "the renderer's scene")
+    truth_path = truth if truth is not None else Path(f"{stem}.truth.csv")
+    meta = {"source": "mecanum-hil render-video --overhead (truth)", "video": str(out),
+            "recording": str(recording), "camera_start_s": start_s,
+            "camera_pose": res.camera_pose.summary(),
+            "marker_visible": [bool(v) for v in res.marker_visible],
+            "notes": "t_s is the video clock (0 at the first frame); pose = the recording's, "
+                     "linear between its samples"}
+    write_recording(empty_like_times(res.frame_t_s, meta).with_values(pose=res.pose), truth_path)
+    summary = {"video": str(out), "frames": int(res.frame_t_s.size), "fps": fps,
+               "size_px": [width, height], "camera": str(camera_path), "scene": str(scene_path),
+               "truth": str(truth_path), "camera_pose": res.camera_pose.summary(),
+               "marker_visible_share": round(float(res.marker_visible.mean()), 4),
+               "camera_start_s": start_s}
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2))
+        return
+    typer.echo(f"wrote {out} ({summary['frames']} frames, {fps:g} fps, {width}x{height}), "
+               f"{camera_path}, {scene_path}, truth {truth_path}")

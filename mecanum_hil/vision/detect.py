@@ -170,11 +170,23 @@ class BlobDetector:
             cv2.inRange(hsv, np.array(lo), np.array((179, hi[1], hi[2]))),
             cv2.inRange(hsv, np.array((0, lo[1], lo[2])), np.array(hi)))
 
-    def __call__(self, frame: np.ndarray) -> np.ndarray:
-        """Candidates in a BGR frame: rows ``(x [px], y [px], hue [deg], weight)``."""
+    def __call__(self, frame: np.ndarray, shift_px: tuple[float, float] = (0.0, 0.0)
+                 ) -> np.ndarray:
+        """Candidates in a BGR frame: rows ``(x [px], y [px], hue [deg], weight, area [px^2])``.
+
+        ``shift_px`` is the camera's offset at this frame (the hub's motion): the focused path
+        and its box move with it. The candidates are in the frame's own coordinates.
+        """
         import cv2
 
         x0, y0, x1, y1 = self.box
+        sx, sy = shift_px
+        if self.path is not None and (sx or sy):
+            dx, dy = round(sx), round(sy)
+            x0, x1 = max(self.x0, x0 + dx), min(self.x1, x1 + dx)
+            y0, y1 = max(self.y0, y0 + dy), min(self.y1, y1 + dy)
+            if x1 - x0 < 4 or y1 - y0 < 4:
+                return np.empty((0, 5))
         crop = frame[y0:y1, x0:x1]
         s = self.stride
         hc, wc = crop.shape[:2]
@@ -189,12 +201,12 @@ class BlobDetector:
         # Outer contours are an order of magnitude cheaper than labelling connected components.
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         if not contours:
-            return np.empty((0, 4))
+            return np.empty((0, 5))
         boxes = sorted((cv2.boundingRect(c) for c in contours), key=lambda b: -b[2] * b[3])
         if self.path is not None and boxes:
             centres = np.array([(x0 + (bx + 0.5 * bw) * s, y0 + (by + 0.5 * bh) * s)
                                 for bx, by, bw, bh in boxes])
-            rho, _ = self.path.unit(centres)
+            rho, _ = self.path.unit(centres - np.array([sx, sy]))
             boxes = [b for b, r in zip(boxes, rho, strict=True)
                      if abs(r - 1.0) <= self.path_margin]
         out = []
@@ -212,6 +224,8 @@ class BlobDetector:
             if total <= 0.0:
                 continue
             mean = cv2.mean(win, mask=cv2.compare(weight, 0, cv2.CMP_GT))
+            # The area (pixels above the background's saturation) hardly changes with the light;
+            # a marker partly hidden shows a smaller one.
             out.append((x0 + wx0 + mom["m10"] / total, y0 + wy0 + mom["m01"] / total,
-                        _hue_deg(mean[0], mean[1], mean[2]), total))
-        return np.array(out, dtype=float).reshape(-1, 4)
+                        _hue_deg(mean[0], mean[1], mean[2]), total, cv2.countNonZero(weight)))
+        return np.array(out, dtype=float).reshape(-1, 5)

@@ -133,6 +133,8 @@ class Track:
     residual_px : float
         RMS distance of the chosen detections from the path [px] (about the radius times the
         relative radial error): large for a circle fitted to an oblique view's short arc.
+    index : ndarray of int, shape (N,), optional
+        The chosen candidate of each frame (-1: none).
     """
 
     path: Ellipse
@@ -141,6 +143,7 @@ class Track:
     coverage: float
     shape: str
     residual_px: float = 0.0
+    index: np.ndarray | None = None
 
 
 def _hue_close(h: np.ndarray, h0: float, tol_deg: float) -> np.ndarray:
@@ -252,11 +255,26 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
             path = refit
         else:
             shape = "ellipse" if path.a_px != path.b_px else "circle"
-    track_xy, found = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol,
-                                      hue_tol_deg)
+    track_xy, found, index = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames,
+                                             rho_tol, hue_tol_deg, with_index=True)
     rho, ang = path.unit(track_xy[found])
     residual = float(np.sqrt(np.mean((rho - 1.0) ** 2)) * math.sqrt(path.a_px * path.b_px))
-    return Track(path, track_xy, found, angular_coverage(ang), shape, residual)
+    return Track(path, track_xy, found, angular_coverage(ang), shape, residual, index)
+
+
+def refit_track(track: Track, max_radius_px: float) -> Track:
+    """The path fitted again on the track's found frames only (after some were dropped)."""
+    pts = track.xy_px[track.found]
+    if len(pts) < 5:
+        return track
+    _, ang = track.path.unit(pts)
+    shape, path = _refit(pts, angular_coverage(ang), max_radius_px)
+    if path is None:
+        return track
+    rho, ang = path.unit(pts)
+    residual = float(np.sqrt(np.mean((rho - 1.0) ** 2)) * math.sqrt(path.a_px * path.b_px))
+    return Track(path, track.xy_px, track.found, angular_coverage(ang), shape, residual,
+                 track.index)
 
 
 def _refit(pts: np.ndarray, coverage: float, max_radius_px: float
@@ -283,18 +301,51 @@ def _refit(pts: np.ndarray, coverage: float, max_radius_px: float
     return "circle", circ
 
 
-def _best_per_frame(path: Ellipse, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol, hue_tol):
-    rho, _ = path.unit(xy)
-    err = np.abs(rho - 1.0)
-    ok = (err < rho_tol) & _hue_close(hue_deg, hue0, hue_tol)
-    track = np.full((n_frames, 2), np.nan)
+#: Hue range around the path's first-found hue within which a blob may be the marker before its
+#: hue is followed along the video [deg] (the marker's colour shifts under changing light).
+HUE_DRIFT_TOL_DEG = 60.0
+#: Found frames over which the marker's hue is followed (a running median).
+HUE_FOLLOW_FRAMES = 31
+
+
+def _pick(err, ok, frame_idx, n_frames):
     best_err = np.full(n_frames, np.inf)
+    index = np.full(n_frames, -1)
     for i in np.flatnonzero(ok):
         f = frame_idx[i]
         if err[i] < best_err[f]:
             best_err[f] = err[i]
-            track[f] = xy[i]
-    return track, np.isfinite(best_err)
+            index[f] = i
+    return index
+
+
+def _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol, hue_tol,
+                    with_index=False):
+    """Each frame's candidate nearest the path among those of the marker's hue.
+
+    The hue is followed along the video: first candidates within :data:`HUE_DRIFT_TOL_DEG` of
+    ``hue0``, then within ``hue_tol`` of the running median of those chosen.
+    """
+    rho, _ = path.unit(xy)
+    err = np.abs(rho - 1.0)
+    near = err < rho_tol
+    index = _pick(err, near & _hue_close(hue_deg, hue0, HUE_DRIFT_TOL_DEG), frame_idx, n_frames)
+    found = index >= 0
+    if found.sum() >= 3:
+        rel = (hue_deg[index[found]] - hue0 + 180.0) % 360.0 - 180.0
+        k = min(HUE_FOLLOW_FRAMES, rel.size) | 1
+        padded = np.pad(rel, k // 2, mode="edge")
+        med = np.median(np.lib.stride_tricks.sliding_window_view(padded, k), axis=1)
+        frames = np.flatnonzero(found)
+        local = hue0 + np.interp(np.arange(n_frames), frames, med)
+        d = np.abs((hue_deg - local[frame_idx] + 180.0) % 360.0 - 180.0)
+        index = _pick(err, near & (d <= hue_tol), frame_idx, n_frames)
+        found = index >= 0
+    track = np.full((n_frames, 2), np.nan)
+    track[found] = xy[index[found]]
+    if with_index:
+        return track, found, index
+    return track, found
 
 
 def _link_frames(frame_idx, xy, hue_deg, n_frames, max_step_px, hue_tol) -> np.ndarray:

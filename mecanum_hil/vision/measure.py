@@ -1,10 +1,11 @@
 """``measure-video`` as a library: a video of wheel markers in, a recording of wheel speeds out.
 
 One pass over the video: each frame is decoded (in a helper thread, so decoding and analysis
-overlap on two cores) and searched for marker candidates in each wheel's region. After the pass
-the marker of each wheel is chosen (:func:`~mecanum_hil.vision.geometry.select_track`), its angle
-taken on the path mapped to a circle, unwrapped and differentiated
-(:func:`~mecanum_hil.vision.speed.wheel_speed_rpm`).
+overlap on two cores), the wheel's hub is located (:mod:`~mecanum_hil.vision.hub`: a camera that
+shakes or drifts) and each wheel's region is searched for marker candidates. After the pass the
+marker of each wheel is chosen over the whole video, relative to the hub
+(:func:`~mecanum_hil.vision.geometry.select_track`), its angle taken on the path mapped to a
+circle, unwrapped across gaps and differentiated (:func:`~mecanum_hil.vision.speed.estimate_speed`).
 """
 
 from __future__ import annotations
@@ -23,14 +24,19 @@ from .. import __version__
 from ..errors import VideoError
 from ..io.recording import Recording, empty_like_times
 from .detect import BlobDetector, MarkerSpec
-from .geometry import select_track
-from .speed import wheel_speed_rpm
+from .geometry import refit_track, select_track
+from .hub import STILL_CAMERA_PX, HubTracker, camera_offsets
+from .speed import estimate_speed
 from .video import FrameTiming, frame_times, iter_frames, open_video
 
 #: Default regression window of the speed estimate [s] (see docs/vision.md).
 DEFAULT_WINDOW_S = 0.1
-#: Default smallest share of frames with the marker found for a trustworthy result.
-DEFAULT_MIN_FOUND = 0.5
+#: Default smallest share of frames with the marker found for a trustworthy result (a fender may
+#: hide half of each turn, more while the wheel starts slowly behind it; the gaps are reported).
+DEFAULT_MIN_FOUND = 0.3
+#: Share of frames that must keep a speed when aliasing refuses some; below it the video is
+#: refused as a whole (mostly beyond what the frame rate resolves).
+ALIASED_MIN_SHARE = 0.5
 #: RMS distance of the detections from the fitted path above which a warning is given [px].
 PATH_RESIDUAL_WARN_PX = 0.5
 #: Share of a turn below which the path's shape (circle or ellipse) is uncertain (a warning).
@@ -38,6 +44,22 @@ SHORT_ARC = 0.5
 #: Frames after which (and after twice, four times as many ...) the marker's path is looked
 #: for, to measure only blobs near it from then on.
 FOCUS_AFTER_FRAMES = 60
+#: Frames over which the camera is first watched; when the hub moved less than
+#: :data:`~mecanum_hil.vision.hub.STILL_CAMERA_PX` (SD) over them, it is only checked every
+#: STILL_CHECK_FRAMES frames from then on, until it has moved by STILL_MOVED_PX.
+STILL_CHECK_AFTER = 60
+STILL_CHECK_FRAMES = 10
+STILL_MOVED_PX = 0.3
+#: Frames (the latest) a try to focus looks at.
+FOCUS_FRAMES = 240
+#: Share of a turn the marker must have covered before the search focuses on its path: a path
+#: fitted to a shorter arc (a wheel starting slowly from rest) may miss the rest of the turn.
+FOCUS_COVERAGE = 0.8
+#: A detection next to a gap whose blob is smaller than this share of the marker's usual area is
+#: the marker partly hidden (its centroid pulled off): dropped.
+PARTIAL_AREA = 0.93
+#: Found frames over which the marker's full area is taken (see :func:`_drop_partial`).
+PARTIAL_REF_FRAMES = 121
 
 
 @dataclass(frozen=True)
@@ -59,6 +81,11 @@ class MeasureOptions:
         Smallest share of frames with the marker (0..1); below it the result is refused.
     seed : int
         Seed of the robust path search (results do not depend on it in practice).
+    expected_rpm : (low, high) or None
+        Expected speed range [rpm] (after ``invert``; ``(0, inf)`` for "forwards only"):
+        resolves motions beyond half a turn per frame (aliasing), which are refused without it.
+    track_hub : bool
+        Follow the hub per frame (a camera that shakes or drifts); off: fixed image coordinates.
     """
 
     rois: tuple[tuple[int, tuple[int, int, int, int] | None], ...] = ((1, None),)
@@ -68,6 +95,8 @@ class MeasureOptions:
     window_s: float = DEFAULT_WINDOW_S
     min_found: float = DEFAULT_MIN_FOUND
     seed: int = 0
+    expected_rpm: tuple[float, float] | None = None
+    track_hub: bool = True
 
     def __post_init__(self) -> None:
         wheels = [w for w, _ in self.rois]
@@ -77,6 +106,10 @@ class MeasureOptions:
             raise VideoError(f"--min-found must be within 0..1, got {self.min_found}")
         if not self.window_s > 0:
             raise VideoError(f"--window must be > 0 s, got {self.window_s}")
+        if self.expected_rpm is not None:
+            lo, hi = self.expected_rpm
+            if math.isnan(lo) or math.isnan(hi) or not lo < hi:
+                raise VideoError(f"expected speed range {lo}..{hi} rpm: need low < high")
 
 
 @dataclass(frozen=True)
@@ -145,8 +178,8 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
             if len(stamps) == next_focus:
                 next_focus *= 2
                 for k, det in enumerate(detectors):
-                    if isinstance(det, BlobDetector) and det.path is None:
-                        _focus(det, results[k])
+                    if isinstance(det, _WheelScan) and det.blobs.path is None:
+                        det.focus(results[k])
             if progress is not None:
                 progress(len(stamps), info.frame_count)
     finally:
@@ -156,30 +189,143 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     return info, np.array(stamps, dtype=float), results, detectors
 
 
-def _focus(det: BlobDetector, cands: list[np.ndarray]) -> None:
-    """Find the marker's path in the frames so far; if it is clear, focus the detector on it."""
-    n = len(cands)
-    frame_idx = np.concatenate([np.full(len(c), i) for i, c in enumerate(cands)]).astype(int)
-    allc = np.concatenate(cands)
-    try:
-        track = select_track(frame_idx, allc[:, :2], allc[:, 2], n, det.size_px,
-                             np.random.default_rng(1), hypotheses=200)
-    except VideoError:
-        return
-    if track.found.mean() >= 0.9 and track.coverage >= 0.25:
-        det.focus(track.path)
+class _WheelScan:
+    """One wheel's per-frame work: the hub's position, then the marker candidates near it.
+
+    Each call returns ``(candidates, hub)``: rows ``(x, y, hue, weight, area)`` in the frame's
+    coordinates, and ``(x, y, dark area)`` of the hub (NaN when not tracked).
+    """
+
+    def __init__(self, spec: MarkerSpec, roi, size, track_hub: bool) -> None:
+        self.blobs = BlobDetector(spec, roi, size)
+        self.hub = HubTracker(roi, size) if track_hub else None
+        self.hub0: tuple[float, float] | None = None
+        self.frames = 0
+        self.first: list[tuple[float, float]] = []
+        #: The camera looked still over the first frames: the hub is only checked every
+        #: :data:`STILL_CHECK_FRAMES` frames until it moves (the frames between are then
+        #: interpolated by :func:`~mecanum_hil.vision.hub.camera_offsets`).
+        self.sparse = False
+
+    def shift(self, hub: tuple[float, float, float]) -> tuple[float, float]:
+        """The hub's offset from the first frame [px] (0 when unknown)."""
+        if self.hub0 is None or not math.isfinite(hub[0]):
+            return (0.0, 0.0)
+        return (hub[0] - self.hub0[0], hub[1] - self.hub0[1])
+
+    def __call__(self, frame: np.ndarray):
+        k = self.frames
+        self.frames += 1
+        if self.hub is None or (self.sparse and k % STILL_CHECK_FRAMES):
+            hub = (math.nan, math.nan, 0.0)
+        else:
+            hub = self.hub(frame)
+            if self.hub0 is None and math.isfinite(hub[0]):
+                self.hub0 = (hub[0], hub[1])
+            self._watch(hub)
+        return self.blobs(frame, self.shift(hub)), hub
+
+    def _watch(self, hub: tuple[float, float, float]) -> None:
+        """Decide after the first frames whether the camera is still; leave the sparse mode
+        as soon as a check finds the hub moved."""
+        if not math.isfinite(hub[0]):
+            return
+        if self.sparse:
+            dx, dy = self.shift(hub)
+            if math.hypot(dx, dy) > STILL_MOVED_PX:
+                self.sparse = False
+            return
+        if len(self.first) < STILL_CHECK_AFTER:
+            self.first.append((hub[0], hub[1]))
+            if len(self.first) == STILL_CHECK_AFTER:
+                spread = float(np.max(np.std(np.array(self.first), axis=0)))
+                self.sparse = spread < STILL_CAMERA_PX
+
+    def focus(self, results: list) -> None:
+        """Find the marker's path in the frames so far (relative to the hub); when the marker
+        has covered most of it, search only near it from now on."""
+        # The latest frames only: the cost of a try stays bounded however long the video.
+        results = results[-FOCUS_FRAMES:]
+        n = len(results)
+        cands = [c[:, :2] - np.array(self.shift(h)) for c, h in results]
+        frame_idx = np.concatenate([np.full(len(c), i) for i, c in enumerate(cands)]).astype(int)
+        xy = np.concatenate(cands)
+        hue = np.concatenate([c[:, 2] for c, _ in results])
+        try:
+            track = select_track(frame_idx, xy, hue, n, self.blobs.size_px,
+                                 np.random.default_rng(1), hypotheses=200)
+        except VideoError:
+            return
+        if track.found.mean() >= 0.9 and track.coverage >= FOCUS_COVERAGE:
+            self.blobs.focus(track.path)
 
 
-def _wheel_angles(cands: list[np.ndarray], n: int, detector: BlobDetector, seed: int,
-                  source: str):
-    frame_idx = np.concatenate([np.full(len(c), i) for i, c in enumerate(cands)]).astype(int)
-    allc = np.concatenate(cands) if cands else np.empty((0, 4))
-    track = select_track(frame_idx, allc[:, :2], allc[:, 2], n, detector.size_px,
-                         np.random.default_rng(seed), source=source, initial=detector.path)
+def _edges(found: np.ndarray) -> np.ndarray:
+    """Found frames next to a frame without the marker."""
+    return found & ~(np.r_[True, found[:-1]] & np.r_[found[1:], True])
+
+
+def _drop_partial(track, area: np.ndarray, max_radius_px: float):
+    """Drop detections next to a gap that look like the marker partly hidden (its centroid is
+    pulled off): a blob smaller than the marker's running median, or off the path by far more
+    than the others. Returns the track (path refitted) and the number dropped."""
+    found = track.found.copy()
+    n = found.size
+    w = np.full(n, np.nan)
+    w[found] = area[track.index[found]]
+    frames = np.flatnonzero(found)
+    if frames.size < 5:
+        return track, 0
+    # The marker's full size nearby: the upper quartile over many found frames (a wheel turning
+    # slowly into hiding is partly hidden for dozens of frames; motion blur widens the blob at
+    # speed, so a global figure would not do).
+    k = min(PARTIAL_REF_FRAMES, frames.size) | 1
+    padded = np.pad(w[frames], k // 2, mode="edge")
+    full = np.percentile(np.lib.stride_tricks.sliding_window_view(padded, k), 75, axis=1)
+    ref = np.full(n, np.nan)
+    ref[frames] = full
+    dropped = 0
+    # Peel from the gap's edge inwards: a wheel turning slowly into hiding is partly hidden for
+    # many frames.
+    while True:
+        bad = _edges(found) & (w < PARTIAL_AREA * ref)
+        if not bad.any():
+            break
+        found[bad] = False
+        dropped += int(bad.sum())
+    for _ in range(10):
+        track.found[:] = found
+        track.xy_px[~found] = np.nan
+        if dropped:
+            track = refit_track(track, max_radius_px)
+        rho, _ = track.path.unit(track.xy_px)
+        resid = np.abs(rho - 1.0) * math.sqrt(track.path.a_px * track.path.b_px)
+        mad = float(np.median(resid[found]))
+        bad = _edges(found) & (resid > max(6.0 * mad, 0.3))
+        if not bad.any():
+            break
+        found[bad] = False
+        dropped += int(bad.sum())
+    return track, dropped
+
+
+def _wheel_angles(results: list, n: int, det: _WheelScan, seed: int, source: str):
+    hub = np.array([h for _, h in results], dtype=float).reshape(-1, 3)
+    if det.hub is not None:
+        offsets, _ = camera_offsets(hub)
+    else:
+        offsets = np.zeros((n, 2))
+    frame_idx = np.concatenate([np.full(len(c), i) for i, (c, _) in enumerate(results)]
+                               ).astype(int)
+    allc = np.concatenate([c for c, _ in results]) if results else np.empty((0, 5))
+    xy = allc[:, :2] - offsets[frame_idx]
+    track = select_track(frame_idx, xy, allc[:, 2], n, det.blobs.size_px,
+                         np.random.default_rng(seed), source=source, initial=det.blobs.path)
+    track, partial = _drop_partial(track, allc[:, 4], det.blobs.size_px)
     angle = np.full(n, np.nan)
     _, ang = track.path.unit(track.xy_px[track.found])
     angle[track.found] = ang
-    return track, angle
+    return track, angle, offsets, partial
 
 
 def measure_video(path: str | Path, options: MeasureOptions | None = None,
@@ -206,7 +352,7 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
             from .aruco import ArucoDetector
 
             return [ArucoDetector(roi, size) for _, roi in opts.rois]
-        return [BlobDetector(opts.marker, roi, size) for _, roi in opts.rois]
+        return [_WheelScan(opts.marker, roi, size, opts.track_hub) for _, roi in opts.rois]
 
     info, stamps, per_wheel, detectors = scan_video(path, make, progress)
     n = stamps.size
@@ -230,14 +376,19 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
 
             angle, geom = aruco_angles(cands, where)
         else:
-            track, angle = _wheel_angles(cands, n, det, opts.seed, where)
+            track, angle, offsets, partial = _wheel_angles(cands, n, det, opts.seed, where)
+            moved = float(np.max(np.hypot(*(offsets - np.median(offsets, axis=0)).T)))
             geom = {"path": track.shape, "centre_px": [round(track.path.cx_px, 2),
                                                        round(track.path.cy_px, 2)],
                     "axes_px": [round(track.path.a_px, 2), round(track.path.b_px, 2)],
                     "axis_angle_deg": round(track.path.angle_deg, 2),
                     "view_tilt_deg": round(track.path.tilt_deg, 1),
                     "path_coverage": round(track.coverage, 3),
-                    "path_residual_px": round(track.residual_px, 3)}
+                    "path_residual_px": round(track.residual_px, 3),
+                    "partial_dropped": partial,
+                    "hub": "not tracked" if det.hub is None else
+                    ("tracked" if moved > 0 else "still"),
+                    "camera_motion_px": round(moved, 2)}
             if track.residual_px > PATH_RESIDUAL_WARN_PX:
                 warnings.append(
                     f"wheel {wheel}: the marker's detections lie {track.residual_px:.1f} px (RMS) "
@@ -254,7 +405,9 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
         if share < opts.min_found:
             raise VideoError(f"{where}: marker found in only {100 * share:.0f}% of the frames "
                              f"(need {100 * opts.min_found:.0f}%, see --min-found)")
-        rpm, turns, outliers = wheel_speed_rpm(timing.t_s, angle, opts.window_s, opts.invert)
+        est = estimate_speed(timing.t_s, angle, opts.window_s, opts.invert, opts.expected_rpm)
+        rpm, turns, outliers = est.rpm, est.turns, est.outliers
+        _speed_warnings(est, wheel, timing, opts, where, warnings)
         wheel_rpm[:, wheel - 1] = rpm
         extra[f"wheel{wheel}_turns"] = ["" if not math.isfinite(v) else f"{v:.6f}" for v in turns]
         speeds = rpm[np.isfinite(rpm)]
@@ -265,6 +418,9 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
             "speed_samples": int(speeds.size),
             "mean_rpm": round(float(speeds.mean()), 3) if speeds.size else None,
             "max_abs_rpm": round(float(np.abs(speeds).max()), 3) if speeds.size else None,
+            "aliasing": est.aliasing, "aliased_frames": int(est.aliased.sum()),
+            "gaps": [g.as_dict() for g in est.gaps],
+            "gaps_unbridged": sum(not g.bridged for g in est.gaps),
             **geom})
     summary = {
         "video": src, "frames": n, "fps": round(timing.fps, 4),
@@ -273,6 +429,9 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
         "variable_frame_rate": timing.variable, "size_px": [info.width_px, info.height_px],
         "marker": opts.marker.kind, "method": _method(opts, timing),
         "wheels": wheels_summary, "offset_s": None, "warnings": warnings,
+        "aliasing": any(w["aliasing"] for w in wheels_summary),
+        "expected_rpm": None if opts.expected_rpm is None else
+        [None if math.isinf(v) else v for v in opts.expected_rpm],
     }
     meta = {"source": "mecanum-hil measure-video", "tool_version": __version__,
             "source_video": src, "fps": summary["fps"], "timing": timing.source,
@@ -280,6 +439,32 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
             "wheels": wheels_summary, "marker": opts.marker.kind, "invert": opts.invert}
     rec = rec.with_values(wheel_rpm=wheel_rpm, extra=extra, metadata=meta)
     return VideoMeasurement(rec, summary, tuple(warnings))
+
+
+def _speed_warnings(est, wheel: int, timing: FrameTiming, opts: MeasureOptions, where: str,
+                    warnings: list[str]) -> None:
+    """Warn about aliasing and unbridged gaps; refuse a wheel whose speeds are mostly aliased."""
+    t = timing.t_s
+    if est.aliasing:
+        first = float(t[int(np.argmax(est.aliased))])
+        limit = 30.0 * timing.fps
+        share = float(np.isfinite(est.rpm).mean())
+        msg = (f"aliasing at t={first:.3f} s: the marker moves about half a turn or more "
+               f"between frames (the limit is {limit:.0f} rpm at this frame rate); the "
+               f"direction is ambiguous there")
+        if share < max(opts.min_found, ALIASED_MIN_SHARE):
+            raise VideoError(f"{where}: {msg}; a speed is left for only {100 * share:.0f}% of "
+                             "the frames: film at a higher frame rate, or give the expected "
+                             "sign or speed range (--speed-range)")
+        warnings.append(f"wheel {wheel}: {msg}; no speed is written for "
+                        f"{int(est.aliased.sum())} frames (give --speed-range to resolve them)")
+    unbridged = [g for g in est.gaps if not g.bridged and g.reason != "aliasing"]
+    if unbridged:
+        g = unbridged[0]
+        warnings.append(
+            f"wheel {wheel}: the marker was hidden in {len(unbridged)} gap(s) too long to count "
+            f"the turns across (first {g.start_s:.2f}-{g.end_s:.2f} s: {g.reason}); the speed "
+            "is measured on both sides, the angle (turns) restarts after each")
 
 
 def _method(opts: MeasureOptions, timing: FrameTiming) -> str:

@@ -4,9 +4,12 @@ The renderer exists for tests and the demo: it gives videos with a known truth. 
 dark tyre, a grey hub and grey spokes (unsaturated, so they never pass for a marker) with one
 saturated dot near the rim. The wheel angle is the exact integral of the recording's wheel speed
 (taken as piecewise linear between samples) at each frame's mid-exposure time. Realism knobs:
-sensor noise, motion blur (the dot is smeared over the exposure), lighting drift, an oblique view
-(an affine squash: the rim becomes an ellipse), JPEG compression of each frame on top of the
-codec's, distractor objects (static and moving saturated blobs), and occlusions.
+sensor noise, motion blur (the dot is smeared over the exposure), lighting drift, mains flicker,
+a marker colour shifting under the light, an oblique view (an affine squash: the rim becomes an
+ellipse), JPEG compression of each frame on top of the codec's, distractor objects (static and
+moving saturated blobs), a fender hiding the top of each wheel, cards hiding the wheels for a
+while, and a camera that shakes and drifts. The truth kept beside each video: the wheel speeds
+and angles, the camera's offset and the share of each marker in view at every frame.
 """
 
 from __future__ import annotations
@@ -63,6 +66,21 @@ class RenderSettings:
         Saturated objects off the wheels: every second one moves on a straight line.
     occlusions_s : tuple of (start, end)
         Video-time intervals [s] when a grey card hides the wheels.
+    fender : float
+        Share of each wheel's height, from the top, hidden by a fender (0: none; 0.4 hides the
+        marker over about a third of each turn).
+    shake_px : float
+        Camera shake: standard deviation of a random offset of each frame, per axis [px].
+    drift_px : float
+        Camera drift: amplitude of a slow wandering of the view (periods 7 s and 11 s) [px].
+    flicker : float
+        Relative amplitude of mains-light flicker at ``flicker_hz`` (integrated over the
+        exposure, so it beats with the frame rate).
+    flicker_hz : float
+        Flicker frequency [Hz] (twice the mains frequency: 100 or 120).
+    hue_shift_deg : float
+        The marker's colour drifting under the light: amplitude of a slow hue rotation (period
+        5 s) of every saturated colour in the picture [deg].
     seed : int
         Seed of the noise and of the distractors' placement.
     marker : str
@@ -88,6 +106,12 @@ class RenderSettings:
     occlusions_s: tuple[tuple[float, float], ...] = ()
     seed: int = 0
     marker: str = "dot"
+    fender: float = 0.0
+    shake_px: float = 0.0
+    drift_px: float = 0.0
+    flicker: float = 0.0
+    flicker_hz: float = 100.0
+    hue_shift_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.width_px < 64 or self.height_px < 48:
@@ -104,6 +128,16 @@ class RenderSettings:
             raise VideoError(f"marker must be 'dot' or 'aruco', got '{self.marker}'")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
             raise VideoError(f"JPEG quality must be within 1..100, got {self.jpeg_quality}")
+        if not 0.0 <= self.fender < 1.0:
+            raise VideoError(f"fender must be within 0..1 (share of the wheel), got {self.fender}")
+        for name in ("shake_px", "drift_px", "flicker", "hue_shift_deg"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0.0):
+                raise VideoError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.flicker >= 1.0 or not self.flicker_hz > 0:
+            raise VideoError("flicker must be below 1 and its frequency > 0 Hz")
+        for t0, t1 in self.occlusions_s:
+            if not t1 > t0:
+                raise VideoError(f"occlusion ({t0}, {t1}): the end must come after the start")
 
 
 @dataclass(frozen=True)
@@ -134,6 +168,11 @@ class RenderResult:
         True wheel angle, as the recording's sign convention counts it [turns].
     placements : tuple of WheelPlacement
     settings : RenderSettings
+    camera_offset_px : ndarray, shape (N, 2)
+        Offset of the whole picture at each frame (camera shake and drift) [px].
+    marker_visible : ndarray, shape (N, W)
+        Share of each shown wheel's marker in view at each frame (0: hidden by the fender or a
+        card, 1: all of it), averaged over the exposure.
     """
 
     path: Path
@@ -143,6 +182,8 @@ class RenderResult:
     angle_turns: np.ndarray
     placements: tuple[WheelPlacement, ...]
     settings: RenderSettings
+    camera_offset_px: np.ndarray | None = None
+    marker_visible: np.ndarray | None = None
 
 
 def wheel_turns(t_s: np.ndarray, rpm: np.ndarray, t_query) -> np.ndarray:
@@ -239,8 +280,11 @@ class _Scene:
         x, y = self.view @ np.array([u, v])
         return (round((cx + x) * _SCALE), round((cy + y) * _SCALE))
 
-    def draw(self, t_video_s: float, angles_rad: list[np.ndarray]) -> np.ndarray:
-        """One BGR frame; ``angles_rad[k]`` are wheel k's angles over the exposure [rad]."""
+    def draw(self, t_video_s: float, angles_rad: list[np.ndarray],
+             offset_px: tuple[float, float] = (0.0, 0.0), flicker_gain: float = 1.0
+             ) -> np.ndarray:
+        """One BGR frame; ``angles_rad[k]`` are wheel k's angles over the exposure [rad],
+        ``offset_px`` the camera's offset, ``flicker_gain`` the light's flicker factor."""
         import cv2
 
         s = self.s
@@ -268,14 +312,35 @@ class _Scene:
             else:
                 self._marker(frame, pl, angles_rad[k], _hue_bgr(s.marker_hues_deg[
                     k % len(s.marker_hues_deg)]))
+            if s.fender:
+                # The fender covers the wheel plane above a chord (image y points down).
+                yf = -r * (1.0 - 2.0 * s.fender)
+                poly = np.array([self._pt(pl.cx_px, pl.cy_px, u, v) for u, v in
+                                 ((-1.15 * r, yf), (1.15 * r, yf), (1.15 * r, -1.12 * r),
+                                  (-1.15 * r, -1.12 * r))], np.int32)
+                cv2.fillConvexPoly(frame, poly, (62, 64, 68), cv2.LINE_AA, _SHIFT)
         for t0, t1 in s.occlusions_s:
             if t0 <= t_video_s < t1:
                 for pl in self.places:
                     x, y, w, h = pl.roi
                     cv2.rectangle(frame, (x, y), (x + w, y + h), (128, 126, 124), -1)
+        gain = flicker_gain
         if s.lighting_drift:
-            gain = 1.0 + s.lighting_drift * math.sin(2 * math.pi * t_video_s / 4.0)
+            gain *= 1.0 + s.lighting_drift * math.sin(2 * math.pi * t_video_s / 4.0)
+        if gain != 1.0:
             frame = cv2.convertScaleAbs(frame, alpha=gain)
+        if s.hue_shift_deg:
+            # OpenCV's hue is in units of 2 deg; grey pixels have no hue and stay grey.
+            shift = round(0.5 * s.hue_shift_deg * math.sin(2 * math.pi * t_video_s / 5.0))
+            if shift:
+                hsv = cv2.cvtColor(frame, cv2.COLOR_BGR2HSV)
+                hue = hsv[..., 0].astype(np.int16) + shift
+                hsv[..., 0] = np.mod(hue, 180).astype(np.uint8)
+                frame = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)
+        if offset_px[0] or offset_px[1]:
+            m = np.array([[1.0, 0.0, offset_px[0]], [0.0, 1.0, offset_px[1]]])
+            frame = cv2.warpAffine(frame, m, (frame.shape[1], frame.shape[0]),
+                                   flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
         if s.noise_std:
             # One plane of H x 3W: independent noise in each channel of each pixel.
             noise = np.empty((frame.shape[0], frame.shape[1] * 3), np.int16)
@@ -383,6 +448,50 @@ def wheel_truth(rec: Recording, settings: RenderSettings, t_rec_s: np.ndarray
     return rpm, turns
 
 
+def camera_offsets(settings: RenderSettings, frame_t_s: np.ndarray) -> np.ndarray:
+    """Offset of the picture at each frame [px], shape (N, 2): a slow drift plus shake."""
+    t = np.asarray(frame_t_s, dtype=float)
+    d = settings.drift_px
+    drift = np.column_stack([d * np.sin(2 * np.pi * t / 7.0),
+                             0.6 * d * np.sin(2 * np.pi * t / 11.0 + 1.0)])
+    rng = np.random.default_rng(settings.seed + 104729)
+    return drift + rng.normal(0.0, settings.shake_px, (t.size, 2)) if settings.shake_px \
+        else drift
+
+
+def _exposure_offsets(settings: RenderSettings) -> np.ndarray:
+    sub = 9 if settings.exposure > 0 else 1
+    half = 0.5 * settings.exposure / settings.fps
+    return np.linspace(-half, half, sub)
+
+
+def _exposure_angles(rec: Recording, settings: RenderSettings, t_rec_s: float,
+                     cols: list[np.ndarray]) -> list[np.ndarray]:
+    """Each shown wheel's marker angle over the exposure of a frame [rad]."""
+    sign = -1.0 if settings.mirror else 1.0
+    offsets = _exposure_offsets(settings)
+    return [0.3 + 1.7 * k + sign * 2 * math.pi * wheel_turns(rec.t_s, col, t_rec_s + offsets)
+            for k, col in enumerate(cols)]
+
+
+def marker_visibility(rec: Recording, settings: RenderSettings) -> np.ndarray:
+    """Share of each shown wheel's marker in view at each frame (the fender and the cards
+    hide it), averaged over the exposure; shape (N, W)."""
+    tv, tr = frame_schedule(rec, settings)
+    cols = _wheel_columns(rec, settings.wheels)
+    out = np.ones((tv.size, len(cols)))
+    if settings.fender and settings.marker == "dot":
+        # Height of the dot's centre above the fender's chord, in dot radii (0.7 R and 0.09 R).
+        for i in range(tv.size):
+            for k, a in enumerate(_exposure_angles(rec, settings, float(tr[i]), cols)):
+                d = np.clip(((1.0 - 2.0 * settings.fender) - 0.7 * np.sin(a)) / 0.09, -1.0, 1.0)
+                seg = (np.arccos(-d) + d * np.sqrt(1.0 - d * d)) / np.pi
+                out[i, k] = float(np.mean(seg))
+    for t0, t1 in settings.occlusions_s:
+        out[(tv >= t0) & (tv < t1)] = 0.0
+    return out
+
+
 def render_frames(rec: Recording, settings: RenderSettings) -> Iterator[np.ndarray]:
     """The frames of :func:`render_video`, one BGR uint8 array each."""
     tv, tr = frame_schedule(rec, settings)
@@ -390,16 +499,17 @@ def render_frames(rec: Recording, settings: RenderSettings) -> Iterator[np.ndarr
     import cv2
 
     cv2.setRNGSeed(int(settings.seed))
-    sub = 9 if settings.exposure > 0 else 1
-    half = 0.5 * settings.exposure / settings.fps
-    offsets = np.linspace(-half, half, sub)
-    sign = -1.0 if settings.mirror else 1.0
-    phases = [0.3 + 1.7 * k for k in range(len(settings.wheels))]
+    offsets = _exposure_offsets(settings)
+    shifts = camera_offsets(settings, tv)
     cols = _wheel_columns(rec, settings.wheels)
     for i in range(tv.size):
-        angles = [phases[k] + sign * 2 * math.pi * wheel_turns(rec.t_s, col, tr[i] + offsets)
-                  for k, col in enumerate(cols)]
-        yield scene.draw(float(tv[i]), angles)
+        flicker = 1.0
+        if settings.flicker:
+            # The exposure integrates the light: short shutters see the flicker most.
+            flicker += settings.flicker * float(np.mean(np.cos(
+                2 * np.pi * settings.flicker_hz * (tv[i] + offsets))))
+        yield scene.draw(float(tv[i]), _exposure_angles(rec, settings, float(tr[i]), cols),
+                         (float(shifts[i, 0]), float(shifts[i, 1])), flicker)
 
 
 def render_video(rec: Recording, path: str | Path, settings: RenderSettings | None = None,
@@ -426,4 +536,5 @@ def render_video(rec: Recording, path: str | Path, settings: RenderSettings | No
             writer.write(frame)
             if progress is not None:
                 progress(i + 1, tv.size)
-    return RenderResult(Path(path), tv, tr, rpm, turns, wheel_placements(s), s)
+    return RenderResult(Path(path), tv, tr, rpm, turns, wheel_placements(s), s,
+                        camera_offsets(s, tv), marker_visibility(rec, s))

@@ -17,9 +17,12 @@ import numpy as np
 
 from ..errors import VideoError
 
-#: Codec chosen by file extension; both write and read back with opencv-python-headless.
+#: Codec chosen by file extension; all write and read back with opencv-python-headless. H.264
+#: (``avc1``) has no encoder in the headless wheel; VP8 (``.webm``) is the H.264-like codec it
+#: offers (motion-compensated inter-frame prediction, in-loop deblocking); VP9 encodes too
+#: slowly here (over 0.5 s a frame).
 FOURCC_BY_SUFFIX = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG",
-                    ".mkv": "MJPG"}
+                    ".mkv": "MJPG", ".webm": "VP80"}
 
 #: Relative spread of frame intervals above which a video counts as variable frame rate.
 VARIABLE_RATE_TOLERANCE = 0.02

@@ -1,0 +1,116 @@
+"""``mecanum-hil measure-pose``: the robot's pose (X, Y, phi) from an overhead camera's video."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ._options import CalibrationOpt, JsonOpt, RobotOpt
+
+
+def command(
+    video: Annotated[Path, typer.Argument(help="Overhead video of the robot.")],
+    camera: Annotated[Path, typer.Option(
+        "--camera", help="camera.toml (calibrate-camera).", metavar="CAMERA.toml")],
+    scene: Annotated[Path, typer.Option(
+        "--scene", help="scene.toml: floor markers and the robot's marker.",
+        metavar="SCENE.toml")],
+    out: Annotated[Path, typer.Option(
+        "--out", "-o", help="POSE.csv to write; with --recording the recording with its pose "
+        "columns filled.")],
+    recording: Annotated[Path | None, typer.Option(
+        "--recording", help="Fill this recording's pose columns from the video.",
+        metavar="REC.csv")] = None,
+    video_start: Annotated[str | None, typer.Option(
+        "--video-start-s", help="Recording time of the first frame \\[s], or auto (the "
+        "robot's motion onset against the model for the commands; needs --recording). "
+        "Default: 0, with --recording auto.", metavar="S|auto")] = None,
+    calibration: CalibrationOpt = "paper",
+    robot: RobotOpt = "tdam-stm",
+    window_s: Annotated[float, typer.Option(
+        "--window", help="Smoothing window \\[s] (0: per-frame poses).")] = 0.2,
+    fps: Annotated[float | None, typer.Option(
+        "--fps", help="Frame rate overriding the video's timestamps \\[1/s].")] = None,
+    min_found: Annotated[float, typer.Option(
+        "--min-found", help="Refuse when the robot's marker is in fewer frames (0..1).")] = 0.2,
+    as_json: JsonOpt = False,
+) -> None:
+    """Measure the robot's pose per frame: static camera from the floor markers over the whole
+    video, the robot's marker on its known plane, smoothed without lag."""
+    import math
+
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from ..errors import ConfigError
+    from ..io.pose_track import fill_pose, onset_offset
+    from ..io.recording import read_recording, write_metadata, write_recording
+    from ..vision.camera import load_camera
+    from ..vision.pose import PoseOptions, measure_pose, write_pose_csv
+    from ..vision.scene import load_scene
+
+    start_auto = False
+    start_s = 0.0
+    if video_start is None:
+        start_auto = recording is not None
+    elif video_start.strip().lower() == "auto":
+        if recording is None:
+            raise ConfigError("--video-start-s auto needs --recording (the commands to find the "
+                              "robot's motion onset against)")
+        start_auto = True
+    else:
+        try:
+            start_s = float(video_start)
+        except ValueError:
+            start_s = math.nan
+        if not math.isfinite(start_s):
+            raise ConfigError(f"--video-start-s must be a number of seconds or auto, got "
+                              f"{video_start!r}")
+    cam = load_camera(camera)
+    scn = load_scene(scene)
+    rec = read_recording(recording) if recording is not None else None
+    with Progress(TextColumn("measuring pose"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total} frames"),
+                  console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("measure", total=None)
+        m = measure_pose(video, cam, scn, PoseOptions(window_s=window_s, fps=fps,
+                                                      min_found=min_found),
+                         progress=lambda d, t: bar.update(task, completed=d, total=t or None))
+    for w in m.warnings:
+        typer.echo(f"warning: {w}", err=True)
+    summary = dict(m.summary)
+    method = "given"
+    if start_auto:
+        from ..model import load_calibration, load_robot_profile
+        from ..prediction import predict
+
+        assert rec is not None
+        model = predict(rec, load_calibration(calibration), load_robot_profile(robot),
+                        source=str(recording))
+        start_s = onset_offset(m.t_s, m.pose, model.t_s, model.pose, source=str(video))
+        method = "auto: the robot's motion onset (1 cm) against the model for the commands"
+    summary["video_start_s"] = round(start_s, 6)
+    summary["video_start_method"] = method
+    if rec is not None:
+        filled = fill_pose(rec, m.t_s, m.pose, start_s, {
+            "pose_source": f"measure-pose {video}", "video_start_s": start_s,
+            "video_start_method": method, "pose_measurement": summary})
+        write_recording(filled, out)
+        summary["out"] = str(out)
+        summary["recording_rows_with_pose"] = int(
+            sum(1 for row in filled.pose if all(v == v for v in row)))
+    else:
+        write_pose_csv(out, m.t_s + start_s, m.pose)
+        write_metadata(out, summary)
+        summary["out"] = str(out)
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2))
+        return
+    cp = summary["camera_pose"]
+    typer.echo(f"{summary['frames']} frames, robot found in {100 * summary['found_share']:.1f} %;"
+               f" camera at {cp['position_m']} m, tilt {cp['tilt_deg']:.1f} deg, floor markers "
+               f"reproject {summary['camera_reprojection_rms_px']:.3f} px RMS; video start "
+               f"{start_s:.3f} s ({method}) -> {out}")
