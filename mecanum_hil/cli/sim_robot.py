@@ -27,14 +27,15 @@ def command(
         "--effects", help="TOML file of extra effects, noise and timed faults "
                           "(docs/link.md).")] = None,
     telemetry_rate_hz: Annotated[float, typer.Option(
-        "--telemetry-rate", help="Telemetry rate [Hz]; 0 sends none.")] = 100.0,
+        "--telemetry-rate", help="Telemetry rate [Hz]: 0 sends none, else 1 Hz up to the "
+                                 "internal rate, a whole divisor of it within 1%.")] = 100.0,
     internal_rate_hz: Annotated[float, typer.Option(
         "--internal-rate", help="Rate of the model's internal tick [Hz].")] = 1000.0,
     duration_s: Annotated[float | None, typer.Option(
         "--duration", help="Stop after this long [s] (default: until killed).")] = None,
-    protocol_version: Annotated[int, typer.Option(
+    protocol_version: Annotated[int | None, typer.Option(
         "--protocol-version", hidden=True,
-        help="Protocol version to claim (tests of a version mismatch).")] = 1,
+        help="Protocol version to claim (tests of a version mismatch).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", help="No event log on stderr.")] = False,
 ) -> None:
     """Run the simulated robot controller until stopped (SIGTERM or Ctrl-C)."""
@@ -46,8 +47,15 @@ def command(
 
     if serial + slcan + (can is not None) != 1:
         raise ConfigError("give exactly one of --serial, --slcan and --can INTERFACE:CHANNEL")
-    if telemetry_rate_hz < 0 or internal_rate_hz <= 0:
-        raise ConfigError("--telemetry-rate must be >= 0 and --internal-rate > 0")
+    from ..link.protocol import PROTOCOL_VERSION
+    from ..link.simulated import telemetry_ticks_for
+
+    ticks = telemetry_ticks_for(telemetry_rate_hz, internal_rate_hz)  # ConfigError if not
+    if ticks and abs(internal_rate_hz / ticks - telemetry_rate_hz) > 0.01 * telemetry_rate_hz:
+        # samples are taken on ticks: say so rather than send another rate than asked for
+        raise ConfigError(f"--telemetry-rate {telemetry_rate_hz:g} Hz is not a whole divisor "
+                          f"of the {internal_rate_hz:g} Hz internal tick; the nearest it gives "
+                          f"is {internal_rate_hz / ticks:.6g} Hz")
     # one robot per process: spare the machine's cores (set before numba is imported)
     from ..link.sim_process import SINGLE_THREAD_ENV
 
@@ -70,8 +78,8 @@ def command(
 
     kind = "serial" if serial else "slcan" if slcan else "can"
     transport, where, keep = open_controller_end(kind, can)
-    ctrl = SimulatedController(transport, model, telemetry_rate_hz, version=protocol_version,
-                               log=log)
+    ctrl = SimulatedController(transport, model, telemetry_rate_hz,
+                               version=protocol_version or PROTOCOL_VERSION, log=log)
     signal.signal(signal.SIGTERM, lambda signum, frame: ctrl.stop_event.set())
     print(where, flush=True)
     log(f"serving on {where} ({kind}); calibration {cal.source}"
@@ -83,4 +91,5 @@ def command(
         for fd in keep:
             os.close(fd)
         log(f"stopped; {ctrl.commands_received} commands, {ctrl.stops_received} stops, "
-            f"{transport.stats.sent} frames sent, {model.calls} model calls")
+            f"{ctrl.bad_commands} commands refused, {transport.stats.sent} frames sent, "
+            f"{model.calls} model calls")

@@ -18,13 +18,16 @@ import numpy as np
 from ..errors import ConfigError, LimitError, LinkError, LinkLostError
 from ..io.resources import resource_dir
 from .protocol import (
+    PROTOCOL_VERSION,
     Command,
     ErrorMsg,
+    EstopReset,
     FrameError,
     Heartbeat,
     Hello,
     HelloAck,
     Message,
+    MsgType,
     Ping,
     Pong,
     Stop,
@@ -36,8 +39,12 @@ from .transport import Transport
 DBC_NAME = "mecanum_hil.dbc"
 
 _NAME_OF = {Stop: "MH_STOP", Command: "MH_COMMAND", Heartbeat: "MH_HEARTBEAT",
-            Hello: "MH_HELLO", Ping: "MH_PING", ErrorMsg: "MC_ERROR", HelloAck: "MC_HELLO_ACK",
-            Pong: "MC_PONG"}
+            Hello: "MH_HELLO", Ping: "MH_PING", EstopReset: "MH_ESTOP_RESET",
+            ErrorMsg: "MC_ERROR", HelloAck: "MC_HELLO_ACK", Pong: "MC_PONG"}
+
+#: Identifiers of host frames and controller frames (the DBC's ranges).
+HOST_IDS = range(0x100, 0x180)
+CONTROLLER_IDS = range(0x180, 0x200)
 
 
 def dbc_path() -> Path:
@@ -86,8 +93,11 @@ class CanCodec:
         elif isinstance(msg, Ping | Pong):
             values["token"] = msg.token & 0xFFFFFFFF
         elif isinstance(msg, HelloAck):
-            values.update(version=msg.version, telemetry_rate=msg.telemetry_rate_hz,
-                          watchdog=msg.watchdog_ms)
+            values.update(version=msg.version,
+                          telemetry_rate=min(max(int(msg.telemetry_rate_hz), 0), 0xFFFF),
+                          watchdog=min(max(int(msg.watchdog_ms), 0), 0xFFFF),
+                          # a larger limit is announced as the signal's end
+                          wheel_limit=min(max(float(msg.wheel_limit_rpm), 0.0), 655.35))
         elif isinstance(msg, ErrorMsg):
             values["code"] = msg.code & 0xFF
         try:
@@ -108,11 +118,14 @@ class CanCodec:
         spec = self._by_id.get(arbitration_id)
         if spec is None:
             raise FrameError("unknown_type", f"unknown CAN id 0x{arbitration_id:03X}")
-        if len(data) != spec.length:
-            raise FrameError("malformed", f"{spec.name} with {len(data)} bytes, "
-                                          f"expected {spec.length}")
-        v = spec.decode(bytes(data), decode_choices=False)
         name = spec.name
+        if len(data) != spec.length:
+            if name == "MC_HELLO_ACK" and data and data[0] != PROTOCOL_VERSION:
+                # another version's answer: its first byte is the version, the rest not ours
+                return HelloAck(int(data[0]), 0, 0, "", 0)
+            raise FrameError("malformed", f"{spec.name} with {len(data)} bytes, expected "
+                             f"{spec.length}", MsgType.COMMAND if name == "MH_COMMAND" else None)
+        v = spec.decode(bytes(data), decode_choices=False)
         if name == "MC_STATUS":
             lost_half = self._pending_status is not None
             self._pending_status = {k: int(v[k]) for k in ("time_us", "status", "ack_seq", "seq")}
@@ -128,6 +141,10 @@ class CanCodec:
             return Telemetry(st["time_us"], wheels, st["status"], st["ack_seq"], st["seq"])
         seq = int(v["seq"])
         if name == "MH_COMMAND":
+            if int(v["reserved"]) != 0:
+                # a later version may give the byte a meaning this controller cannot honour
+                raise FrameError("bad_command", "MH_COMMAND with reserved byte "
+                                 f"{int(v['reserved'])}, must be 0", MsgType.COMMAND, seq)
             return Command(float(v["n_cmd"]), float(v["omega_cmd"]), float(v["theta_cmd"]), seq)
         if name == "MH_STOP":
             return Stop(seq)
@@ -137,11 +154,13 @@ class CanCodec:
             return Hello(int(v["version"]), seq)
         if name == "MH_PING":
             return Ping(int(v["token"]), seq)
+        if name == "MH_ESTOP_RESET":
+            return EstopReset(seq)
         if name == "MC_PONG":
             return Pong(int(v["token"]), seq)
         if name == "MC_HELLO_ACK":
             return HelloAck(int(v["version"]), int(v["telemetry_rate"]), int(v["watchdog"]),
-                            "", seq)
+                            "", seq, float(v["wheel_limit"]))
         return ErrorMsg(int(v["code"]), "", seq)
 
     def check_commands(self, commands, what: str = "commands to send") -> None:
@@ -181,6 +200,19 @@ class CanCodec:
             self._pending_status = self_state
         assert isinstance(msg, Command)
         return msg
+
+
+def count_frame_error(transport: Transport, err: FrameError) -> None:
+    """Count a dropped CAN frame once, by its first failure, and keep a trustworthy one in
+    ``transport.rejected`` (a refused command is answered with ERROR 2)."""
+    if err.kind == "unknown_type":
+        transport.stats.unknown_types += 1
+    elif err.kind == "malformed":
+        transport.stats.malformed += 1
+    if err.kind != "bad_command":
+        transport._dropped()
+    if err.mtype is not None:
+        transport.rejected.append(err)
 
 
 def _clamp(value: float, limit: float) -> float:
@@ -236,12 +268,25 @@ class CanTransport(Transport):
 
     def _send(self, msg: Message) -> None:
         for fid, data in self._codec.encode(msg):
-            frame = self._can.Message(arbitration_id=fid, data=data, is_extended_id=False)
-            try:
-                self.bus.send(frame, timeout=0.05)
-            except self._can.CanError as err:
-                self.stats.bus_errors += 1
-                raise LinkError(f"CAN {self.port}: send failed: {err}") from err
+            self._put(fid, data)
+
+    def _put(self, fid: int, data: bytes) -> None:
+        frame = self._can.Message(arbitration_id=fid, data=data, is_extended_id=False)
+        try:
+            self.bus.send(frame, timeout=0.05)
+        except self._can.CanError as err:
+            self.stats.bus_errors += 1
+            raise LinkError(f"CAN {self.port}: send failed: {err}") from err
+
+    def send_raw(self, data: tuple[int, bytes]) -> None:
+        """Send one CAN frame ``(arbitration_id, data)`` as it is (conformance tests)."""
+        fid, payload = data
+        self._put(int(fid), bytes(payload))
+
+    def _own_ids(self) -> range | None:
+        if self.receives is None:
+            return None
+        return HOST_IDS if Command not in self.receives else CONTROLLER_IDS
 
     def _recv(self, timeout_s: float) -> Message | None:
         deadline = time.monotonic() + timeout_s
@@ -258,16 +303,22 @@ class CanTransport(Transport):
             if frame.is_error_frame:
                 self.stats.bus_errors += 1
                 continue
+            own = self._own_ids()
+            if not getattr(frame, "is_rx", True) or (
+                    own is not None and not frame.is_extended_id
+                    and frame.arbitration_id in own):
+                # our own frame heard back (receive_own_messages, udp_multicast's loopback):
+                # not received, not a gap in the peer's numbering
+                self.stats.echoes += 1
+                continue
             if frame.is_remote_frame or frame.is_extended_id:
                 self.stats.unknown_types += 1
+                self._dropped()
                 continue
             try:
                 msg = self._codec.decode(frame.arbitration_id, bytes(frame.data))
             except FrameError as err:
-                if err.kind == "unknown_type":
-                    self.stats.unknown_types += 1
-                else:
-                    self.stats.malformed += 1
+                count_frame_error(self, err)
                 continue
             if msg is not None:
                 return msg

@@ -67,6 +67,45 @@ class FramedLoopback(Transport):
         pass
 
 
+class MemoryLink(Transport):
+    """The controller's end of a serial link in memory, for driving the firmware in simulated
+    time: :meth:`feed` gives it the host's bytes (anything: frames, damage, garbage), decoded
+    by the protocol's stream decoder; what the controller sends is framed, decoded back and
+    kept in :attr:`out`."""
+
+    name = "memory"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._decoder = StreamDecoder()
+        self._inbox: deque[tuple[Message, int]] = deque()
+        self._host = StreamDecoder()
+        self.out: list[Message] = []
+
+    def feed(self, data: bytes) -> None:
+        """Bytes from the host, as they would arrive on the wire."""
+        self._inbox.extend(self._decoder.feed_counted(data))
+        c = self._decoder.counts
+        self.stats.crc_errors, self.stats.malformed = c.crc, c.malformed
+        self.stats.unknown_types, self.stats.version_errors = c.unknown_type, c.version
+        self.stats.garbage_bytes = c.garbage_bytes
+        while self._decoder.rejected:
+            self.rejected.append(self._decoder.rejected.popleft())
+
+    def _send(self, msg: Message) -> None:
+        self.out.extend(self._host.feed(encode(msg)))
+
+    def _recv(self, timeout_s: float) -> Message | None:
+        if not self._inbox:
+            return None
+        msg, drops = self._inbox.popleft()
+        self._dropped(drops)
+        return msg
+
+    def _close(self) -> None:
+        pass
+
+
 class VirtualClock:
     """A clock that moves only when told [s]."""
 
@@ -158,8 +197,7 @@ def record_lockstep(
     lead = 2.0 * d
     to_ctrl.send(Hello(PROTOCOL_VERSION))
     ctrl.handle(to_ctrl.delivered.popleft())
-    hello_ack = to_host.delivered.popleft()
-    to_ctrl.restart_sequences()
+    hello_ack = to_host.delivered.popleft()  # HELLO was seq 0: the first command is seq 1
     rng = np.random.default_rng(pose_seed)
     pose_sd = None if pose_noise is None else np.asarray(pose_noise, dtype=float)
 

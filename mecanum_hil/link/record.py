@@ -78,13 +78,17 @@ def format_summary(result: RecordResult) -> str:
         f"  recording   {result.path} ({result.rows} rows, {result.telemetry_received} "
         f"telemetry samples)",
         f"  frames      sent {s['sent']} (commands {result.commands_sent}), "
-        f"received {s['received']}, lost {s['lost']}",
+        f"received {s['received']}, lost {s['lost']}"
+        + (f", own echoes ignored {s['echoes']}" if s.get("echoes") else ""),
         f"  errors      crc {s['crc_errors']}, malformed {s['malformed']}, unknown types "
         f"{s['unknown_types']}, wrong version {s['version_errors']}, bus {s['bus_errors']}, "
         f"send {s['send_errors']}, garbage bytes {s['garbage_bytes']}",
         f"  round trip  {pct('rtt')}",
         f"  cmd -> ack  {pct('ack')}",
     ]
+    if result.reason in ("telemetry_rate", "controller_reset"):
+        lines.append("  telemetry   the run was stopped: see end_message and link_events in the "
+                     "sidecar")
     if result.observer_dropped:
         lines.append(f"  observers   missed {result.observer_dropped} samples (too slow)")
     return "\n".join(lines)

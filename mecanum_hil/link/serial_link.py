@@ -102,7 +102,7 @@ class SerialTransport(Transport):
         self.port = port if port is not None else f"fd {fd}"
         self._ser = None
         self._decoder = StreamDecoder()
-        self._inbox: deque[Message] = deque()
+        self._inbox: deque[tuple[Message, int]] = deque()
         self._out = PendingOutput(self._write, self.port)
         if fd is not None:
             os.set_blocking(fd, False)
@@ -141,6 +141,10 @@ class SerialTransport(Transport):
             self._out.urgent(encode(msg), resync=b"\x00")
         else:
             self._out.queue(encode(msg))
+
+    def send_raw(self, data: bytes) -> None:
+        """Queue ``data`` (bytes, framed or not) for the wire as it is (conformance tests)."""
+        self._out.queue(bytes(data))
 
     def _write(self, data: bytes) -> int:
         if self._fd is not None:
@@ -187,17 +191,21 @@ class SerialTransport(Transport):
             remaining = deadline - time.monotonic()
             data = self._read_available(max(0.0, remaining))
             if data:
-                self._inbox.extend(self._decoder.feed(data))
+                self._inbox.extend(self._decoder.feed_counted(data))
                 self._sync_counts()
             if not self._inbox and remaining <= 0:
                 return None
-        return self._inbox.popleft()
+        msg, drops = self._inbox.popleft()
+        self._dropped(drops)
+        return msg
 
     def _sync_counts(self) -> None:
         c = self._decoder.counts
         s = self.stats
         s.crc_errors, s.malformed, s.unknown_types = c.crc, c.malformed, c.unknown_type
         s.version_errors, s.garbage_bytes = c.version, c.garbage_bytes
+        while self._decoder.rejected:
+            self.rejected.append(self._decoder.rejected.popleft())
 
     def _close(self) -> None:
         try:

@@ -12,7 +12,10 @@ reason                code   meaning
 ``completed``         0      the whole profile was sent
 ``error``             1      an exception (the error's own exit code when it is ours)
 ``observer_stop``     3      an observer (shadow mode) asked to stop
-``link_lost``         4      the port vanished, or the controller fell silent
+``link_lost``         4      the port vanished, or the controller's telemetry stopped
+``telemetry_rate``    5      telemetry far from the announced rate (or some when none was)
+``controller_reset``  6      the controller clock went back, its seq restarted, or an
+                             unasked HELLO_ACK came: it restarted behind the host's back
 ``interrupted``       130    Ctrl-C
 ``terminated``        143    SIGTERM or SIGHUP
 ====================  =====  ===========================================================
@@ -37,17 +40,29 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from .. import __version__
-from ..errors import ConfigError, LinkError, LinkLostError, MecanumHILError, ProtocolError
+from ..errors import (
+    ConfigError,
+    LimitError,
+    LinkError,
+    LinkLostError,
+    MecanumHILError,
+    ProtocolError,
+)
 from ..io.recording import RecordingWriter
+from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
 from .protocol import (
+    LIMIT_SLACK,
     PROTOCOL_VERSION,
+    STATUS_DEFINED,
+    THETA_LIMIT_DEG,
     WATCHDOG_S,
     ErrorMsg,
     Hello,
     HelloAck,
     Ping,
     Pong,
+    Status,
     Stop,
     Telemetry,
 )
@@ -55,7 +70,16 @@ from .transport import Transport
 
 #: Exit code of each way a session can end.
 EXIT_CODES = {"completed": 0, "error": 1, "observer_stop": 3, "link_lost": 4,
-              "interrupted": 130, "terminated": 143}
+              "telemetry_rate": 5, "controller_reset": 6, "interrupted": 130,
+              "terminated": 143}
+
+#: Telemetry rate (observed over windows of at least 1 s) outside this factor of the
+#: announced one ends the run with ``telemetry_rate``.
+RATE_TOLERANCE = 2.0
+
+#: Non-telemetry frames in a row after which the link timeout is checked even though frames
+#: keep arriving (fewer could be a backlog read after the host itself stalled).
+_OTHER_FRAMES_BEFORE_CHECK = 8
 
 #: Extra columns of a recording made by a session, after the pinned ones.
 EXTRA_COLUMNS = ("event", "seq", "controller_time_s", "status")
@@ -105,8 +129,8 @@ class SessionConfig:
     connect_timeout_s : float
         How long HELLO is repeated (every 0.1 s) before giving up [s].
     link_timeout_s : float
-        Telemetry silence after which the link counts as lost (when the controller announced
-        telemetry) [s].
+        Telemetry silence after which the link counts as lost, whatever other frames arrive
+        (when the controller announced telemetry) [s].
     ping_rate_hz : float
         Rate of PING frames for the round-trip latency [Hz]; 0 for none.
     tail_s : float
@@ -176,6 +200,21 @@ class RecordResult:
 
 class SessionTerminated(BaseException):
     """Raised inside the session by its SIGTERM handler (like ``KeyboardInterrupt``)."""
+
+
+class TelemetryCheckError(LinkError):
+    """The telemetry is not sane: the run ends with STOP and ``reason``'s exit code.
+
+    Attributes
+    ----------
+    reason : str
+        ``"telemetry_rate"`` or ``"controller_reset"`` (see :data:`EXIT_CODES`).
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+        self.exit_code = EXIT_CODES[reason]
 
 
 def percentiles_ms(samples_s: Sequence[float], prefix: str) -> dict[str, float]:
@@ -259,8 +298,11 @@ class _Session:
     def __init__(self, transport: Transport, t_s: np.ndarray, commands: np.ndarray,
                  writer: RecordingWriter, config: SessionConfig,
                  observers: Sequence[TelemetryObserver],
-                 progress: Callable[[float, float, dict[str, Any]], None] | None) -> None:
+                 progress: Callable[[float, float, dict[str, Any]], None] | None,
+                 peak_wheel_rpm: float = 0.0) -> None:
         self.tr = transport
+        transport.set_role("host")
+        self.peak_wheel_rpm = peak_wheel_rpm
         self.t_s = t_s
         self.commands = commands
         self.writer = writer
@@ -273,9 +315,18 @@ class _Session:
         self.commands_sent = 0
         self.telemetry = 0
         self.telemetry_rate_hz = 0
-        self.last_rx = time.perf_counter()
+        self.watchdog_ms = 0
+        self.wheel_limit_rpm = math.nan
+        self.last_tlm = time.perf_counter()
+        self._other_frames = 0
         self.send_failures = 0
         self.controller = ""
+        #: What happened on the link that did not end the run (the sidecar's ``link_events``).
+        self.events: list[dict[str, Any]] = []
+        self._tlm_seq: int | None = None
+        self._status_seen = 0
+        self._win: tuple[float, float, int] | None = None  # host time, controller time, count
+        self._first = (0.0, 0.0)  # host and controller time of the first sample
         self._ping_token = 0
         self._pings: dict[int, float] = {}
         self._acks: dict[int, float] = {}
@@ -291,18 +342,92 @@ class _Session:
         return self.last_t
 
     def _controller_time_s(self, time_us: int) -> float:
-        if self._ctrl_last is not None and time_us < self._ctrl_last - (1 << 31):
-            self._ctrl_wrap += 1 << 32
+        last = self._ctrl_last
+        if last is not None:
+            step = (time_us - last) % (1 << 32)
+            if step == 0 or step >= 1 << 31:
+                raise TelemetryCheckError(
+                    "controller_reset", f"{self.tr.port}: the controller clock went back from "
+                    f"{last * 1e-6:.6f} s to {time_us * 1e-6:.6f} s (the controller restarted?)")
+            if time_us < last:
+                self._ctrl_wrap += 1 << 32
         self._ctrl_last = time_us
         return (time_us + self._ctrl_wrap) * 1e-6
 
+    def _event(self, now: float, event: str, detail: str) -> None:
+        t = None if self.t0 is None else round(now - self.t0, 6)
+        if len(self.events) < 1000:
+            self.events.append({"t_s": t, "event": event, "detail": detail})
+
+    def _check_sequence(self, msg: Telemetry) -> None:
+        last = self._tlm_seq
+        self._tlm_seq = msg.seq
+        if last is None:
+            return
+        gap = (msg.seq - last) % self.tr.seq_modulus
+        if gap == 0 or gap >= self.tr.seq_modulus // 2:
+            raise TelemetryCheckError(
+                "controller_reset", f"{self.tr.port}: the controller's sequence numbers went "
+                f"back from {last} to {msg.seq} (the controller restarted?)")
+
+    def _check_rate(self, now: float, ctrl_t: float) -> None:
+        rate = self.telemetry_rate_hz
+        if rate <= 0:
+            raise TelemetryCheckError(
+                "telemetry_rate", f"{self.tr.port}: telemetry arrives although the controller "
+                "announced none (rate 0 in HELLO_ACK)")
+        if self._win is None:
+            self._win = (now, ctrl_t, 0)
+            self._first = (now, ctrl_t)
+            return
+        # a controller clock running ahead of the host's (its samples claim more time than
+        # passed): a stalled host only ever makes the host's elapsed time longer
+        ctrl_elapsed, host_elapsed = ctrl_t - self._first[1], now - self._first[0]
+        if ctrl_elapsed > RATE_TOLERANCE * host_elapsed + 1.0:
+            raise TelemetryCheckError(
+                "telemetry_rate", f"{self.tr.port}: the controller clock advanced "
+                f"{ctrl_elapsed:.2f} s while the host's advanced {host_elapsed:.2f} s")
+        h0, c0, count = self._win
+        count += 1
+        span = now - h0
+        if span < max(1.0, 20.0 / rate):
+            self._win = (h0, c0, count)
+            return
+        host_rate = count / span
+        ctrl_span = ctrl_t - c0
+        ctrl_rate = count / ctrl_span if ctrl_span > 0 else math.inf
+        # too fast by the samples' own times (a backlog read after a host stall arrives
+        # bunched, but its times are right); too slow by both clocks
+        if ctrl_rate > RATE_TOLERANCE * rate or max(host_rate, ctrl_rate) < rate / RATE_TOLERANCE:
+            raise TelemetryCheckError(
+                "telemetry_rate", f"{self.tr.port}: telemetry at {ctrl_rate:.1f} Hz by the "
+                f"controller clock and {host_rate:.1f} Hz by the host's, announced {rate:g} Hz")
+        self._win = (now, ctrl_t, 0)
+
+    def _note_status(self, now: float, status: int) -> None:
+        # bits switching on are events; STOPPED is the host's own doing (HELLO, STOP)
+        new = status & ~self._status_seen & ~Status.STOPPED
+        self._status_seen = status
+        for bit in (Status.ESTOP, Status.WATCHDOG, Status.FAULT):
+            if new & bit:
+                self._event(now, f"status_{bit.name.lower()}",
+                            f"the controller set status bit {bit.name}")
+        if new & ~STATUS_DEFINED:
+            self._event(now, "status_reserved",
+                        f"reserved status bits 0x{new & ~STATUS_DEFINED:04X} set (a later "
+                        "protocol version's?): recorded, otherwise ignored")
+
     # -- receiving ---------------------------------------------------------------------------
     def handle(self, msg, now: float) -> None:
-        self.last_rx = now
         if isinstance(msg, Telemetry):
+            self.last_tlm = now
+            self._other_frames = 0
+            self._check_sequence(msg)
+            ctrl_t = self._controller_time_s(msg.time_us)
+            self._check_rate(now, ctrl_t)
+            self._note_status(now, msg.status)
             if msg.ack_seq in self._acks:
                 self.ack.append(now - self._acks.pop(msg.ack_seq))
-            ctrl_t = self._controller_time_s(msg.time_us)
             if self.t0 is None:
                 return  # before the first command: nothing is in force yet
             self.telemetry += 1
@@ -318,6 +443,10 @@ class _Session:
         elif isinstance(msg, ErrorMsg):
             raise ProtocolError(f"{self.tr.port}: the controller reported error {msg.code}: "
                                 f"{msg.text or '(no text)'}")
+        elif isinstance(msg, HelloAck):
+            raise TelemetryCheckError(
+                "controller_reset", f"{self.tr.port}: a HELLO_ACK came in the middle of the "
+                "run: the controller restarted its session")
 
     def pump_until(self, deadline: float) -> None:
         while True:
@@ -330,10 +459,16 @@ class _Session:
             self.writer.tick()
             if msg is not None:
                 self.handle(msg, now)
-            elif self.telemetry_rate_hz > 0 and now - self.last_rx > self.config.link_timeout_s:
+                if not isinstance(msg, Telemetry):
+                    self._other_frames += 1
+            # a lost link is telemetry that stopped, whatever else keeps arriving
+            if self.telemetry_rate_hz > 0 and now - self.last_tlm > self.config.link_timeout_s \
+                    and (msg is None or self._other_frames >= _OTHER_FRAMES_BEFORE_CHECK):
                 raise LinkLostError(
-                    f"{self.tr.port}: link lost: no frame from the controller for "
-                    f"{now - self.last_rx:.2f} s")
+                    f"{self.tr.port}: link lost: no telemetry from the controller for "
+                    f"{now - self.last_tlm:.2f} s" + (
+                        f" ({self._other_frames} other frames came meanwhile)"
+                        if self._other_frames else ""))
         self._report_progress()
 
     def _report_progress(self) -> None:
@@ -360,23 +495,56 @@ class _Session:
         self.send_failures = 0
         return sent
 
+    def _accept_hello_ack(self, msg: HelloAck) -> None:
+        if msg.version != PROTOCOL_VERSION:
+            raise ProtocolError(
+                f"{self.tr.port}: the controller speaks protocol version {msg.version}, this "
+                f"host speaks {PROTOCOL_VERSION} (update the firmware or mecanum-hil)")
+        self.telemetry_rate_hz = msg.telemetry_rate_hz
+        self.watchdog_ms = msg.watchdog_ms
+        self.wheel_limit_rpm = msg.wheel_limit_rpm
+        self.controller = msg.name
+        # the HELLO was seq 0; the controller's next frame after its HELLO_ACK is ack.seq + 1
+        self.tr.expect_next(msg.seq + 1)
+        self.tr.stats.lost = 0  # gaps before the session are not the session's
+        self._tlm_seq = None
+        self._ctrl_last = None
+        self._ctrl_wrap = 0
+        self._win = None
+        self.last_tlm = time.perf_counter()
+
+    def _check_announcement(self) -> None:
+        gaps = np.diff(self.t_s)
+        widest = float(gaps.max()) if gaps.size else 0.0
+        if self.watchdog_ms <= 0 or widest >= self.watchdog_ms / 1000.0:
+            raise ProtocolError(
+                f"{self.tr.port}: the controller's watchdog is {self.watchdog_ms} ms but "
+                f"commands are up to {widest * 1000:.0f} ms apart")
+        limit = self.wheel_limit_rpm
+        if not (math.isfinite(limit) and limit > 0):
+            raise ProtocolError(f"{self.tr.port}: the controller announced no valid wheel "
+                                f"speed limit ({limit!r} rpm in HELLO_ACK)")
+        if self.peak_wheel_rpm > limit * (1 + LIMIT_SLACK):
+            raise LimitError(
+                f"{self.tr.port}: the commands need a wheel speed of {self.peak_wheel_rpm:.1f} "
+                f"rpm, beyond the controller's announced limit of {limit:g} rpm (nothing "
+                "was commanded)")
+
     def handshake(self) -> None:
         deadline = time.perf_counter() + self.config.connect_timeout_s
+        hellos = 0
         while time.perf_counter() < deadline:
+            self.tr.restart_sequences()  # every HELLO carries seq 0; the first command seq 1
             self.send(Hello(PROTOCOL_VERSION))
+            hellos += 1
             until = min(deadline, time.perf_counter() + 0.1)
             while (now := time.perf_counter()) < until:
                 msg = self.tr.recv(until - now)
                 if isinstance(msg, HelloAck):
-                    if msg.version != PROTOCOL_VERSION:
-                        raise ProtocolError(
-                            f"{self.tr.port}: the controller speaks protocol version "
-                            f"{msg.version}, this host speaks {PROTOCOL_VERSION}")
-                    self.telemetry_rate_hz = msg.telemetry_rate_hz
-                    self.controller = msg.name
-                    self.tr.restart_sequences()
-                    self.tr.stats.lost = 0  # gaps before the session are not the session's
-                    self.last_rx = time.perf_counter()
+                    self._accept_hello_ack(msg)
+                    if hellos > 1:
+                        self._drain_late_answers()
+                    self._check_announcement()
                     return
                 if isinstance(msg, ErrorMsg):
                     raise ProtocolError(f"{self.tr.port}: the controller refused HELLO "
@@ -384,6 +552,22 @@ class _Session:
         raise LinkError(f"{self.tr.port}: no answer to HELLO within "
                         f"{self.config.connect_timeout_s:g} s (is the controller running, "
                         "is it the right port?)")
+
+    def _drain_late_answers(self, quiet_s: float = 0.15) -> None:
+        """After repeated HELLOs, wait until no answer to an earlier one can still come: each
+        restarts the controller, which must not happen once commands flow."""
+        until = time.perf_counter() + quiet_s
+        while (now := time.perf_counter()) < until:
+            msg = self.tr.recv(until - now)
+            if isinstance(msg, HelloAck):
+                self._accept_hello_ack(msg)
+                self._event(now, "repeated_hello_ack",
+                            "a repeated HELLO was answered too: the controller restarted "
+                            "again before the first command")
+                until = time.perf_counter() + quiet_s
+            elif isinstance(msg, ErrorMsg):
+                raise ProtocolError(f"{self.tr.port}: the controller refused HELLO "
+                                    f"(error {msg.code}: {msg.text or 'no text'})")
 
     def run(self) -> None:
         self.handshake()
@@ -486,6 +670,11 @@ def check_command_stream(t_s, commands, robot: RobotProfile,
     robot.check_commands(cmd, "commands to send")
     if transport is not None:
         transport.check_commands(cmd, "commands to send")
+    beyond = np.abs(cmd[:, 2]) > THETA_LIMIT_DEG
+    if beyond.any():
+        i = int(np.argmax(beyond))
+        raise LimitError(f"commands to send: row {i} has theta = {cmd[i, 2]:g} deg, beyond the "
+                         f"protocol's +-{THETA_LIMIT_DEG:g} deg (a controller refuses it)")
     return t - t[0], cmd
 
 
@@ -551,7 +740,8 @@ def run_record_session(
     }
     # fsync at every flush (at least every 0.2 s): a power loss keeps what was received
     writer = RecordingWriter(out, EXTRA_COLUMNS, meta, fsync=True)
-    sess = _Session(transport, t, cmd, writer, config, observers, progress)
+    peak = float(np.abs(command_to_wheels(cmd[:, 0], cmd[:, 1], cmd[:, 2], robot.k)).max())
+    sess = _Session(transport, t, cmd, writer, config, observers, progress, peak)
     reason, message, error = "completed", "", None
     old_handler = None
     if config.handle_sigterm and threading.current_thread() is threading.main_thread():
@@ -567,6 +757,8 @@ def run_record_session(
             tail = config.tail_s
         except _ObserverStopError:
             reason = "observer_stop"
+        except TelemetryCheckError as err:
+            reason, message, error = err.reason, str(err), err
         except LinkLostError as err:
             reason, message, error = "link_lost", str(err), err
         except KeyboardInterrupt:
@@ -589,7 +781,11 @@ def run_record_session(
         latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
         result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
                        "link_stats": transport.stats.as_dict(), "latency_ms": latency,
+                       "link_events": sess.events,
                        "controller": sess.controller,
+                       "controller_wheel_limit_rpm": (sess.wheel_limit_rpm
+                                                      if math.isfinite(sess.wheel_limit_rpm)
+                                                      else None),
                        "telemetry_rate_hz": sess.telemetry_rate_hz,
                        # the recording's sample rate is the telemetry's (commands interleave)
                        "sample_rate_hz": sess.telemetry_rate_hz or None}

@@ -17,7 +17,7 @@ import time
 from collections import deque
 
 from ..errors import LinkLostError
-from .can_link import CanCodec
+from .can_link import CanCodec, count_frame_error
 from .protocol import FrameError, Message, Stop
 from .serial_link import PendingOutput
 from .transport import Transport
@@ -82,16 +82,17 @@ class SlcanAdapterTransport(Transport):
                     raise ValueError("short data")
             except ValueError:
                 self.stats.malformed += 1
+                self._dropped()
                 self._queue(b"\a")
                 return
             self._queue(b"z\r")
+            if fid >= 0x180 and self.receives is not None:
+                self.stats.echoes += 1  # a controller's frame: not for this end
+                return
             try:
                 msg = self._codec.decode(fid, data)
             except FrameError as err:
-                if err.kind == "unknown_type":
-                    self.stats.unknown_types += 1
-                else:
-                    self.stats.malformed += 1
+                count_frame_error(self, err)
                 return
             if msg is not None:
                 self._inbox.append(msg)

@@ -17,14 +17,16 @@ Both ends of a link use the same classes: the host (``record``) and the simulate
 from __future__ import annotations
 
 import dataclasses
+import time
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import import_module, metadata
 from typing import Any, ClassVar
 
 from ..errors import ConfigError, LinkError
-from .protocol import Command, Message
+from .protocol import CONTROLLER_MESSAGES, HOST_MESSAGES, Command, FrameError, Message
 
 #: Entry-point group through which other packages add transports.
 ENTRY_POINT_GROUP = "mecanum_hil.transports"
@@ -38,7 +40,15 @@ TRANSPORTS: dict[str, str] = {
 
 @dataclass
 class LinkStats:
-    """Counters of one end of a link [frames] (mutable: the stateful shell)."""
+    """Counters of one end of a link [frames] (mutable: the stateful shell).
+
+    A received frame is counted once, by its first failure: ``malformed`` (not a frame, too
+    long, wrong body length, on CAN a wrong length or an unpaired telemetry half), then
+    ``crc_errors``, ``unknown_types``, ``version_errors``. ``lost`` is a gap in the peer's
+    ``seq`` less the frames dropped just before it (those are counted already). ``echoes``
+    are this end's own frames heard back (a shared CAN bus, a half-duplex line): dropped and
+    counted nowhere else.
+    """
 
     sent: int = 0
     received: int = 0
@@ -50,6 +60,7 @@ class LinkStats:
     bus_errors: int = 0
     send_errors: int = 0
     garbage_bytes: int = 0
+    echoes: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """The counters by name."""
@@ -72,6 +83,13 @@ class Transport(ABC):
         self._tx_seq = 0
         self._rx_expected: int | None = None
         self._closed = False
+        #: Message types this end receives (``None``: all); see :meth:`set_role`.
+        self.receives: tuple[type, ...] | None = None
+        #: Dropped frames whose header was trustworthy (:class:`FrameError` with ``mtype``),
+        #: the latest 64; a controller answers a refused COMMAND among them with ERROR 2.
+        self.rejected: deque[FrameError] = deque(maxlen=64)
+        #: Frames a backend dropped since the last valid message (explain a seq gap).
+        self._drops_since_valid = 0
 
     # -- the hooks a backend implements ------------------------------------------------------
     @abstractmethod
@@ -130,18 +148,50 @@ class Transport(ABC):
         self.stats.sent += 1
         return msg
 
+    def set_role(self, role: str) -> None:
+        """``"host"`` or ``"controller"``: from then on, messages only the other side sends are
+        received; this side's own (echoed) frames are dropped and counted as ``echoes``."""
+        if role not in ("host", "controller"):
+            raise ValueError(f"role must be 'host' or 'controller', got {role!r}")
+        self.receives = CONTROLLER_MESSAGES if role == "host" else HOST_MESSAGES
+
+    def send_raw(self, data: Any) -> None:
+        """Put ``data`` on the wire as it is, bypassing framing and numbering (conformance
+        tests send damaged frames with it): bytes on serial, ``(id, bytes)`` on CAN.
+
+        Raises
+        ------
+        NotImplementedError
+            When the backend cannot send raw data (such conformance rules are skipped).
+        """
+        raise NotImplementedError(f"the {self.name} transport sends no raw frames")
+
+    def _dropped(self, n: int = 1) -> None:
+        """Backends call this for every frame they drop, in order with the valid ones."""
+        self._drops_since_valid += n
+
     def recv(self, timeout_s: float = 0.0) -> Message | None:
-        """The next valid message within ``timeout_s`` [s], or ``None``; counts sequence gaps."""
-        msg = self._recv(max(0.0, timeout_s))
-        if msg is None:
-            return None
+        """The next valid message within ``timeout_s`` [s], or ``None``; counts sequence gaps.
+
+        A gap is counted as lost frames less the frames dropped just before the message (a
+        frame is counted once, by its first failure); a jump backwards (a restarted peer, a
+        duplicate) is not a loss: the count resynchronises.
+        """
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        while True:
+            msg = self._recv(max(0.0, deadline - time.monotonic()))
+            if msg is None:
+                return None
+            if self.receives is None or isinstance(msg, self.receives):
+                break
+            self.stats.echoes += 1
         self.stats.received += 1
         expected = self._rx_expected
         if expected is not None:
             gap = (msg.seq - expected) % self.seq_modulus
-            # a jump backwards (a restarted peer, a duplicate) is not a loss: resynchronise
             if gap < self.seq_modulus // 2:
-                self.stats.lost += gap
+                self.stats.lost += max(0, gap - self._drops_since_valid)
+        self._drops_since_valid = 0
         self._rx_expected = (msg.seq + 1) % self.seq_modulus
         return msg
 
@@ -149,6 +199,21 @@ class Transport(ABC):
         """Start both directions' sequence numbering afresh (at HELLO)."""
         self._tx_seq = 0
         self._rx_expected = None
+        self._drops_since_valid = 0
+
+    def expect_next(self, seq: int) -> None:
+        """The peer's next frame carries ``seq`` (after a HELLO_ACK with ``seq - 1``)."""
+        self._rx_expected = seq % self.seq_modulus
+        self._drops_since_valid = 0
+
+    @property
+    def next_seq(self) -> int:
+        """The ``seq`` the next frame sent will carry."""
+        return self._tx_seq
+
+    def set_next_seq(self, seq: int) -> None:
+        """Number the next frame ``seq`` (conformance tests of the wrap-around)."""
+        self._tx_seq = seq % self.seq_modulus
 
     def close(self) -> None:
         """Close the link (idempotent)."""
@@ -223,3 +288,31 @@ def parse_option_value(text: str) -> Any:
         except ValueError:
             pass
     return text
+
+
+def transport_options(transport: str, *, port: str | None = None,
+                      interface: str | None = None, channel: str | None = None,
+                      bitrate: int | None = None, link_options: list[str] | None = None
+                      ) -> dict[str, Any]:
+    """The options a command line's link flags give ``open_transport``.
+
+    ``link_options`` are ``KEY=VALUE`` strings (:func:`parse_option_value`).
+
+    Raises
+    ------
+    ConfigError
+        A link option without ``=``.
+    """
+    options: dict[str, Any] = {}
+    if transport == "serial":
+        options.update(port=port, baudrate=bitrate)
+    elif transport == "can":
+        options.update(interface=interface, channel=channel, bitrate=bitrate)
+    else:
+        options.update(port=port, interface=interface, channel=channel, bitrate=bitrate)
+    for item in link_options or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--link-option needs KEY=VALUE, got {item!r}")
+        options[key.strip()] = parse_option_value(value)
+    return options

@@ -58,8 +58,10 @@ class ScriptedController:
     bytes: garbage, damaged frames ...). ``skip(i)`` true makes sample i a sequence gap."""
 
     def __init__(self, master: int, telemetry: int = 40, period_s: float = 0.004,
-                 before=lambda i: b"", skip=lambda i: False, hello_version: int = 1,
-                 then=None) -> None:
+                 before=lambda i: b"", skip=lambda i: False,
+                 hello_version: int = proto.PROTOCOL_VERSION, then=None, rate_hz: int = 250,
+                 wheel_limit_rpm: float = 130.0, time_step_us: int = 4000, seq_of=None,
+                 time_of=None, status_of=None, pong: bool = False) -> None:
         self.master = master
         self.telemetry = telemetry
         self.period_s = period_s
@@ -67,6 +69,13 @@ class ScriptedController:
         self.skip = skip
         self.hello_version = hello_version
         self.then = then
+        self.rate_hz = rate_hz
+        self.wheel_limit_rpm = wheel_limit_rpm
+        self.time_step_us = time_step_us
+        self.seq_of = seq_of  # seq_of(i, seq) -> the seq sample i carries (resets ...)
+        self.time_of = time_of  # time_of(i) -> time_us of sample i (a clock that jumps ...)
+        self.status_of = status_of or (lambda i: 0)
+        self.pong = pong  # answer PINGs (also after the telemetry ran out)
         self.sent_values: list[tuple[float, ...]] = []
         self.received: list = []
         self.stop = threading.Event()
@@ -105,18 +114,24 @@ class ScriptedController:
             for msg in dec.feed(data):
                 self.received.append(msg)
                 if isinstance(msg, proto.Hello):
-                    ack = proto.HelloAck(self.hello_version, 250, 250, "scripted")
+                    ack = proto.HelloAck(self.hello_version, self.rate_hz, 250, "scripted",
+                                         wheel_limit_rpm=self.wheel_limit_rpm)
                     self._write(proto.encode(ack))
                     seq = 1
                 elif isinstance(msg, proto.Command) and not streaming:
                     streaming = True
                     next_t = time.monotonic()
+                elif isinstance(msg, proto.Ping) and self.pong:
+                    self._write(proto.encode(proto.Pong(msg.token, seq=seq)))
+                    seq += 1
             if streaming and i < self.telemetry and time.monotonic() >= next_t:
                 if self.skip(i):
                     seq += 1
                 wheels = (float(i), float(i) + 0.5, -float(i), 1.0)
+                tseq = self.seq_of(i, seq) if self.seq_of else seq
+                t_us = self.time_of(i) if self.time_of else i * self.time_step_us
                 self._write(self.before(i) + proto.encode(
-                    proto.Telemetry(i * 4000, wheels, 0, 0, seq)))
+                    proto.Telemetry(t_us, wheels, self.status_of(i), 0, tseq)))
                 self.sent_values.append(wheels)
                 seq += 1
                 i += 1
@@ -158,3 +173,4 @@ def host_serial():
     yield make
     for t in made:
         t.close()
+

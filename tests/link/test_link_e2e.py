@@ -187,7 +187,7 @@ def test_dry_run_and_limits_open_nothing(tmp_path, capsys):
                  "--out", str(out), "--dry-run"])
     text = capsys.readouterr().out
     assert code == 0 and not out.exists()
-    assert "dry run" in text and "COMMAND 00 04 01 02" in text and "within limits" in text
+    assert "dry run" in text and "COMMAND 00 04 02 02" in text and "within limits" in text
     prof = tmp_path / "fast.toml"
     prof.write_text('[[segments]]\nkind = "step"\nduration_s = 1.0\nn_rpm = 150.0\n')
     code = main(["record", "--port", "/dev/does-not-exist", "--profile", str(prof),

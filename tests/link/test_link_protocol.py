@@ -14,7 +14,7 @@ from mecanum_hil.link.can_link import CanCodec
 
 NAMESPACE = {name: getattr(proto, name) for name in
              ("Hello", "HelloAck", "Command", "Stop", "Heartbeat", "Ping", "Pong", "Telemetry",
-              "ErrorMsg")}
+              "ErrorMsg", "EstopReset")}
 
 
 def _examples(text: str):
@@ -52,7 +52,7 @@ def test_worked_examples_in_protocol_md_match_the_encoder(repo):
     examples = _examples((repo / "drivers" / "protocol.md").read_text())
     serial = [(m, f) for m, f in examples if "wire" in f]
     can = [(m, f) for m, f in examples if f["can"]]
-    assert len(serial) == 9 and len(can) == 6
+    assert len(serial) == 10 and len(can) == 7
     for msg, f in serial:
         assert proto.pack_frame(msg) == f["raw"], msg
         assert proto.encode(msg) == f["wire"], msg
@@ -67,7 +67,8 @@ def test_worked_examples_in_protocol_md_match_the_encoder(repo):
 def test_every_message_round_trips_through_the_decoder():
     msgs = [proto.Hello(), proto.Command(12.25, -3.5, 270.0, 7), proto.Stop(8),
             proto.Heartbeat(9), proto.Ping(0xFFFFFFFF, 10),
-            proto.HelloAck(1, 1000, 250, "x" * 32, 11),
+            proto.HelloAck(proto.PROTOCOL_VERSION, 1000, 250, "x" * 32, 11, 130.5),
+            proto.EstopReset(14),
             proto.Telemetry(2**32 - 1, (1.5, -2.5, 3.5, -4.5), 0xF, 65535, 65535),
             proto.Pong(3, 12), proto.ErrorMsg(255, "é", 13)]
     dec = proto.StreamDecoder()
@@ -88,7 +89,7 @@ def test_bad_frames_are_counted_by_reason_and_skipped():
     unknown[1] = 0x42
     unknown[-2:] = proto.crc16(bytes(unknown[:-2])).to_bytes(2, "little")
     wrong_version = bytearray(raw)
-    wrong_version[0] = 2
+    wrong_version[0] = 7
     wrong_version[-2:] = proto.crc16(bytes(wrong_version[:-2])).to_bytes(2, "little")
     short_body = bytearray(proto.pack_frame(proto.Command(1, 2, 3, 1)))[:-6]
     short_body += proto.crc16(bytes(short_body)).to_bytes(2, "little")
@@ -115,10 +116,38 @@ def test_bad_frames_are_counted_by_reason_and_skipped():
 
 
 def test_hello_of_another_version_is_still_understood():
-    data = proto.encode(proto.Hello(version=2)) + proto.encode(proto.HelloAck(version=3))
+    # HELLO's empty body and HELLO_ACK's version byte are the same in every version; the rest
+    # of another version's HELLO_ACK is not read
+    data = proto.encode(proto.Hello(version=1)) + proto.encode(proto.HelloAck(version=3))
     out, counts = _counts_after(data)
-    assert out == [proto.Hello(version=2), proto.HelloAck(version=3)]
+    assert out == [proto.Hello(version=1), proto.HelloAck(3, 0, 0, "", 0)]
     assert counts.version == 0
+
+
+def test_hello_with_a_body_is_malformed():
+    # finding 6: a HELLO with a non-empty body was accepted
+    raw = bytearray(proto.pack_frame(proto.Hello()))[:-2] + b"\x01\x02"
+    raw += proto.crc16(bytes(raw)).to_bytes(2, "little")
+    out, counts = _counts_after(b"\x00" + proto.cobs_encode(bytes(raw)) + b"\x00")
+    assert out == [] and counts.malformed == 1
+
+
+def test_oversized_values_are_packed_as_infinity_never_raising():
+    # finding 1: 3.4e38 overflowed float32 packing and killed sim-robot
+    frame = proto.encode(proto.Telemetry(0, (1e39, -1e39, float("nan"), 0.0)))
+    (tlm,) = proto.StreamDecoder().feed(frame)
+    assert tlm.wheel_rpm[0] == float("inf") and tlm.wheel_rpm[1] == float("-inf")
+    (cmd,) = proto.StreamDecoder().feed(proto.encode(proto.Command(3.5e38, 0.0, 90.0)))
+    assert cmd.n_rpm == float("inf")
+
+
+@pytest.mark.parametrize(("fields", "ok"), [
+    ((130.0, 0.0, 90.0), True), ((-130.0, 0.0, 270.0), True), ((130.001, 0.0, 90.0), False),
+    ((5000.0, 0.0, 90.0), False), ((1e30, 0.0, 90.0), False), ((0.0, 0.0, 700.0), False),
+    ((float("nan"), 0.0, 90.0), False), ((0.0, float("inf"), 90.0), False),
+    ((0.0, 0.0, float("-inf")), False), ((5e-324, -1e-45, 90.0), True)])
+def test_command_problem_is_the_documented_rule(fields, ok):
+    assert (proto.command_problem(*fields, k=0.465 / 0.102, wheel_limit_rpm=130.0) is None) == ok
 
 
 message_strategy = st.one_of(

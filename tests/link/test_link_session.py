@@ -61,7 +61,9 @@ def _garbage(i: int) -> bytes:
 def test_damaged_stream_is_counted_and_every_valid_sample_recorded(
         pty_pair, scripted, host_serial, tmp_path):
     p = pty_pair()
-    ctrl = scripted(p.master, telemetry=48, before=_garbage, skip=lambda i: i in (10, 30))
+    # the gaps follow samples without damage before them: a damaged frame in front of a gap
+    # explains it (counted once, as damaged), so lost counts only these two
+    ctrl = scripted(p.master, telemetry=48, before=_garbage, skip=lambda i: i in (11, 35))
     link = host_serial(p.path)
     t, cmd = _stream(0.45)
     res = run_record_session(link, t, cmd, tmp_path / "r.csv", ROBOT, config=FAST)
@@ -197,10 +199,10 @@ def test_limits_are_checked_before_the_first_byte(pty_pair, host_serial, tmp_pat
 def test_wrong_version_and_silent_controller_are_errors(pty_pair, scripted, host_serial,
                                                         tmp_path):
     p = pty_pair()
-    scripted(p.master, hello_version=2)
+    scripted(p.master, hello_version=1)
     t, cmd = _stream(0.2)
     res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "a.csv", ROBOT, config=FAST)
-    assert res.reason == "error" and "protocol version 2" in res.message
+    assert res.reason == "error" and "protocol version 1" in res.message
     q = pty_pair()  # nobody answers
     res = run_record_session(host_serial(q.path), t, cmd, tmp_path / "b.csv", ROBOT,
                              config=SessionConfig(connect_timeout_s=0.3))

@@ -182,8 +182,16 @@ def test_watchdog_stop_ping_and_hello(live_controller):
                      and m.status & proto.Status.WATCHDOG)
     assert tripped.time_us - moving.time_us >= 150_000
     assert ctrl.model.command_at(ctrl.model.anchor + 10_000) == (0.0, 0.0, 0.0)
+    # finding 6: a HEARTBEAT feeds the watchdog but does not release its stop, and the
+    # status keeps saying why the wheels stand still until a new COMMAND
     hb = host.send(proto.Heartbeat())
-    _until(host, lambda m: isinstance(m, proto.Telemetry) and m.ack_seq == hb.seq
+    fed = _until(host, lambda m: isinstance(m, proto.Telemetry) and m.ack_seq == hb.seq)
+    later = _until(host, lambda m: isinstance(m, proto.Telemetry)
+                   and m.time_us >= fed.time_us + 300_000)
+    assert fed.status & later.status & proto.Status.WATCHDOG
+    assert max(abs(w) for w in later.wheel_rpm) < 1.0
+    again = host.send(proto.Command(60.0, 0.0, 90.0))
+    _until(host, lambda m: isinstance(m, proto.Telemetry) and m.ack_seq == again.seq
            and not m.status & proto.Status.WATCHDOG)
     host.send(proto.Stop())
     _until(host, lambda m: isinstance(m, proto.Telemetry) and m.status & proto.Status.STOPPED)

@@ -78,10 +78,11 @@ def test_conformance(kind, pty_pair, virtual_channel, plugin_entry_point):
     with host, ctrl:
         assert host.send(proto.Hello()) == proto.Hello(seq=0)
         assert ctrl.recv(2.0) == proto.Hello(seq=0)
-        ctrl.send(proto.HelloAck(1, 100, 250, "x"))
+        ctrl.send(proto.HelloAck(proto.PROTOCOL_VERSION, 100, 250, "x", wheel_limit_rpm=130.0))
         ack = host.recv(2.0)
         assert isinstance(ack, proto.HelloAck)
-        assert (ack.version, ack.telemetry_rate_hz, ack.watchdog_ms) == (1, 100, 250)
+        assert (ack.version, ack.telemetry_rate_hz, ack.watchdog_ms, ack.wheel_limit_rpm) == \
+            (proto.PROTOCOL_VERSION, 100, 250, 130.0)
         wire = host.wire_command(60.123, -10.555, 90.01)
         assert abs(wire.n_rpm - 60.123) <= max(tol, 1e-5) * 1.01
         sent = host.send(wire)

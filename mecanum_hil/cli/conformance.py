@@ -1,0 +1,81 @@
+"""``mecanum-hil conformance``: check a controller against every rule of drivers/protocol.md.
+
+Exit codes: 0 every rule that ran passed, 1 a rule failed (or the link could not be opened).
+The wheels turn: run it with the robot on stands.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ._options import RobotOpt
+
+
+def command(
+    transport: Annotated[str, typer.Option(
+        "--transport", "-t", help="serial, can, or a plug-in's name.")] = "serial",
+    port: Annotated[str | None, typer.Option(
+        "--port", help="Serial port: a device, loop://, socket://HOST:PORT ...")] = None,
+    interface: Annotated[str | None, typer.Option(
+        "--interface", help="python-can interface (socketcan, slcan, pcan, virtual, ...).")
+    ] = None,
+    channel: Annotated[str | None, typer.Option(
+        "--channel", help="python-can channel (can0, /dev/ttyACM0, ...).")] = None,
+    bitrate: Annotated[int | None, typer.Option(
+        "--bitrate", help="Bit rate [bit/s]: CAN bus rate, or serial baud rate.")] = None,
+    link_option: Annotated[list[str] | None, typer.Option(
+        "--link-option", metavar="KEY=VALUE",
+        help="Extra transport option, repeatable (e.g. sleep_after_open=0 for slcan).")
+    ] = None,
+    robot: RobotOpt = "tdam-stm",
+    rule: Annotated[list[str] | None, typer.Option(
+        "--rule", metavar="NAME", help="Run only this rule or group (hello, command.valid, "
+        "...); repeatable.")] = None,
+    estop_pressed: Annotated[bool, typer.Option(
+        "--estop-pressed", help="The e-stop was pressed before the run: also run the "
+        "estop.* rules (release it before estop.reset).")] = False,
+    json_out: Annotated[str | None, typer.Option(
+        "--json", metavar="PATH", help="Also write the report as JSON ('-' for stdout).")
+    ] = None,
+    list_rules: Annotated[bool, typer.Option(
+        "--list", help="List the rules and exit.")] = False,
+) -> None:
+    """Drive a controller through every rule of the protocol and report pass/fail per rule."""
+    import json
+    import sys
+
+    from ..errors import ConfigError
+    from ..link.conformance import RULES, run_conformance, select_rules
+    from ..link.transport import open_transport, transport_options
+    from ..model import load_robot_profile
+
+    if list_rules:
+        for name, (_, text) in RULES.items():
+            typer.echo(f"{name:<22} {text}")
+        return
+    names = select_rules(rule or [])
+    if not names:
+        raise ConfigError(f"no rule matches {rule} (see --list)")
+    rob = load_robot_profile(robot)
+    options = transport_options(transport, port=port, interface=interface, channel=channel,
+                                bitrate=bitrate, link_options=link_option)
+    link = open_transport(transport, options)
+    quiet = json_out == "-"
+    try:
+        report = run_conformance(
+            link, rob, rules=names, estop_pressed=estop_pressed,
+            progress=None if quiet else (lambda r: print(
+                f"  {r.outcome:<4}  {r.rule}", file=sys.stderr, flush=True)))
+    finally:
+        link.close()
+    if json_out == "-":
+        typer.echo(json.dumps(report.as_dict(), indent=2))
+    else:
+        typer.echo(report.format())
+        if json_out is not None:
+            Path(json_out).write_text(json.dumps(report.as_dict(), indent=2) + "\n")
+    if not report.ok:
+        raise typer.Exit(1)

@@ -1,0 +1,854 @@
+"""Conformance rules of the controller protocol: drive any controller, name the rules it breaks.
+
+Each rule of ``drivers/protocol.md`` ("The controller's duties") is a function that drives
+the controller through a :class:`Probe` (the host's end of the link, any
+:class:`~mecanum_hil.link.transport.Transport`) and returns what it saw, or raises
+:class:`RuleFailedError` naming what was wrong, or :class:`RuleSkippedError` when it cannot run here
+(a rule that sends damaged frames needs :meth:`Transport.send_raw`; the e-stop rules need the
+e-stop pressed). Every rule starts its own session with a HELLO and ends with STOP, so the
+rules are independent and the wheels are stopped between them. :func:`run_conformance` runs
+them and returns a :class:`ConformanceReport` (``mecanum-hil conformance`` prints it).
+
+The wheels turn (up to the announced limit for a fraction of a second): run it against a real
+robot on stands only.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import random
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from ..errors import LinkError, LinkLostError
+from ..model.kinematics import command_to_wheels
+from ..model.robot import RobotProfile
+from .protocol import (
+    PROTOCOL_VERSION,
+    STATUS_DEFINED,
+    WATCHDOG_S,
+    Command,
+    ErrorCode,
+    ErrorMsg,
+    EstopReset,
+    Heartbeat,
+    Hello,
+    HelloAck,
+    Message,
+    MsgType,
+    Ping,
+    Pong,
+    Status,
+    Stop,
+    Telemetry,
+    cobs_encode,
+    crc16,
+    pack_frame,
+)
+from .transport import Transport
+
+#: How long an answer (HELLO_ACK, ERROR, PONG, an acknowledging sample) may take [s].
+ANSWER_S = 0.3
+
+
+class RuleFailedError(Exception):
+    """The controller broke the rule; the text says what was seen."""
+
+
+class RuleSkippedError(Exception):
+    """The rule cannot run on this link or setup; the text says why."""
+
+
+@dataclass(frozen=True)
+class RuleResult:
+    """The outcome of one rule.
+
+    Attributes
+    ----------
+    rule : str
+        The rule's name (``command.non_finite``, ...).
+    outcome : str
+        ``"pass"``, ``"fail"`` or ``"skip"``.
+    detail : str
+        What was seen (pass), what was wrong (fail), or why it did not run (skip).
+    duration_s : float
+        How long the rule took [s].
+    """
+
+    rule: str
+    outcome: str
+    detail: str
+    duration_s: float
+
+
+@dataclass(frozen=True)
+class ConformanceReport:
+    """Every rule's result and what the controller announced."""
+
+    results: tuple[RuleResult, ...]
+    controller: str = ""
+    announced: dict[str, Any] = field(default_factory=dict)
+    link: str = ""
+
+    @property
+    def failed(self) -> list[str]:
+        """Names of the rules that failed."""
+        return [r.rule for r in self.results if r.outcome == "fail"]
+
+    @property
+    def ok(self) -> bool:
+        """No rule failed (and at least one ran)."""
+        return not self.failed and any(r.outcome == "pass" for r in self.results)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The report as JSON-ready data."""
+        counts = {k: sum(r.outcome == k for r in self.results) for k in ("pass", "fail", "skip")}
+        return {"protocol_version": PROTOCOL_VERSION, "link": self.link,
+                "controller": self.controller, "announced": self.announced,
+                "passed": counts["pass"], "failed": counts["fail"], "skipped": counts["skip"],
+                "ok": self.ok, "rules": [asdict(r) for r in self.results]}
+
+    def format(self) -> str:
+        """One line per rule, then a summary line."""
+        lines = [f"conformance of {self.controller or 'the controller'} on {self.link} "
+                 f"(protocol {PROTOCOL_VERSION})"]
+        width = max((len(r.rule) for r in self.results), default=10)
+        mark = {"pass": "pass", "fail": "FAIL", "skip": "skip"}
+        for r in self.results:
+            lines.append(f"  {mark[r.outcome]}  {r.rule:<{width}}  {r.detail}")
+        d = self.as_dict()
+        lines.append(f"{d['passed']} passed, {d['failed']} failed, {d['skipped']} skipped"
+                     + (f": {', '.join(self.failed)}" if self.failed else ""))
+        return "\n".join(lines)
+
+
+class Probe:
+    """The host's end of the link, with what the rules need to drive and watch a controller.
+
+    Parameters
+    ----------
+    transport : Transport
+        An open link to the controller (serial, CAN, a plug-in).
+    robot : RobotProfile
+        The robot's geometry (``k``, for commands that need a given wheel speed).
+    estop_pressed : bool
+        The operator pressed the e-stop before the run (enables the ``estop.*`` rules).
+    """
+
+    def __init__(self, transport: Transport, robot: RobotProfile,
+                 estop_pressed: bool = False) -> None:
+        self.tr = transport
+        transport.set_role("host")
+        self.robot = robot
+        self.estop_pressed = estop_pressed
+        self.ack: HelloAck | None = None
+        self.can = transport.seq_modulus == 256
+
+    # -- sending -----------------------------------------------------------------------------
+    def send(self, msg: Message) -> Message:
+        """Send ``msg`` with the next sequence number; return it as sent."""
+        return self.tr.send(msg)
+
+    def raw(self, data: Any) -> None:
+        """Send raw bytes (serial) or an ``(id, data)`` frame (CAN); skip the rule if the
+        transport cannot."""
+        try:
+            self.tr.send_raw(data)
+        except NotImplementedError as err:
+            raise RuleSkippedError(str(err)) from None
+
+    def serial_frame(self, mtype: int, body: bytes, seq: int | None = None,
+                     version: int = PROTOCOL_VERSION, bad_crc: bool = False) -> bytes:
+        """A framed serial frame with any header and body (CRC right unless ``bad_crc``)."""
+        seq = self.tr.next_seq if seq is None else seq
+        raw = bytes([version & 0xFF, mtype & 0xFF, seq & 0xFF, (seq >> 8) & 0xFF]) + body
+        crc = crc16(raw) ^ (0x5A5A if bad_crc else 0)
+        return b"\x00" + cobs_encode(raw + crc.to_bytes(2, "little")) + b"\x00"
+
+    def command(self, n_rpm: float, omega_dps: float = 0.0, theta_deg: float = 90.0) -> Command:
+        """Send a COMMAND as given (float32 on serial, the DBC's scaling on CAN)."""
+        return self.tr.send(self.tr.wire_command(n_rpm, omega_dps, theta_deg)
+                            if self.can else Command(n_rpm, omega_dps, theta_deg))
+
+    # -- receiving ---------------------------------------------------------------------------
+    def listen(self, duration_s: float, keep: Callable[[], Message | None] | None = None,
+               every_s: float = 0.02) -> list[tuple[float, Message]]:
+        """Everything received for ``duration_s`` [s], with its host time; ``keep()`` is sent
+        every ``every_s`` [s] meanwhile (a command stream, heartbeats)."""
+        out: list[tuple[float, Message]] = []
+        end = time.monotonic() + duration_s
+        next_send = time.monotonic()
+        while (now := time.monotonic()) < end:
+            if keep is not None and now >= next_send:
+                msg = keep()
+                if msg is not None:
+                    self.tr.send(msg)
+                next_send += every_s
+            wait = end - now if keep is None else min(end - now, max(0.0, next_send - now))
+            msg = self.tr.recv(wait)
+            if msg is not None:
+                out.append((time.monotonic(), msg))
+        return out
+
+    def wait(self, predicate: Callable[[Message], bool], timeout_s: float = ANSWER_S,
+             keep: Callable[[], Message | None] | None = None, every_s: float = 0.02
+             ) -> Message | None:
+        """The first message for which ``predicate`` holds within ``timeout_s`` [s]."""
+        end = time.monotonic() + timeout_s
+        next_send = time.monotonic()
+        while (now := time.monotonic()) < end:
+            if keep is not None and now >= next_send:
+                msg = keep()
+                if msg is not None:
+                    self.tr.send(msg)
+                next_send += every_s
+            wait = end - now if keep is None else min(end - now, max(0.0, next_send - now))
+            msg = self.tr.recv(wait)
+            if msg is not None and predicate(msg):
+                return msg
+        return None
+
+    def telemetry(self, predicate: Callable[[Telemetry], bool] = lambda m: True,
+                  timeout_s: float = ANSWER_S, **kw) -> Telemetry | None:
+        """The first telemetry sample for which ``predicate`` holds."""
+        return self.wait(lambda m: isinstance(m, Telemetry) and predicate(m), timeout_s, **kw)
+
+    def drain(self, duration_s: float = 0.0) -> list[Message]:
+        """Read what is there (for ``duration_s`` [s])."""
+        return [m for _, m in self.listen(duration_s)]
+
+    # -- sessions ----------------------------------------------------------------------------
+    def hello(self) -> HelloAck:
+        """Start a session: HELLO (seq 0), repeated every 100 ms, until HELLO_ACK."""
+        end = time.monotonic() + 2.0
+        hellos = 0
+        while time.monotonic() < end:
+            self.tr.restart_sequences()
+            self.send(Hello(PROTOCOL_VERSION))
+            hellos += 1
+            ack = self.wait(lambda m: isinstance(m, HelloAck | ErrorMsg), 0.1)
+            if isinstance(ack, ErrorMsg):
+                raise RuleFailedError(f"HELLO refused with ERROR {ack.code} ({ack.text!r})")
+            if isinstance(ack, HelloAck):
+                if ack.version != PROTOCOL_VERSION:
+                    raise RuleFailedError(f"HELLO_ACK of version {ack.version}")
+                # after repeated HELLOs, the answers to the later ones restart the controller
+                # again: wait for them, as record does, before driving it
+                while hellos > 1:
+                    late = self.wait(lambda m: isinstance(m, HelloAck), 0.15)
+                    if late is None:
+                        break
+                    ack = late
+                self.tr.expect_next(ack.seq + 1)
+                self.ack = ack
+                return ack
+        raise RuleFailedError("no HELLO_ACK within 2 s")
+
+    @property
+    def limit(self) -> float:
+        """The announced wheel speed limit [rpm]."""
+        assert self.ack is not None
+        return float(self.ack.wheel_limit_rpm)
+
+    @property
+    def rate(self) -> float:
+        """The announced telemetry rate [Hz]."""
+        assert self.ack is not None
+        return float(self.ack.telemetry_rate_hz)
+
+    def needs_telemetry(self) -> None:
+        if self.rate <= 0:
+            raise RuleSkippedError("the controller announced no telemetry")
+
+    def end(self) -> None:
+        """STOP, then let the wheels settle (best effort)."""
+        try:
+            self.send(Stop())
+            self.listen(0.05)
+        except Exception:  # the next rule starts with its own HELLO anyway
+            pass
+
+    def moving(self, n_rpm: float) -> Callable[[], Message]:
+        """A ``keep`` that streams one command at 50 Hz."""
+        return lambda: self.tr.wire_command(n_rpm, 0.0, 90.0)
+
+    def errors(self, msgs: Sequence[Message]) -> list[ErrorMsg]:
+        return [m for m in msgs if isinstance(m, ErrorMsg)]
+
+
+def _fail_if(condition: bool, text: str) -> None:
+    if condition:
+        raise RuleFailedError(text)
+
+
+def _peak(n: float, omega: float, theta: float, k: float) -> float:
+    return float(max(abs(w) for w in command_to_wheels(n, omega, theta, k)))
+
+
+# -- the rules -----------------------------------------------------------------------------
+def rule_hello_answer(p: Probe) -> str:
+    ack = p.hello()
+    _fail_if(ack.seq != 0, f"HELLO_ACK seq {ack.seq}, must be 0")
+    _fail_if(ack.watchdog_ms != int(WATCHDOG_S * 1000),
+             f"watchdog {ack.watchdog_ms} ms announced, the protocol's is 250 ms")
+    _fail_if(not (math.isfinite(ack.wheel_limit_rpm) and ack.wheel_limit_rpm > 0),
+             f"wheel speed limit {ack.wheel_limit_rpm!r} rpm announced")
+    return (f"version {ack.version}, {ack.telemetry_rate_hz} Hz, watchdog {ack.watchdog_ms} ms, "
+            f"limit {ack.wheel_limit_rpm:g} rpm")
+
+
+def rule_hello_restart(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    period_us = 1e6 / p.rate
+    first = p.telemetry(timeout_s=ANSWER_S + 2.0 / p.rate)
+    _fail_if(first is None, "no telemetry after HELLO_ACK")
+    _fail_if(first.seq != 1, f"first telemetry after HELLO_ACK has seq {first.seq}, must be 1")
+    _fail_if(first.time_us > period_us + 2000, f"first telemetry at time_us {first.time_us}: "
+             "the clock did not restart at HELLO")
+    _fail_if(first.ack_seq != 0, f"ack_seq {first.ack_seq} after HELLO, must be 0")
+    _fail_if(not first.status & Status.STOPPED, "STOPPED not set after HELLO")
+    _fail_if(bool(first.status & Status.WATCHDOG), "WATCHDOG set right after HELLO")
+    # a second session: no stale ack_seq, clock and numbering restart again
+    for _ in range(5):
+        p.send(Heartbeat())
+    p.listen(0.3, keep=lambda: Heartbeat(), every_s=0.05)
+    p.hello()
+    again = p.telemetry(timeout_s=ANSWER_S + 2.0 / p.rate)
+    _fail_if(again is None, "no telemetry after the second HELLO")
+    _fail_if(again.ack_seq != 0, f"ack_seq {again.ack_seq} after a second HELLO (stale): must "
+             "be 0")
+    _fail_if(again.seq != 1 or again.time_us > period_us + 2000,
+             f"second HELLO: telemetry seq {again.seq} at {again.time_us} us, must restart")
+    return "clock, seq and ack_seq restart at every HELLO; STOPPED set"
+
+
+def rule_hello_version(p: Probe) -> str:
+    p.hello()
+    p.listen(0.1)
+    seen = []
+    for version in (PROTOCOL_VERSION - 1, PROTOCOL_VERSION + 1):
+        p.tr.restart_sequences()
+        p.send(Hello(version))
+        msgs = p.drain(ANSWER_S)
+        errs = p.errors(msgs)
+        _fail_if(any(isinstance(m, HelloAck) for m in msgs),
+                 f"HELLO of version {version} answered with HELLO_ACK")
+        _fail_if(not errs or errs[0].code != ErrorCode.VERSION_MISMATCH,
+                 f"HELLO of version {version}: no ERROR {int(ErrorCode.VERSION_MISMATCH)} "
+                 f"(got {[e.code for e in errs]})")
+        seen.append(version)
+        times = [m.time_us for m in msgs if isinstance(m, Telemetry)]
+        _fail_if(p.rate > 0 and any(b < a for a, b in itertools.pairwise(times)),
+                 f"the HELLO of version {version} restarted the session")
+    return f"versions {seen} refused with ERROR 1, session kept"
+
+
+def rule_hello_body(p: Probe) -> str:
+    p.hello()
+    p.listen(0.1)
+    if p.can:
+        p.raw((0x103, bytes([PROTOCOL_VERSION, 0, 0])))
+    else:
+        p.raw(p.serial_frame(MsgType.HELLO, b"\x01", seq=0))
+    msgs = p.drain(ANSWER_S)
+    _fail_if(any(isinstance(m, HelloAck) for m in msgs), "a HELLO with a body was answered")
+    times = [m.time_us for m in msgs if isinstance(m, Telemetry)]
+    _fail_if(any(b < a for a, b in itertools.pairwise(times)),
+             "a HELLO with a body restarted the session")
+    return "dropped, no answer, no restart"
+
+
+def rule_telemetry_rate(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    p.listen(0.05)
+    start = time.monotonic()
+    got = [(t, m) for t, m in p.listen(1.0) if isinstance(m, Telemetry)]
+    # by the host clock within 30 % (a loaded host reads late); by the controller's exactly
+    expected = p.rate * (time.monotonic() - start)
+    _fail_if(abs(len(got) - expected) > max(2.0, 0.3 * expected),
+             f"{len(got)} samples in 1 s, {p.rate:g} Hz announced")
+    steps = [(b.time_us - a.time_us) % (1 << 32) for (_, a), (_, b) in itertools.pairwise(got)]
+    period = 1e6 / p.rate
+    off = [s for s in steps if abs(s - period) > max(0.02 * period, 1000)]
+    _fail_if(len(off) > max(1, len(steps) // 20),
+             f"time_us steps {sorted(set(off))[:5]} us, the period is {period:.0f} us")
+    m = p.tr.seq_modulus
+    gaps = [(b.seq - a.seq) % m for (_, a), (_, b) in itertools.pairwise(got)]
+    _fail_if(any(g == 0 or g >= m // 2 for g in gaps), "telemetry seq went back")
+    reserved = [mm.status for _, mm in got if mm.status & ~STATUS_DEFINED]
+    if reserved:
+        raise RuleFailedError(f"reserved status bits set: {reserved[0]:#06x}")
+    return f"{len(got)} samples in 1 s at {p.rate:g} Hz announced, steps {period:.0f} us"
+
+
+def rule_ping(p: Probe) -> str:
+    p.hello()
+    fed = p.send(Heartbeat())
+    if p.rate > 0:
+        _fail_if(p.telemetry(lambda m: m.ack_seq == fed.seq) is None,
+                 "HEARTBEAT not acknowledged")
+    token = random.Random().getrandbits(32)
+    p.send(Ping(token))
+    pong = p.wait(lambda m: isinstance(m, Pong))
+    _fail_if(pong is None, "no PONG")
+    _fail_if(pong.token != token, f"PONG token {pong.token}, PING's {token}")
+    if p.rate > 0:
+        tlm = p.telemetry(timeout_s=ANSWER_S)
+        _fail_if(tlm is not None and tlm.ack_seq != fed.seq, "PING moved ack_seq")
+    return "PONG with the token; ack_seq unchanged"
+
+
+def _accepts(p: Probe, sent: Command, what: str) -> Telemetry:
+    tlm = p.telemetry(lambda m: m.ack_seq == sent.seq, timeout_s=ANSWER_S)
+    errs = [m for m in p.drain(0.0) if isinstance(m, ErrorMsg)]
+    _fail_if(tlm is None, f"{what}: never acknowledged (ack_seq {sent.seq})")
+    _fail_if(bool(errs), f"{what}: ERROR {errs[0].code if errs else ''}")
+    return tlm
+
+
+def rule_command_valid(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    target = 0.25 * p.limit
+    sent = p.command(target)
+    tlm = _accepts(p, sent, f"n = {target:g}")
+    _fail_if(bool(tlm.status & Status.STOPPED), "STOPPED still set after a valid COMMAND")
+    later = p.listen(0.5, keep=p.moving(target))
+    wheels = [m.wheel_rpm for _, m in later if isinstance(m, Telemetry)]
+    _fail_if(not wheels or min(wheels[-1]) < 0.5 * target,
+             f"wheels at {wheels[-1] if wheels else None} rpm 0.5 s after n = {target:g} rpm")
+    at_limit = p.command(p.limit)
+    _accepts(p, at_limit, f"n = {p.limit:g} (the limit)")
+    p.end()
+    return f"n = {target:g} rpm reached {min(wheels[-1]):.1f} rpm; n at the limit accepted"
+
+
+def _refused(p: Probe, send: Callable[[], Any], what: str, base: Command) -> None:
+    sent = send()
+    msgs = p.listen(ANSWER_S)
+    errs = p.errors([m for _, m in msgs])
+    _fail_if(not errs, f"{what}: no ERROR 2")
+    _fail_if(errs[0].code != ErrorCode.BAD_COMMAND, f"{what}: ERROR {errs[0].code}, must be 2")
+    seq = getattr(sent, "seq", None)
+    for _, m in msgs:
+        if isinstance(m, Telemetry):
+            _fail_if(seq is not None and m.ack_seq == seq, f"{what}: acknowledged (ack_seq)")
+            _fail_if(max(abs(w) for w in m.wheel_rpm) > p.limit * 1.02,
+                     f"{what}: a wheel at {max(abs(w) for w in m.wheel_rpm):.1f} rpm")
+    if p.rate > 0:
+        tlm = [m for _, m in msgs if isinstance(m, Telemetry)]
+        _fail_if(bool(tlm) and tlm[-1].ack_seq != base.seq,
+                 f"{what}: ack_seq moved from {base.seq} to {tlm[-1].ack_seq}")
+
+
+def rule_command_non_finite(p: Probe) -> str:
+    if p.can:
+        raise RuleSkippedError("CAN signals are integers: they carry no NaN or infinity")
+    p.hello()
+    base = p.command(0.1 * p.limit)
+    p.listen(0.05)
+    cases = 0
+    for field_ in range(3):
+        for bad in (math.nan, math.inf, -math.inf):
+            values = [0.1 * p.limit, 0.0, 90.0]
+            values[field_] = bad
+            base = p.send(Command(0.1 * p.limit, 0.0, 90.0))
+            p.listen(0.01)
+            _refused(p, lambda v=tuple(values): p.send(Command(*v)),
+                     f"{('n', 'omega', 'theta')[field_]} = {bad}", base)
+            cases += 1
+    p.end()
+    return f"{cases} commands with NaN/inf refused with ERROR 2 and ignored"
+
+
+def rule_command_beyond_limit(p: Probe) -> str:
+    p.hello()
+    k = p.robot.k
+    lim = p.limit
+    cases = [(1.01 * lim, 0.0, 90.0), (-1.01 * lim, 0.0, 270.0),
+             (0.0, 1.01 * lim * 6.0 / k, 90.0), (0.8 * lim, 0.5 * lim * 6.0 / k, 45.0)]
+    if not p.can:
+        cases += [(5000.0, 0.0, 90.0), (1e30, 0.0, 90.0), (3.4e38, 0.0, 90.0),
+                  (0.0, 0.0, 700.0)]
+    done = 0
+    for n, w, th in cases:
+        if p.can and max(abs(n), abs(w)) > 327.67:
+            continue
+        if _peak(n, w, th, k) <= lim * 1.000001 and abs(th) <= 655.36:
+            continue
+        base = p.command(0.1 * lim)
+        p.listen(0.01)
+        _refused(p, lambda c=(n, w, th): p.command(*c), f"({n:g}, {w:g}, {th:g})", base)
+        done += 1
+    p.end()
+    _fail_if(done == 0, "no command beyond the limit could be carried")
+    return f"{done} commands beyond the {lim:g} rpm limit refused with ERROR 2, ignored"
+
+
+def rule_command_malformed(p: Probe) -> str:
+    p.hello()
+    base = p.command(0.1 * p.limit)
+    p.listen(0.02)
+    if p.can:
+        bad: Any = (0x101, _can_command(p, 0.2 * p.limit)[:7])
+        what = "MH_COMMAND of 7 bytes"
+    else:
+        body = Command(0.2 * p.limit, 0.0, 90.0)
+        bad = p.serial_frame(MsgType.COMMAND, pack_frame(body)[4:-2][:8], seq=p.tr.next_seq)
+        what = "COMMAND with an 8-byte body"
+    _refused(p, lambda: p.raw(bad), what, base)
+    if p.can:
+        base = p.command(0.1 * p.limit)
+        p.listen(0.02)
+        frame = _can_command(p, 0.2 * p.limit)[:7] + b"\x01"
+        _refused(p, lambda: p.raw((0x101, frame)), "MH_COMMAND with reserved = 1", base)
+        what += " and one with reserved != 0"
+    p.end()
+    return f"{what} refused with ERROR 2"
+
+
+def _can_command(p: Probe, n_rpm: float) -> bytes:
+    from .can_link import CanCodec
+
+    ((_, data),) = CanCodec().encode(Command(n_rpm, 0.0, 90.0, p.tr.next_seq))
+    return data
+
+
+def rule_frame_damaged(p: Probe) -> str:
+    p.hello()
+    base = p.command(0.1 * p.limit)
+    p.listen(0.02)
+    if p.can:
+        p.raw((0x170, b"\x01\x02"))  # an id the database does not know
+        what = "unknown id"
+    else:
+        cmd = pack_frame(Command(0.3 * p.limit, 0.0, 90.0))[4:-2]
+        rng = random.Random(1)
+        p.raw(bytes(rng.getrandbits(8) for _ in range(200)))
+        p.raw(b"\x00" + bytes(rng.randrange(1, 256) for _ in range(120)) + b"\x00")
+        p.raw(p.serial_frame(MsgType.COMMAND, cmd, bad_crc=True))
+        p.raw(p.serial_frame(0x7E, b"\x01\x02"))
+        p.raw(p.serial_frame(MsgType.COMMAND, cmd, version=PROTOCOL_VERSION - 1))
+        what = "garbage, an oversize frame, a bad CRC, an unknown type, a wrong version"
+    msgs = p.drain(ANSWER_S)
+    errs = p.errors(msgs)
+    if errs:
+        raise RuleFailedError(f"answered damaged frames with ERROR {errs[0].code}")
+    for m in msgs:
+        if isinstance(m, Telemetry):
+            _fail_if(m.ack_seq != base.seq, f"a damaged frame was acknowledged (ack_seq "
+                     f"{m.ack_seq})")
+    token = 12345
+    p.send(Ping(token))
+    pong = p.wait(lambda m: isinstance(m, Pong) and m.token == token)
+    _fail_if(pong is None, "no PONG after the damaged frames: not resynchronised")
+    p.end()
+    return f"{what}: ignored, no answer, resynchronised"
+
+
+def rule_stop(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    target = 0.25 * p.limit
+    p.listen(0.4, keep=p.moving(target))
+    stop = p.send(Stop())
+    tlm = p.telemetry(lambda m: m.ack_seq == stop.seq)
+    _fail_if(tlm is None, "STOP never acknowledged")
+    _fail_if(not tlm.status & Status.STOPPED, "STOPPED not set after STOP")
+    last = p.telemetry(lambda m: m.time_us >= tlm.time_us + 800_000, timeout_s=1.5,
+                       keep=lambda: Heartbeat(), every_s=0.08)
+    _fail_if(last is None, "telemetry stopped after STOP")
+    _fail_if(max(abs(w) for w in last.wheel_rpm) > 0.05 * target,
+             f"wheels at {last.wheel_rpm} 0.8 s after STOP")
+    _fail_if(not last.status & Status.STOPPED, "STOPPED cleared without a COMMAND")
+    sent = p.command(0.1 * p.limit)
+    after = p.telemetry(lambda m: m.ack_seq == sent.seq)
+    _fail_if(after is None or bool(after.status & Status.STOPPED),
+             "a COMMAND after STOP did not clear STOPPED")
+    p.end()
+    return "wheels stopped, STOPPED until the next COMMAND"
+
+
+def _watchdog_trip(p: Probe, target: float) -> tuple[Telemetry, Telemetry]:
+    p.listen(0.3, keep=p.moving(target))
+    last = p.command(target)
+    acked = p.telemetry(lambda m: m.ack_seq == last.seq)
+    _fail_if(acked is None, "COMMAND not acknowledged")
+    tripped = p.telemetry(lambda m: bool(m.status & Status.WATCHDOG), timeout_s=0.6)
+    _fail_if(tripped is None, "no WATCHDOG within 0.6 s of the last COMMAND")
+    return acked, tripped
+
+
+def rule_watchdog_fires(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    acked, tripped = _watchdog_trip(p, 0.25 * p.limit)
+    dt_ms = ((tripped.time_us - acked.time_us) % (1 << 32)) / 1000
+    period_ms = 1000 / p.rate
+    _fail_if(not 250 - period_ms - 30 <= dt_ms <= 250 + period_ms + 60,
+             f"WATCHDOG {dt_ms:.0f} ms after the last COMMAND, must be 250 ms")
+    later = p.telemetry(lambda m: m.time_us >= tripped.time_us + 800_000, timeout_s=1.5)
+    _fail_if(later is None or max(abs(w) for w in later.wheel_rpm) > 0.05 * p.limit,
+             f"wheels at {later.wheel_rpm if later else None} 0.8 s after the watchdog")
+    return f"WATCHDOG {dt_ms:.0f} ms after the last COMMAND, wheels stopped"
+
+
+def rule_watchdog_fed(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    target = 0.25 * p.limit
+    p.listen(0.3, keep=p.moving(target))
+    msgs = p.listen(0.6, keep=lambda: Heartbeat(), every_s=0.08)
+    tlm = [m for _, m in msgs if isinstance(m, Telemetry)]
+    _fail_if(any(m.status & Status.WATCHDOG for m in tlm),
+             "WATCHDOG set although HEARTBEAT came every 80 ms")
+    _fail_if(not tlm or min(tlm[-1].wheel_rpm) < 0.5 * target,
+             "the command in force was not held under HEARTBEATs")
+    p.end()
+    return "HEARTBEAT every 80 ms holds the command for 0.6 s"
+
+
+def rule_watchdog_latched(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    _watchdog_trip(p, 0.25 * p.limit)
+    hb = p.send(Heartbeat())
+    fed = p.telemetry(lambda m: m.ack_seq == hb.seq)
+    _fail_if(fed is None, "HEARTBEAT not acknowledged")
+    _fail_if(not fed.status & Status.WATCHDOG, "a HEARTBEAT cleared WATCHDOG")
+    msgs = p.listen(0.3, keep=lambda: Heartbeat(), every_s=0.08)
+    tlm = [m for _, m in msgs if isinstance(m, Telemetry)]
+    _fail_if(not tlm or not all(m.status & Status.WATCHDOG for m in tlm),
+             "WATCHDOG cleared without a COMMAND")
+    sent = p.command(0.1 * p.limit)
+    after = p.telemetry(lambda m: m.ack_seq == sent.seq)
+    _fail_if(after is None or bool(after.status & Status.WATCHDOG),
+             "a COMMAND did not clear WATCHDOG")
+    p.end()
+    return "WATCHDOG stays under HEARTBEATs, cleared by the next COMMAND"
+
+
+def rule_watchdog_refused(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    target = 0.25 * p.limit
+    p.listen(0.3, keep=p.moving(target))
+    if p.can:
+        if 1.01 * p.limit > 327.67:
+            raise RuleSkippedError("no refused command fits the CAN signals for this limit")
+        bad = p.tr.wire_command(1.01 * p.limit, 0.0, 90.0)
+    else:
+        bad = Command(math.nan, 0.0, 90.0)
+    tripped = p.telemetry(lambda m: bool(m.status & Status.WATCHDOG), timeout_s=0.7,
+                          keep=lambda: bad, every_s=0.02)
+    _fail_if(tripped is None, "refused commands fed the watchdog")
+    p.end()
+    return "refused commands do not feed the watchdog"
+
+
+def rule_seq_wrap(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    m = p.tr.seq_modulus
+    p.tr.set_next_seq(m - 3)
+    seen = []
+    for _ in range(6):
+        sent = p.command(0.1 * p.limit)
+        tlm = p.telemetry(lambda x, s=sent.seq: x.ack_seq == s)
+        _fail_if(tlm is None, f"COMMAND with seq {sent.seq} not acknowledged")
+        seen.append(sent.seq)
+    p.end()
+    return f"host seq {seen} acknowledged across the wrap"
+
+
+def rule_estop_harmless(p: Probe) -> str:
+    if p.estop_pressed:
+        raise RuleSkippedError("the e-stop is pressed (see estop.*)")
+    p.hello()
+    p.needs_telemetry()
+    reset = p.send(EstopReset())
+    tlm = p.telemetry(lambda m: m.ack_seq == reset.seq)
+    _fail_if(tlm is None, "ESTOP_RESET not acknowledged")
+    msgs = p.drain(0.2)
+    _fail_if(bool(p.errors(msgs)), "ESTOP_RESET without an e-stop answered with an ERROR")
+    _fail_if(bool(tlm.status & Status.ESTOP) or not tlm.status & Status.STOPPED,
+             f"status {tlm.status:#06x} after ESTOP_RESET without an e-stop")
+    return "acknowledged, nothing changed"
+
+
+def rule_estop_held(p: Probe) -> str:
+    if not p.estop_pressed:
+        raise RuleSkippedError("needs the e-stop pressed before the run (--estop-pressed)")
+    p.hello()
+    p.needs_telemetry()
+    first = p.telemetry(timeout_s=0.5)
+    _fail_if(first is None or not first.status & Status.ESTOP,
+             "ESTOP not set after HELLO: the HELLO cleared the e-stop (or it is not pressed)")
+    msgs = p.listen(0.4, keep=p.moving(0.25 * p.limit))
+    tlm = [m for _, m in msgs if isinstance(m, Telemetry)]
+    _fail_if(not all(m.status & Status.ESTOP for m in tlm), "a COMMAND cleared ESTOP")
+    _fail_if(max(abs(w) for m in tlm for w in m.wheel_rpm) > 0.02 * p.limit,
+             "wheels moved with the e-stop latched")
+    p.hello()
+    again = p.telemetry(timeout_s=0.5)
+    _fail_if(again is None or not again.status & Status.ESTOP, "a HELLO cleared the e-stop")
+    return "ESTOP held through COMMANDs and a HELLO, wheels at zero"
+
+
+def rule_estop_reset(p: Probe) -> str:
+    if not p.estop_pressed:
+        raise RuleSkippedError("needs the e-stop pressed before the run (--estop-pressed)")
+    p.hello()
+    p.needs_telemetry()
+    reset = p.send(EstopReset())
+    tlm = p.telemetry(lambda m: m.ack_seq == reset.seq)
+    _fail_if(tlm is None, "ESTOP_RESET not acknowledged")
+    errs = p.errors(p.drain(0.05))
+    if errs and errs[0].code == ErrorCode.ESTOP_HELD:
+        raise RuleSkippedError("the e-stop button is still pressed (ERROR 3): release it first")
+    later = p.telemetry(lambda m: not m.status & Status.ESTOP, timeout_s=0.3)
+    _fail_if(later is None, "ESTOP_RESET did not clear ESTOP")
+    _fail_if(not later.status & Status.STOPPED, "no STOPPED after ESTOP_RESET")
+    sent = p.command(0.1 * p.limit)
+    moving = p.telemetry(lambda m: m.ack_seq == sent.seq and not m.status & Status.STOPPED)
+    _fail_if(moving is None, "a COMMAND after ESTOP_RESET was not taken")
+    p.end()
+    return "cleared by ESTOP_RESET only; STOPPED until the next COMMAND"
+
+
+def rule_robust_flood(p: Probe) -> str:
+    p.hello()
+    n = 500 if p.can else 2500
+    start = time.monotonic()
+    for _ in range(n):
+        for _attempt in range(200):
+            try:
+                p.command(0.1 * p.limit)
+                break
+            except LinkError:  # our own output buffer is full: let the controller read
+                p.tr.recv(0.002)
+        p.tr.recv(0.0)
+    sent_s = time.monotonic() - start
+    token = 777
+    p.send(Ping(token))
+    pong = p.wait(lambda m: isinstance(m, Pong) and m.token == token, timeout_s=2.0)
+    _fail_if(pong is None, f"no PONG after a flood of {n} commands")
+    if p.rate > 0:
+        got = [m for _, m in p.listen(0.5, keep=p.moving(0.1 * p.limit))
+               if isinstance(m, Telemetry)]
+        _fail_if(len(got) < 0.4 * p.rate * 0.5, f"{len(got)} telemetry samples in 0.5 s after "
+                 "the flood")
+    p.end()
+    return f"{n} commands in {sent_s:.2f} s ({n / max(sent_s, 1e-9):.0f}/s), still answering"
+
+
+#: Every rule by name, in the order they run (the e-stop ones last: they leave it cleared).
+RULES: dict[str, tuple[Callable[[Probe], str], str]] = {
+    "hello.answer": (rule_hello_answer, "HELLO is answered with HELLO_ACK (seq 0, version, "
+                     "rate, 250 ms, a wheel speed limit)"),
+    "hello.restart": (rule_hello_restart, "every HELLO restarts clock, seq and ack_seq; "
+                      "STOPPED set"),
+    "hello.version": (rule_hello_version, "a HELLO of another version gets ERROR 1, the "
+                      "session goes on"),
+    "hello.body": (rule_hello_body, "a HELLO with a body is dropped (no answer, no restart)"),
+    "telemetry.rate": (rule_telemetry_rate, "telemetry at the announced rate, time_us on the "
+                       "period, seq increasing, reserved status bits 0"),
+    "ping": (rule_ping, "PING is answered with PONG carrying its token"),
+    "command.valid": (rule_command_valid, "a valid COMMAND (also at the limit) is acknowledged "
+                      "and clears STOPPED"),
+    "command.non_finite": (rule_command_non_finite, "NaN/inf in any field: ERROR 2, ignored"),
+    "command.beyond_limit": (rule_command_beyond_limit, "a wheel target beyond the announced "
+                             "limit or |theta| > 655.36: ERROR 2, ignored"),
+    "command.malformed": (rule_command_malformed, "a COMMAND of the wrong length (CAN: or "
+                          "reserved != 0): ERROR 2, ignored"),
+    "frame.damaged": (rule_frame_damaged, "garbage, bad CRC, unknown type, wrong version: "
+                      "ignored without answer, resynchronised"),
+    "stop": (rule_stop, "STOP stops the wheels, STOPPED until the next COMMAND"),
+    "watchdog.fires": (rule_watchdog_fires, "250 ms without a valid frame: WATCHDOG, wheels "
+                       "stopped"),
+    "watchdog.fed": (rule_watchdog_fed, "HEARTBEAT every 80 ms holds the command"),
+    "watchdog.latched": (rule_watchdog_latched, "WATCHDOG stays under HEARTBEAT until a "
+                         "COMMAND"),
+    "watchdog.refused": (rule_watchdog_refused, "refused commands do not feed the watchdog"),
+    "seq.wrap": (rule_seq_wrap, "host seq wrapping around is acknowledged"),
+    "robust.flood": (rule_robust_flood, "a flood of commands: still answering, telemetry "
+                     "goes on"),
+    "estop.harmless": (rule_estop_harmless, "ESTOP_RESET without an e-stop changes nothing"),
+    "estop.held": (rule_estop_held, "a latched e-stop holds through COMMAND and HELLO"),
+    "estop.reset": (rule_estop_reset, "only ESTOP_RESET clears the e-stop; STOPPED after"),
+}
+
+
+def select_rules(patterns: Sequence[str] = ()) -> list[str]:
+    """Rule names matching any of ``patterns`` (a name or a prefix such as ``watchdog``)."""
+    if not patterns:
+        return list(RULES)
+    out = [name for name in RULES
+           if any(name == pat or name.startswith(pat.rstrip(".") + ".") for pat in patterns)]
+    return out
+
+
+def run_conformance(transport: Transport, robot: RobotProfile, *,
+                    rules: Sequence[str] = (), estop_pressed: bool = False,
+                    progress: Callable[[RuleResult], None] | None = None
+                    ) -> ConformanceReport:
+    """Run the rules against the controller at the other end of ``transport``.
+
+    Parameters
+    ----------
+    transport : Transport
+        Open link (not closed here).
+    robot : RobotProfile
+        The robot's geometry (``k``).
+    rules : sequence of str
+        Names or prefixes to run (default: all).
+    estop_pressed : bool
+        The e-stop was pressed before the run.
+    progress : callable, optional
+        Called with each result as it comes.
+
+    Returns
+    -------
+    ConformanceReport
+    """
+    probe = Probe(transport, robot, estop_pressed)
+    results = []
+    lost: str | None = None
+    for name in select_rules(rules):
+        check = RULES[name][0]
+        start = time.monotonic()
+        if lost is not None:
+            results.append(RuleResult(name, "skip", f"not run: {lost}", 0.0))
+            continue
+        try:
+            outcome, detail = "pass", check(probe)
+        except RuleFailedError as err:
+            outcome, detail = "fail", str(err)
+        except RuleSkippedError as err:
+            outcome, detail = "skip", str(err)
+        except LinkLostError as err:
+            outcome, detail = "fail", f"link lost: {err}"
+            lost = "the link was lost"
+        except LinkError as err:
+            outcome, detail = "fail", f"link error: {err}"
+        finally:
+            if lost is None:
+                try:
+                    probe.end()
+                except LinkError:
+                    pass
+        result = RuleResult(name, outcome, detail, round(time.monotonic() - start, 3))
+        results.append(result)
+        if progress is not None:
+            progress(result)
+    ack = probe.ack
+    announced = {} if ack is None else {
+        "version": ack.version, "telemetry_rate_hz": ack.telemetry_rate_hz,
+        "watchdog_ms": ack.watchdog_ms, "wheel_limit_rpm": ack.wheel_limit_rpm}
+    return ConformanceReport(tuple(results), "" if ack is None else ack.name, announced,
+                             f"{transport.name} {getattr(transport, 'port', '')}".strip())

@@ -1,0 +1,155 @@
+"""``mecanum-hil conformance``: sim-robot passes every rule over a pseudo-terminal and over
+SLCAN (in its own process, as a real controller would be driven), the e-stop rules with an
+e-stop pressed, and deliberately broken controllers each fail with the rule they break."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+
+import pytest
+
+from mecanum_hil.cli import main
+from mecanum_hil.link import protocol as proto
+from mecanum_hil.link.conformance import RULES, run_conformance, select_rules
+from mecanum_hil.link.effects_file import load_sim_effects
+from mecanum_hil.link.serial_link import SerialTransport
+from mecanum_hil.link.sim_process import spawn_sim_robot
+from mecanum_hil.link.simulated import ControllerModel, SimulatedController
+from mecanum_hil.model import Calibration, RobotProfile
+
+ROBOT = RobotProfile()
+
+
+def _check_report(path, skipped_ok=()):
+    report = json.loads(path.read_text())
+    outcomes = {r["rule"]: r["outcome"] for r in report["rules"]}
+    assert set(outcomes) == set(RULES)
+    assert report["failed"] == 0 and report["ok"], report
+    skipped = {name for name, outcome in outcomes.items() if outcome == "skip"}
+    assert skipped <= set(skipped_ok), skipped
+    assert report["announced"]["wheel_limit_rpm"] == ROBOT.wheel_speed_max_rpm
+    return report
+
+
+@pytest.mark.slow
+def test_sim_robot_passes_every_rule_over_a_pty(tmp_path, capsys):
+    with spawn_sim_robot("--serial", "--quiet") as sim:
+        code = main(["conformance", "--port", sim.path, "--json", str(tmp_path / "r.json")])
+        assert sim.proc.poll() is None
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "pass  command.non_finite" in out and "0 failed" in out
+    _check_report(tmp_path / "r.json", skipped_ok={"estop.held", "estop.reset"})
+
+
+@pytest.mark.slow
+def test_sim_robot_passes_every_rule_over_slcan(tmp_path, capsys):
+    with spawn_sim_robot("--slcan", "--quiet") as sim:
+        code = main(["conformance", "--transport", "can", "--interface", "slcan", "--channel",
+                     sim.path, "--link-option", "sleep_after_open=0", "--json",
+                     str(tmp_path / "r.json")])
+    assert code == 0, capsys.readouterr().out
+    # NaN and infinity have no CAN encoding: that rule is the only one that cannot run
+    _check_report(tmp_path / "r.json",
+                  skipped_ok={"command.non_finite", "estop.held", "estop.reset"})
+
+
+def test_e_stop_rules_with_the_e_stop_pressed(tmp_path, capsys):
+    fx = tmp_path / "estop.toml"
+    fx.write_text("[[faults]]\nat_s = 0.0\nestop = true\n")
+    with spawn_sim_robot("--serial", "--quiet", "--effects", str(fx)) as sim:
+        code = main(["conformance", "--port", sim.path, "--estop-pressed", "--rule", "estop",
+                     "--json", "-"])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 0, report
+    assert {r["rule"]: r["outcome"] for r in report["rules"]} == {
+        "estop.harmless": "skip", "estop.held": "pass", "estop.reset": "pass"}
+
+
+# -- deliberately broken controllers -----------------------------------------------------------
+class NoRangeCheck(SimulatedController):
+    """Refuses non-finite commands but has no limit check (finding 2's controller)."""
+
+    def command_problem(self, msg):
+        ok = all(map(math.isfinite, (msg.n_rpm, msg.omega_dps, msg.theta_deg)))
+        return None if ok else "not finite"
+
+
+class HeartbeatReleasesWatchdog(SimulatedController):
+    """A HEARTBEAT clears the watchdog bit (the old sim-robot)."""
+
+    def handle(self, msg):
+        super().handle(msg)
+        if isinstance(msg, proto.Heartbeat):
+            self.status &= ~proto.Status.WATCHDOG
+
+
+class StaleAckAfterHello(SimulatedController):
+    """Keeps the old session's ack_seq after a HELLO (the old sim-robot)."""
+
+    def handle(self, msg):
+        kept = self.ack_seq
+        super().handle(msg)
+        if isinstance(msg, proto.Hello):
+            self.ack_seq = kept
+
+
+class HelloClearsEstop(SimulatedController):
+    """A HELLO clears a latched e-stop (the old sim-robot)."""
+
+    def handle(self, msg):
+        super().handle(msg)
+        if isinstance(msg, proto.Hello):
+            self.model.estop = False
+            self.model._faults = []
+
+
+def _run_against(cls, pty_pair, rules, sim_effects=None, estop=False):
+    p = pty_pair()
+    ctrl = cls(SerialTransport(fd=p.master),
+               ControllerModel(Calibration(), ROBOT, sim_effects, rate_hz=1000.0))
+    ctrl.model.wheel_rpm(0)
+    thread = threading.Thread(target=ctrl.serve, daemon=True)
+    thread.start()
+    try:
+        with SerialTransport(port=p.path) as host:
+            return run_conformance(host, ROBOT, rules=rules, estop_pressed=estop)
+    finally:
+        ctrl.stop_event.set()
+        thread.join(2)
+
+
+@pytest.mark.parametrize(("cls", "rules", "broken"), [
+    (NoRangeCheck, ["command"], "command.beyond_limit"),
+    (HeartbeatReleasesWatchdog, ["watchdog"], "watchdog.latched"),
+    (StaleAckAfterHello, ["hello", "ping"], "hello.restart"),
+])
+def test_a_broken_controller_fails_with_the_rule_it_breaks(cls, rules, broken, pty_pair):
+    report = _run_against(cls, pty_pair, rules)
+    assert report.failed == [broken], report.format()
+    assert len(report.results) == len(select_rules(rules)) > 1
+
+
+def test_a_hello_that_clears_the_e_stop_fails_estop_held(pty_pair, tmp_path):
+    fx = tmp_path / "estop.toml"
+    fx.write_text("[[faults]]\nat_s = 0.0\nestop = true\n")
+    report = _run_against(HelloClearsEstop, pty_pair, ["estop"], load_sim_effects(fx),
+                          estop=True)
+    assert report.failed == ["estop.held"], report.format()
+    assert "HELLO cleared the e-stop" in report.results[1].detail, report.format()
+
+
+@pytest.mark.slow
+def test_the_whole_suite_against_a_controller_without_range_check(pty_pair):
+    report = _run_against(NoRangeCheck, pty_pair, [])
+    assert report.failed == ["command.beyond_limit"], report.format()
+
+
+def test_rule_selection_and_listing(capsys):
+    assert select_rules(["watchdog"]) == [n for n in RULES if n.startswith("watchdog.")]
+    assert select_rules(["ping"]) == ["ping"]
+    assert main(["conformance", "--list"]) == 0
+    assert "command.non_finite" in capsys.readouterr().out
+    assert main(["conformance", "--port", "/dev/null", "--rule", "nope"]) == 1
