@@ -706,11 +706,16 @@ def rule_estop_reset(p: Probe) -> str:
     p.hello()
     p.needs_telemetry()
     reset = p.send(EstopReset())
-    tlm = p.telemetry(lambda m: m.ack_seq == reset.seq)
-    _fail_if(tlm is None, "ESTOP_RESET not acknowledged")
-    errs = p.errors(p.drain(0.05))
+    # ERROR 3 comes at once, before the next telemetry, and an ESTOP_RESET it answers is not
+    # acknowledged: wait for either, or the ERROR would be read past and the rule fail
+    answer = p.wait(lambda m: isinstance(m, ErrorMsg)
+                    or (isinstance(m, Telemetry) and m.ack_seq == reset.seq))
+    errs = [answer] if isinstance(answer, ErrorMsg) else p.errors(p.drain(0.05))
     if errs and errs[0].code == ErrorCode.ESTOP_HELD:
         raise RuleSkippedError("the e-stop button is still pressed (ERROR 3): release it first")
+    if errs:
+        raise RuleFailedError(f"ESTOP_RESET answered with ERROR {errs[0].code}")
+    _fail_if(answer is None, "ESTOP_RESET not acknowledged")
     later = p.telemetry(lambda m: not m.status & Status.ESTOP, timeout_s=0.3)
     _fail_if(later is None, "ESTOP_RESET did not clear ESTOP")
     _fail_if(not later.status & Status.STOPPED, "no STOPPED after ESTOP_RESET")
