@@ -67,13 +67,19 @@ def command(
                           min_found=min_found, track_hub=not fixed_camera,
                           expected_rpm=None if speed_range is None
                           else parse_speed_range(speed_range))
-    rec = read_recording(recording) if recording is not None else None
+    # Refuse before the (long) measurement: writing over the inputs would lose them.
+    targets = [out]
     if recording is not None:
-        merged_target = merged or out.with_name(out.stem + ".merged.csv")
-        for target in (out, merged_target):
-            if target.resolve() == recording.resolve():
-                raise VideoError(f"{target}: would overwrite the recording given with "
-                                 "--recording; write the measurement to another file")
+        targets.append(merged or out.with_name(out.stem + ".merged.csv"))
+        if targets[1].resolve() == out.resolve():
+            raise VideoError(f"{out}: --merged and --out name the same file")
+    for target in targets:
+        for given, what in ((recording, "the recording given with --recording"),
+                            (video, "the video being measured")):
+            if given is not None and target.resolve() == given.resolve():
+                raise VideoError(f"{target}: would overwrite {what}; write the measurement "
+                                 "to another file")
+    rec = read_recording(recording) if recording is not None else None
     err_console = Console(stderr=True)
     with Progress(TextColumn("measuring {task.fields[name]}"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),

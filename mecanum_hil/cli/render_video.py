@@ -110,6 +110,12 @@ def command(
                               occlusions_s=parse_hide(hide or []), shake_px=shake,
                               drift_px=drift, flicker=flicker, flicker_hz=flicker_hz,
                               hue_shift_deg=hue_shift)
+    if truth is not None:
+        source = None if str(recording).startswith("scenario:") else Path(recording)
+        for given, what in ((out, "the video (--out)"),
+                            (source, "the recording given with --recording")):
+            if given is not None and Path(truth).resolve() == given.resolve():
+                raise VideoError(f"{truth}: --truth would overwrite {what}")
     rec = recording_or_scenario(recording)
     with Progress(TextColumn("rendering"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} frames"),

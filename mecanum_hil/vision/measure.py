@@ -26,8 +26,8 @@ from ..io.recording import Recording, empty_like_times
 from .detect import BlobDetector, MarkerSpec
 from .geometry import refit_track, select_track
 from .hub import STILL_CAMERA_PX, HubTracker, camera_offsets
-from .speed import estimate_speed
-from .video import FrameTiming, frame_times, iter_frames, open_video
+from .speed import FAST_STEP_TURNS, estimate_speed
+from .video import FrameTiming, decode_ahead, frame_times, open_video
 
 #: Default regression window of the speed estimate [s] (see docs/vision.md).
 DEFAULT_WINDOW_S = 0.1
@@ -131,22 +131,6 @@ class VideoMeasurement:
     warnings: tuple[str, ...]
 
 
-def _decode_ahead(cap, out: queue.Queue, stop: threading.Event) -> None:
-    try:
-        for item in iter_frames(cap):
-            while not stop.is_set():
-                try:
-                    out.put(item, timeout=0.1)
-                    break
-                except queue.Full:
-                    continue
-            if stop.is_set():
-                return
-        out.put(None)
-    except BaseException as err:  # handed to the consumer, which re-raises it
-        out.put(err)
-
-
 def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequence],
                progress: Callable[[int, int], None] | None = None):
     """Decode every frame once and run the detectors on it.
@@ -154,15 +138,16 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     Returns ``(info, stamps [s], per-detector lists of per-frame results, detectors)``.
     """
     cap, info = open_video(path)
-    detectors = detectors_for((info.width_px, info.height_px))
-    results: list[list] = [[] for _ in detectors]
-    stamps: list[float] = []
     q: queue.Queue = queue.Queue(maxsize=8)
     stop = threading.Event()
-    next_focus = FOCUS_AFTER_FRAMES
-    worker = threading.Thread(target=_decode_ahead, args=(cap, q, stop), daemon=True)
-    worker.start()
+    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop), daemon=True)
     try:
+        # Inside the try: a region outside the frame must not leave the file open.
+        detectors = detectors_for((info.width_px, info.height_px))
+        results: list[list] = [[] for _ in detectors]
+        stamps: list[float] = []
+        next_focus = FOCUS_AFTER_FRAMES
+        worker.start()
         while True:
             item = q.get()
             if item is None:
@@ -184,7 +169,8 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
                 progress(len(stamps), info.frame_count)
     finally:
         stop.set()
-        worker.join(timeout=5.0)
+        if worker.is_alive():
+            worker.join(timeout=5.0)
         cap.release()
     return info, np.array(stamps, dtype=float), results, detectors
 
@@ -458,6 +444,21 @@ def _speed_warnings(est, wheel: int, timing: FrameTiming, opts: MeasureOptions, 
                              "sign or speed range (--speed-range)")
         warnings.append(f"wheel {wheel}: {msg}; no speed is written for "
                         f"{int(est.aliased.sum())} frames (give --speed-range to resolve them)")
+    if opts.expected_rpm is None:
+        # Accepted, but past a quarter turn a frame the folded reading is the slower one of two
+        # that give the same images: a wheel steadily beyond the limit is read as a slower one
+        # turning the other way, and nothing in the images tells.
+        per_frame = np.abs(est.rpm) / (60.0 * timing.fps)
+        fast = np.flatnonzero(np.isfinite(per_frame) & (per_frame > FAST_STEP_TURNS))
+        if fast.size:
+            k = int(fast[0])
+            s = float(est.rpm[k]) / (60.0 * timing.fps)
+            other = (s - math.copysign(1.0, s)) * 60.0 * timing.fps
+            warnings.append(
+                f"wheel {wheel}: from t={float(t[k]):.3f} s the marker moves {abs(s):.2f} turn "
+                f"a frame ({est.rpm[k]:.0f} rpm; {fast.size} frames): the same images come from "
+                f"{other:.0f} rpm, which this frame rate cannot tell apart; give --speed-range "
+                "(or its sign) if the wheel may turn that fast")
     unbridged = [g for g in est.gaps if not g.bridged and g.reason != "aliasing"]
     if unbridged:
         g = unbridged[0]

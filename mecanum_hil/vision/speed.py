@@ -29,6 +29,8 @@ from ..errors import VideoError
 ALIAS_STEP_TURNS = 0.4
 #: Longest run of missing frames that a track is unwrapped across [frames].
 MAX_GAP_FRAMES = 2
+#: Values (frames x window) of the regression computed at once by :func:`local_slope`.
+SLOPE_CHUNK_VALUES = 1 << 20
 
 
 def reject_outliers(angle_rad: np.ndarray) -> tuple[np.ndarray, int]:
@@ -136,28 +138,35 @@ def local_slope(t_s: np.ndarray, y: np.ndarray, run: np.ndarray, h: int) -> np.n
         last[valid] = [hi_of[int(r)] for r in run[valid]]
     lo = np.maximum(pos - h, first)
     lo = np.maximum(np.minimum(lo, last - 2 * h), first)
-    idx = lo[:, None] + np.arange(2 * h + 1)[None, :]
-    inside = idx <= last[:, None]
-    idx_c = np.clip(idx, 0, n - 1)
-    use = inside & (run[idx_c] == run[:, None]) & valid[:, None]
     scale = float(np.median(np.diff(t_s))) if n > 1 else 1.0
-    dt = np.where(use, (t_s[idx_c] - t_s[:, None]) / scale, 0.0)
-    dy = np.where(use, y[idx_c] - np.where(np.isfinite(y), y, 0.0)[:, None], 0.0)
-    w = use.astype(float)
-    S = [np.sum(w * dt ** k, axis=1) for k in range(5)]
-    T = [np.sum(w * dt ** k * dy, axis=1) for k in range(3)]
-    M = np.stack([np.stack([S[0], S[1], S[2]], -1), np.stack([S[1], S[2], S[3]], -1),
-                  np.stack([S[2], S[3], S[4]], -1)], -2)
-    rhs = np.stack(T, -1)
-    count = w.sum(axis=1)
-    det = np.linalg.det(M)
-    good = (count >= 3) & (np.abs(det) > 1e-12)
-    if good.any():
-        sol = np.linalg.solve(M[good], rhs[good][..., None])[..., 0]
-        out[good] = sol[:, 1] / scale
-    pair = (count == 2) & ~good
-    if pair.any():
-        out[pair] = T[1][pair] / np.where(S[2][pair] > 0, S[2][pair], np.nan) / scale
+    y0 = np.where(np.isfinite(y), y, 0.0)
+    # Rows in chunks: the (frames x window) arrays of a long video with a wide --window would
+    # take gigabytes at once.
+    rows = max(1, SLOPE_CHUNK_VALUES // (2 * h + 1))
+    for c0 in range(0, n, rows):
+        sl = slice(c0, min(n, c0 + rows))
+        idx = lo[sl, None] + np.arange(2 * h + 1)[None, :]
+        inside = idx <= last[sl, None]
+        idx_c = np.clip(idx, 0, n - 1)
+        use = inside & (run[idx_c] == run[sl, None]) & valid[sl, None]
+        dt = np.where(use, (t_s[idx_c] - t_s[sl, None]) / scale, 0.0)
+        dy = np.where(use, y[idx_c] - y0[sl, None], 0.0)
+        w = use.astype(float)
+        S = [np.sum(w * dt ** k, axis=1) for k in range(5)]
+        T = [np.sum(w * dt ** k * dy, axis=1) for k in range(3)]
+        M = np.stack([np.stack([S[0], S[1], S[2]], -1), np.stack([S[1], S[2], S[3]], -1),
+                      np.stack([S[2], S[3], S[4]], -1)], -2)
+        rhs = np.stack(T, -1)
+        count = w.sum(axis=1)
+        det = np.linalg.det(M)
+        good = (count >= 3) & (np.abs(det) > 1e-12)
+        part = out[sl]
+        if good.any():
+            sol = np.linalg.solve(M[good], rhs[good][..., None])[..., 0]
+            part[good] = sol[:, 1] / scale
+        pair = (count == 2) & ~good
+        if pair.any():
+            part[pair] = T[1][pair] / np.where(S[2][pair] > 0, S[2][pair], np.nan) / scale
     out[~valid] = np.nan
     return out
 
@@ -326,7 +335,9 @@ def estimate_speed(t_s: np.ndarray, angle_rad: np.ndarray, window_s: float,
     a = np.asarray(angle_rad, dtype=float)
     if invert:
         a = -a
-    a, outliers = reject_outliers(a) if expected_rpm is None else (a.copy(), 0)
+    # Also with an expected range: resolving a reflection's jump into the range would add a
+    # whole turn (a spike of a turn per window); a real wheel never jumps out and back.
+    a, outliers = reject_outliers(a)
     n = a.size
     rpm = np.full(n, np.nan)
     turns = np.full(n, np.nan)

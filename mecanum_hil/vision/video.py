@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import math
 import os
+import queue
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,6 +101,33 @@ def iter_frames(cap) -> Iterator[tuple[int, float, np.ndarray]]:
         t_s = t_ms / 1000.0 if t_ms is not None and math.isfinite(t_ms) else math.nan
         yield index, t_s, frame
         index += 1
+
+
+def _put_unless_stopped(out: queue.Queue, item, stop: threading.Event) -> bool:
+    """Hand ``item`` over, waiting while the queue is full; False once ``stop`` is set."""
+    while not stop.is_set():
+        try:
+            out.put(item, timeout=0.1)
+            return True
+        except queue.Full:
+            continue
+    return False
+
+
+def decode_ahead(cap, out: queue.Queue, stop: threading.Event) -> None:
+    """Decode every frame of ``cap`` into ``out`` (a helper thread's body).
+
+    Puts the :func:`iter_frames` items, then ``None`` at the end or the exception that stopped
+    decoding (the consumer re-raises it). Returns as soon as ``stop`` is set, also while the
+    queue is full (a consumer that gave up never leaves this thread blocked).
+    """
+    try:
+        for item in iter_frames(cap):
+            if not _put_unless_stopped(out, item, stop):
+                return
+        _put_unless_stopped(out, None, stop)
+    except BaseException as err:  # handed to the consumer, which re-raises it
+        _put_unless_stopped(out, err, stop)
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import queue
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -13,7 +17,7 @@ from mecanum_hil.cli import main
 from mecanum_hil.errors import VideoError
 from mecanum_hil.io.recording import read_recording, write_recording
 from mecanum_hil.vision import MeasureOptions, RenderSettings, measure_video, render_video
-from mecanum_hil.vision.video import VideoWriter, frame_times
+from mecanum_hil.vision.video import VideoWriter, decode_ahead, frame_times, open_video
 
 
 @pytest.fixture(scope="session")
@@ -177,3 +181,92 @@ def test_cli_render_then_measure_several_wheels(tmp_path, paper, capsys):
     for k in (0, 1):
         assert np.sqrt(np.nanmean((got[:, k] - truth[:, k]) ** 2)) < 1.5
     assert np.isnan(got[:, 2:]).all()
+
+
+def test_zero_frame_video_is_one_line(tmp_path, capsys):
+    path = tmp_path / "empty.avi"
+    with VideoWriter(path, 30.0, (160, 120)):
+        pass
+    code, _, err = run_cli(["measure-video", str(path), "--out", str(tmp_path / "o.csv")],
+                           capsys)
+    assert code == 1 and "0 frame(s)" in one_error_line(err)
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_outputs_never_overwrite_the_video_or_the_recording(tmp_path, good_video, capsys):
+    video = tmp_path / "v.avi"
+    video.write_bytes(good_video.path.read_bytes())
+    rec_path = tmp_path / "rec.csv"
+    write_recording(steady(60.0, 2.0), rec_path)
+    before = {p: p.read_bytes() for p in (video, rec_path)}
+    out = str(tmp_path / "m.csv")
+    for extra in (["--out", str(video)],
+                  ["--out", str(rec_path), "--recording", str(rec_path)],
+                  ["--out", out, "--recording", str(rec_path), "--merged", str(video)],
+                  ["--out", out, "--recording", str(rec_path), "--merged", str(rec_path)],
+                  ["--out", out, "--recording", str(rec_path), "--merged", out]):
+        code, _, err = run_cli(["measure-video", str(video), *extra], capsys)
+        line = one_error_line(err)
+        assert code == 1 and ("would overwrite" in line or "same file" in line), extra
+    assert all(p.read_bytes() == data for p, data in before.items())
+    assert not (tmp_path / "m.csv").exists()
+
+
+def open_fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc")
+def test_a_region_outside_the_frame_leaves_no_file_open(good_video):
+    before = open_fds()
+    for _ in range(3):
+        with pytest.raises(VideoError, match="outside"):
+            measure_video(good_video.path, MeasureOptions(rois=((1, (900, 900, 40, 40)),)))
+    assert open_fds() == before
+
+
+def test_decoder_thread_ends_when_the_consumer_gives_up(tmp_path):
+    path = tmp_path / "one.avi"
+    with VideoWriter(path, 30.0, (160, 120)) as w:
+        w.write(np.full((120, 160, 3), 90, np.uint8))
+    cap, _ = open_video(path)
+    q: queue.Queue = queue.Queue(maxsize=1)
+    stop = threading.Event()
+    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop), daemon=True)
+    worker.start()
+    # The one frame fills the queue; the end-of-video mark waits for room the consumer,
+    # which has given up, never makes.
+    deadline = time.monotonic() + 10.0
+    while not q.full() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    stop.set()
+    worker.join(timeout=2.0)
+    cap.release()
+    assert not worker.is_alive()
+
+
+@pytest.fixture(scope="module")
+def reverse_video(tmp_path_factory):
+    from mecanum_hil.vision.scenarios import scenario_recording
+
+    path = tmp_path_factory.mktemp("rev") / "reverse.avi"
+    return render_video(scenario_recording("reverse"), path, RenderSettings(noise_std=2.0))
+
+
+def test_a_marker_really_lost_fails_in_one_line_at_the_lower_default(tmp_path, reverse_video,
+                                                                     capsys):
+    """The default --min-found of 30 % must not turn a lost marker into numbers."""
+    out = tmp_path / "o.csv"
+    base = ["measure-video", str(reverse_video.path), "--out", str(out)]
+    # The wrong colour pinned (the dot is green): nothing of that colour moves.
+    code, _, err = run_cli([*base, "--marker-hsv", "170,100,80:10,255,255"], capsys)
+    assert code == 1 and "no marker" in one_error_line(err)
+    # A search region over the wheel's left edge only: the dot passes through it on a fifth
+    # of each turn, the rest of the time it is out of the region.
+    p = reverse_video.placements[0]
+    x, y = int(p.cx_px - 1.2 * p.radius_px), int(p.cy_px - 1.2 * p.radius_px)
+    roi = f"{x},{y},{int(0.8 * p.radius_px)},{int(2.4 * p.radius_px)}"
+    code, _, err = run_cli([*base, "--roi", roi], capsys)
+    line = one_error_line(err)
+    assert code == 1 and "marker found in only" in line and "need 30%" in line
+    assert not out.exists()

@@ -81,3 +81,28 @@ def test_ellipse_maps_an_oblique_circle_back_to_uniform_angles():
     step = np.diff(np.unwrap(ang))
     np.testing.assert_allclose(step, 2 * np.pi / 72, atol=1e-6)  # CCW positive, uniform
     assert angular_coverage(ang) == pytest.approx(1 - 1 / 72)
+
+
+def test_a_wide_window_on_a_long_video_stays_small_in_memory_and_exact(monkeypatch):
+    """5 min at 60 fps with a 10 s window: (frames x window) at once would take gigabytes."""
+    import tracemalloc
+
+    from mecanum_hil.vision import speed
+
+    t = np.arange(18000) / 60.0
+    y = 0.5 * t + 0.01 * t ** 2
+    run = np.zeros(t.size, dtype=int)
+    tracemalloc.start()
+    slope = speed.local_slope(t, y, run, 300)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 300e6, peak
+    np.testing.assert_allclose(slope, 0.5 + 0.02 * t, rtol=1e-6)
+    # Chunked or not, the same numbers (runs and gaps cross the chunks' borders).
+    t = np.arange(400) / 30.0
+    y = np.sin(t) + 0.1 * t
+    run = np.where(np.arange(400) % 97 < 80, np.arange(400) // 97, -1)
+    y[run < 0] = np.nan
+    whole = speed.local_slope(t, y, run, 5)
+    monkeypatch.setattr(speed, "SLOPE_CHUNK_VALUES", 37)
+    np.testing.assert_array_equal(speed.local_slope(t, y, run, 5), whole)
