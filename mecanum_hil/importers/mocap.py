@@ -219,8 +219,9 @@ def _motive(path: Path, rows: list[list[str]], want: str | None
 
 
 def _plain(path: Path, rows: list[list[str]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    start = next(i for i, r in enumerate(rows) if r and not r[0].lstrip().startswith("#"))
-    if not _is_plain_header(",".join(rows[start])):
+    start = next((i for i, r in enumerate(rows)
+                  if any(c.strip() for c in r) and not r[0].lstrip().startswith("#")), None)
+    if start is None or not _is_plain_header(",".join(rows[start])):
         raise RecordingError(f"{path}: expected the header {', '.join(PLAIN_HEADER)}")
     data = [(i, r) for i, r in enumerate(rows[start + 1:], start=start + 2)
             if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]

@@ -97,6 +97,8 @@ def read_views(source: str | Path, max_views: int = 60) -> list[np.ndarray]:
     spread over it)."""
     import cv2
 
+    if max_views < 1:
+        raise VideoError(f"max_views must be >= 1, got {max_views}")
     p = Path(source)
     if p.is_dir():
         files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
@@ -115,8 +117,19 @@ def read_views(source: str | Path, max_views: int = 60) -> list[np.ndarray]:
             raise VideoError(f"{p}: file not found or not an image OpenCV can read")
         return [img]
     cap, _ = open_video(p)
+    # every stride-th frame, the stride doubling whenever 2 x max_views are held: frames spread
+    # over the whole video in bounded memory (a minute of 1080p would be ~4 GB of grey frames;
+    # the container's frame count, which would allow picking ahead, may be wrong)
+    frames: list[np.ndarray] = []
+    stride = 1
     try:
-        frames = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for _, _, f in iter_frames(cap)]
+        for index, _, f in iter_frames(cap):
+            if index % stride:
+                continue
+            frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY))
+            if len(frames) >= 2 * max_views:
+                frames = frames[::2]
+                stride *= 2
     finally:
         cap.release()
     if len(frames) > max_views:

@@ -24,6 +24,7 @@ the camera on that frame's floor markers and of the robot's marker), kept for co
 
 from __future__ import annotations
 
+import functools
 import math
 import queue
 import threading
@@ -38,7 +39,7 @@ from .. import __version__
 from ..errors import VideoError
 from .camera import CameraModel, CameraPose, rays_to_plane
 from .scene import UNIT_CORNERS, Scene, dictionary_by_name
-from .video import frame_times, iter_frames, open_video
+from .video import decode_ahead, frame_times, open_video
 
 #: Default smoothing window [s] (0 turns smoothing off).
 DEFAULT_WINDOW_S = 0.2
@@ -127,13 +128,42 @@ def make_detector(dictionary: str, refinement: str = "apriltag"):
     return cv2.aruco.ArucoDetector(dictionary_by_name(dictionary), params)
 
 
+@functools.cache
+def apriltag_corner_shift_px() -> float:
+    """Where OpenCV's AprilTag corner refinement puts a corner, less where it is [px].
+
+    The AprilTag code counts from the top-left pixel's outer corner, not its centre
+    (AprilRobotics/apriltag#121): a sharp-edged marker whose edge lies at 9.5 px comes back at
+    10.0 (on the overhead renders +0.43..0.45 px in x and y). Measured once on such a marker
+    rather than assumed, so that an OpenCV which changes its convention is followed.
+    """
+    import cv2
+
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    img = np.full((80, 80), 255, np.uint8)
+    img[10:70, 10:70] = cv2.aruco.generateImageMarker(dictionary, 0, 60)
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
+    corners, ids, _ = cv2.aruco.ArucoDetector(dictionary, params).detectMarkers(img)
+    if ids is None or len(ids) != 1:
+        return 0.5  # what every OpenCV with this refinement has done so far
+    want = np.array([[9.5, 9.5], [69.5, 9.5], [69.5, 69.5], [9.5, 69.5]])
+    return float(np.mean(corners[0].reshape(4, 2) - want))
+
+
 def detect(detector, gray: np.ndarray, offset=(0, 0)) -> dict[int, np.ndarray]:
-    """Markers in a grey image: ``{id: corners (4, 2) [px]}`` (OpenCV's corner order),
-    shifted by ``offset`` (the crop's top-left corner in the frame)."""
+    """Markers in a grey image: ``{id: corners (4, 2) [px]}`` (OpenCV's corner order, ``(0,
+    0)`` at the centre of the top-left pixel), shifted by ``offset`` (the crop's top-left corner
+    in the frame)."""
+    import cv2
+
     corners, ids, _ = detector.detectMarkers(gray)
     if ids is None:
         return {}
     off = np.asarray(offset, dtype=float)
+    if detector.getDetectorParameters().cornerRefinementMethod == \
+            cv2.aruco.CORNER_REFINE_APRILTAG:
+        off = off - apriltag_corner_shift_px()
     out: dict[int, np.ndarray] = {}
     for c, i in zip(corners, ids.ravel(), strict=True):
         if int(i) not in out:  # a second sighting of one id is a misreading: keep the first
@@ -215,22 +245,6 @@ class _Tracker:
                     self.floor_seen[i].append(c)
 
 
-def _decode_ahead(cap, out: queue.Queue, stop: threading.Event) -> None:
-    try:
-        for item in iter_frames(cap):
-            while not stop.is_set():
-                try:
-                    out.put(item, timeout=0.1)
-                    break
-                except queue.Full:
-                    continue
-            if stop.is_set():
-                return
-        out.put(None)
-    except BaseException as err:  # handed to the consumer, which re-raises it
-        out.put(err)
-
-
 def scan(path: str | Path, per_frame: Callable[[int, np.ndarray], None],
          progress: Callable[[int, int], None] | None = None):
     """Decode every frame (in a helper thread) and hand it to ``per_frame(index, frame)``;
@@ -239,7 +253,7 @@ def scan(path: str | Path, per_frame: Callable[[int, np.ndarray], None],
     stamps: list[float] = []
     q: queue.Queue = queue.Queue(maxsize=8)
     stop = threading.Event()
-    worker = threading.Thread(target=_decode_ahead, args=(cap, q, stop), daemon=True)
+    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop), daemon=True)
     worker.start()
     try:
         while True:
@@ -448,6 +462,9 @@ def measure_pose(path: str | Path, camera: CameraModel, scene: Scene,
         raise VideoError(f"{src}: the robot's marker (id {scene.robot.marker_id}) was found in "
                          f"only {100 * share:.0f} % of the frames (--min-found "
                          f"{100 * opts.min_found:.0f} %)")
+    if info.frame_count and n < info.frame_count - 1:
+        warnings.append(f"the video ends after {n} of the {info.frame_count} frames its header "
+                        "declares (truncated?); measured what could be decoded")
     missing = sorted({m.id for m in scene.floor} - set(used))
     if missing:
         warnings.append(f"floor markers never seen: {missing}")

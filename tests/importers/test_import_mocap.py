@@ -32,19 +32,22 @@ def quat_z(yaw_rad):
                             np.sin(yaw_rad / 2), np.cos(yaw_rad / 2)])
 
 
-def write_motive(path, t, pose, occluded=()):
+def write_motive(path, t, pose, occluded=(), q=None, unit=("Millimeters", 1000.0)):
     """Motive's export of rigid body 'robot' (Y up, millimetres) plus a second body and a
-    marker to be ignored; the body's own x axis is the robot's forward axis."""
+    marker to be ignored; the body's own x axis is the robot's forward axis (unless its
+    quaternions ``q`` are given); ``pose`` is the body's pivot on the floor."""
     yaw = np.radians(pose[:, 2])
     # floor (X, Y, Z up) -> Motive (X, Y up, Z = -floor Y); a turn about floor z is one about
     # Motive's y by the same angle
-    q = np.column_stack([np.zeros_like(yaw), np.sin(yaw / 2), np.zeros_like(yaw),
-                         np.cos(yaw / 2)])
-    px, py, pz = pose[:, 0] * 1000, np.full(len(t), 230.0), -pose[:, 1] * 1000
+    if q is None:
+        q = np.column_stack([np.zeros_like(yaw), np.sin(yaw / 2), np.zeros_like(yaw),
+                             np.cos(yaw / 2)])
+    px, py, pz = (pose[:, 0] * unit[1], np.full(len(t), 0.23 * unit[1]),
+                  -pose[:, 1] * unit[1])
     head = ("Format Version,1.23,Take Name,Take 2026-11-23,Take Notes,,Capture Frame Rate,"
             "100.000000,Export Frame Rate,100.000000,Capture Start Time,2026-11-23 05.00.00.000"
             " AM,Total Frames in Take,{n},Total Exported Frames,{n},Rotation Type,Quaternion,"
-            "Length Units,Millimeters,Coordinate Space,Global").format(n=len(t))
+            "Length Units,{unit},Coordinate Space,Global").format(n=len(t), unit=unit[0])
     rb = ["Rigid Body"] * 8
     lines = [head, "",
              ",Type," + ",".join(rb + ["Rigid Body"] * 7 + ["Marker"] * 3),
@@ -168,6 +171,11 @@ def test_bad_mocap_input(tmp_path, capsys):
     assert "determinant" in capsys.readouterr().err
     assert main(["import", str(src), "--start-s", "auto", "--out", str(tmp_path / "o.csv")]) == 1
     assert "needs --recording" in capsys.readouterr().err
+    for text in ("\n\n", "# only a comment\n", ",,,\n"):  # no header at all: one line too
+        src.write_text(text)
+        assert main(["import", str(src), "--format", "mocap", "--out",
+                     str(tmp_path / "o.csv")]) == 1
+        assert "expected the header t, x, y, z" in capsys.readouterr().err
     motive = tmp_path / "take.csv"
     write_motive(motive, np.arange(3) * 0.01, np.zeros((3, 3)))
     motive.write_text(motive.read_text().replace("Quaternion", "XYZ"))
@@ -175,3 +183,41 @@ def test_bad_mocap_input(tmp_path, capsys):
     args = ["import", str(motive), "--map", str(mp), "--out", str(tmp_path / "o.csv")]
     assert main(args) == 1
     assert "Rotation Type = Quaternion" in capsys.readouterr().err
+
+
+def test_motive_body_axes_other_than_the_robots(tmp_path):
+    """A rigid body whose own frame is Y up with the robot's front along its -Z axis (as Motive
+    makes a body from markers placed that way), the robot on a 4 deg side slope, centimetres,
+    the capture's origin 1 m / 2 m off the floor's: heading and place as worked out by hand."""
+    n = 40
+    t = np.arange(n) / 120.0
+    phi = np.radians(np.linspace(-170.0, 200.0, n))  # through +-180: heading continuous
+    # body -> Motive: first Ry(-90 deg) (body -Z onto Motive +X, the robot's front at phi = 0),
+    # then a 4 deg roll about the front axis (Motive X), then the heading about Motive Y
+    def qy(a):
+        return np.array([0.0, math.sin(a / 2), 0.0, math.cos(a / 2)])
+
+    def mul(a, b):  # Hamilton product of (x, y, z, w) quaternions
+        ax, ay, az, aw = a
+        bx, by, bz, bw = b
+        return np.array([aw * bx + ax * bw + ay * bz - az * by,
+                         aw * by - ax * bz + ay * bw + az * bx,
+                         aw * bz + ax * by - ay * bx + az * bw,
+                         aw * bw - ax * bx - ay * by - az * bz])
+
+    roll = math.radians(4.0)
+    qx = np.array([math.sin(roll / 2), 0.0, 0.0, math.cos(roll / 2)])
+    q = np.array([mul(qy(a), mul(qx, qy(-math.pi / 2))) for a in phi])
+    # the pivot on the floor, in the capture's frame (floor = capture + (1, 2, 0))
+    floor_xy = np.column_stack([0.5 * np.cos(phi), 0.5 * np.sin(phi)])
+    capture_xy = floor_xy - [1.0, 2.0]
+    src = tmp_path / "take.csv"
+    write_motive(src, t, np.column_stack([capture_xy, np.zeros(n)]), q=q,
+                 unit=("Centimeters", 100.0))
+    mp = tmp_path / "map.toml"
+    mp.write_text('[mocap]\nrigid_body = "robot"\nup = "y"\ntranslation_m = [1.0, 2.0, 0.0]\n'
+                  "forward_axis = [0.0, 0.0, -1.0]\n")
+    rec = import_source(src, map_path=mp).recording
+    np.testing.assert_allclose(rec.pose[:, :2], floor_xy, atol=1e-7)
+    np.testing.assert_allclose(rec.pose[:, 2], np.degrees(phi), atol=1e-5)
+    assert rec.metadata["capture_to_floor"]["scale_m_per_unit"] == 0.01

@@ -85,6 +85,27 @@ def test_accuracy_640x480_with_the_marker_hidden(vga):
     assert m.summary["camera_reprojection_rms_px"] < 0.5
 
 
+def test_accuracy_640x480_with_a_calibrated_camera(vga, tmp_path, capsys):
+    """The whole chain without the renderer's intrinsics: calibrate-camera on ChArUco views
+    through the same lens, then measure-pose with that camera.toml (only the video, the
+    calibration and the scene's measured marker places go in)."""
+    from test_pose_calibrate import BOARD, GRID, views, write
+
+    from mecanum_hil.vision.camera import load_camera
+
+    folder = write(views(GRID, camera=vga.camera), tmp_path / "views")
+    camera = tmp_path / "camera.toml"
+    assert main(["calibrate-camera", str(folder), "--board", BOARD, "--out", str(camera)]) == 0
+    capsys.readouterr()
+    cam = load_camera(camera)
+    assert cam != vga.camera  # a calibration, not the renderer's own numbers
+    m = measure_pose(vga.path, cam, vga.scene)
+    vis = vga.marker_visible
+    err = pose_errors(m.t_s[vis], m.pose[vis], vga.pose[vis])
+    assert err["position_rmse_m"] <= 0.008 and err["heading_rmse_deg"] <= 0.8
+    assert m.found[vis].mean() >= 0.95
+
+
 def test_resample_never_across_a_gap_nor_outside():
     t = np.arange(10) * 0.1
     pose = np.column_stack([t, 2 * t, 170.0 + 10 * np.arange(10)])

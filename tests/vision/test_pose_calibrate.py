@@ -17,8 +17,9 @@ TRUE = CameraModel(640, 480, 520.0, 518.0, 322.0, 236.0, (-0.25, 0.08, 0.001, -0
 BOARD = "charuco:7x5:0.04:0.03"
 
 
-def views(cells, per_cell=2, seed=1):
-    """Board views centred on the given image cells (u, v shares), tilted at random."""
+def views(cells, per_cell=2, seed=1, camera=TRUE):
+    """Board views through ``camera`` centred on the given image cells (u, v shares), tilted
+    at random."""
     spec = BoardSpec(7, 5, 0.04, 0.03)
     rng = np.random.default_rng(seed)
     out = []
@@ -27,10 +28,10 @@ def views(cells, per_cell=2, seed=1):
             rv = rng.uniform(-0.45, 0.45, 3)
             rv[2] = rng.uniform(-0.3, 0.3)
             r = cv2.Rodrigues(rv)[0]
-            n = TRUE.normalised(np.array([[u * TRUE.width_px, v * TRUE.height_px]]))[0]
+            n = camera.normalised(np.array([[u * camera.width_px, v * camera.height_px]]))[0]
             centre = rng.uniform(0.45, 0.6) * np.array([n[0], n[1], 1.0])
             t = centre - r @ np.array([0.14, 0.10, 0.0])
-            out.append(render_board_view(spec, TRUE, CameraPose(rv, t), noise_std=2.0,
+            out.append(render_board_view(spec, camera, CameraPose(rv, t), noise_std=2.0,
                                          seed=len(out)))
     return out
 
@@ -99,3 +100,28 @@ def test_calibration_from_a_video(tmp_path, capsys):
     assert main(["calibrate-camera", str(video), "--board", BOARD, "--out", str(out)]) == 0
     assert "RMS reprojection error" in capsys.readouterr().out
     assert load_camera(out).fx_px == pytest.approx(TRUE.fx_px, rel=0.02)
+
+
+def test_views_of_a_long_video_in_bounded_memory(tmp_path):
+    """A calibration video's views are spread over all of it, but never all its frames held at
+    once (a minute of 1080p would be gigabytes of grey frames)."""
+    import tracemalloc
+
+    from mecanum_hil.vision.calibrate import read_views
+    from mecanum_hil.vision.video import VideoWriter
+
+    video = tmp_path / "long.avi"
+    n = 240
+    with VideoWriter(video, 30.0, (320, 240)) as w:
+        for i in range(n):
+            w.write(np.full((240, 320, 3), i, np.uint8))  # the frame's index as its grey level
+    tracemalloc.start()
+    try:
+        got = read_views(video, max_views=6)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 4e6, peak  # all 240 grey frames: 18 MB
+    levels = [float(v.mean()) for v in got]
+    assert len(got) == 6 and levels == sorted(levels)
+    assert levels[0] < 2 and levels[-1] > 0.8 * n
