@@ -11,32 +11,36 @@ Run: ``python examples/reach_target.py [--calibration CAL.toml] [--out paths.png
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import gymnasium as gym
 import numpy as np
 
 import mecanum_hil.envs  # noqa: F401  (registers MecanumHIL-v0)
+from mecanum_hil.envs import ReachTask
+from mecanum_hil.model import RobotProfile
+from mecanum_hil.policy import ScriptedPolicy
 
 
 def scripted(obs: np.ndarray, n_max_rpm: float, omega_max_dps: float) -> np.ndarray:
     """Head for the target in the robot frame, turn towards its heading (a P controller).
 
+    The package's baseline (``mecanum_hil.policy.ScriptedPolicy``, what ``mecanum-hil
+    evaluate scripted`` runs) on a robot with these limits.
+
     Parameters
     ----------
     obs : ndarray, shape (N, 13)
-        Observations (``mecanum_hil.envs.OBSERVATION_LAYOUT``).
+        Observations (``mecanum_hil.envs.observation_layout()``).
 
     Returns
     -------
     ndarray, shape (N, 3)
         ``(n [rpm], omega [deg/s], theta [deg])``; the environment keeps them within limits.
     """
-    fwd, left, dphi = obs[:, 10], obs[:, 11], obs[:, 12]
-    dist = np.hypot(fwd, left)
-    n = np.minimum(n_max_rpm, 150.0 * dist)  # slows down over the last ~0.6 m
-    theta = np.degrees(np.arctan2(fwd, -left))  # theta 0 = right, 90 = ahead
-    omega = np.clip(2.0 * dphi, -omega_max_dps, omega_max_dps)
-    return np.column_stack([n, omega, theta])
+    robot = RobotProfile(wheel_speed_max_rpm=n_max_rpm)
+    robot = replace(robot, lx_plus_ly_m=robot.wheel_radius_m * 6.0 * n_max_rpm / omega_max_dps)
+    return ScriptedPolicy(robot, ReachTask()).act(obs)
 
 
 def run_vector(policy: str, calibration: str, episodes: int, seed: int):

@@ -1,8 +1,10 @@
 """``mecanum-hil record``: drive a controller with a profile and record what comes back.
 
-Exit codes: 0 completed, 1 error, 3 stopped by an observer (shadow mode), 4 link lost,
-130 Ctrl-C, 143 SIGTERM (docs/link.md). Observers are collected in ``observers`` below; a
-command-line option that adds one (e.g. shadow mode) builds it there.
+Exit codes: 0 completed, 1 error, 3 stopped by an observer (shadow mode), 4 link lost
+(telemetry stopped), 5 telemetry far from the announced rate, 6 the controller restarted
+(clock or sequence went back), 130 Ctrl-C, 143 SIGTERM (docs/link.md). Observers are
+collected in ``observers`` below; a command-line option that adds one (e.g. shadow mode)
+builds it there.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from typing import Annotated
 
 import typer
 
-from ._options import OutOpt, RobotOpt
+from ._options import FoxgloveOpt, OutOpt, RobotOpt
 
 
 def command(
@@ -44,7 +46,8 @@ def command(
         "--connect-timeout", help="How long to wait for the controller's HELLO_ACK [s].")
     ] = 2.0,
     link_timeout_s: Annotated[float, typer.Option(
-        "--link-timeout", help="Telemetry silence that counts as a lost link [s].")] = 0.5,
+        "--link-timeout", help="Telemetry silence that counts as a lost link, whatever "
+                               "else arrives [s].")] = 0.5,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Show a progress bar.")] = True,
     shadow: Annotated[str | None, typer.Option(
@@ -53,27 +56,98 @@ def command(
     on_divergence: Annotated[str, typer.Option(
         "--on-divergence", help="With --shadow: none (report) or stop (send STOP at the "
         "first alarm; exit 3).")] = "none",
+    foxglove: FoxgloveOpt = None,
+    policy: Annotated[str | None, typer.Option(
+        "--policy", metavar="POLICY", help="Closed loop: this policy file (from train) or "
+        "'scripted' drives the robot; --out is then a folder (one recording per episode, "
+        "summary.json).")] = None,
+    task: Annotated[str | None, typer.Option(
+        "--task", help="With --policy: reach or dodge (must be the policy's).")] = None,
+    episodes: Annotated[int, typer.Option("--episodes", help="With --policy: episodes.")] = 1,
+    seed: Annotated[int, typer.Option(
+        "--seed", help="With --policy: episode i draws its target or strike from seed + i, "
+        "as evaluate does.")] = 0,
+    json_out: Annotated[bool, typer.Option(
+        "--json", help="With --policy: print the summary (summary.json) on stdout.")] = False,
 ) -> None:
     """Send a command profile to a robot controller and record commands and telemetry."""
     from ..errors import ConfigError
-    from ..io.recording import read_recording
-    from ..link.record import dry_run_report, format_summary, stream_from_recording
+    from ..link.record import dry_run_report, format_summary
     from ..link.session import SessionConfig, run_record_session
-    from ..link.transport import open_transport, parse_option_value
+    from ..link.transport import open_transport
     from ..model import load_robot_profile
-    from ..profiles import resolve_profile
 
+    if policy is not None:
+        from ._record_policy import record_policy
+
+        return record_policy(
+            out=out, transport=transport, port=port, interface=interface, channel=channel,
+            bitrate=bitrate, link_option=link_option, robot=robot, policy=policy, task=task,
+            episodes=episodes, seed=seed, connect_timeout_s=connect_timeout_s,
+            link_timeout_s=link_timeout_s, progress=progress, shadow=shadow,
+            on_divergence=on_divergence, json_out=json_out, profile=profile, commands=commands,
+            dry_run=dry_run, foxglove=foxglove)
     if (commands is None) == (profile is None):
         raise ConfigError("give exactly one of --profile NAME_OR_FILE and --commands REC.csv")
     rob = load_robot_profile(robot)
+    t, cmd, source = _command_stream(profile, commands, rate_hz)
+    rob.check_commands(cmd, source)  # before anything is opened or sent
+    options = _transport_options(transport, port, interface, channel, bitrate, link_option)
+    where = port or f"{interface}:{channel}"
+    if dry_run:
+        typer.echo(dry_run_report(t, cmd, rob, transport, where))
+        return
+
+    observers, shadow_obs, live_view = _observers(shadow, on_divergence, foxglove, rob, t, cmd,
+                                                  out)
+    try:
+        link = open_transport(transport, options)
+    except BaseException:
+        if live_view is not None:  # a port that does not open must not leave a server running
+            live_view.live.close()
+        raise
+    try:
+        config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
+        meta = {"commands_from": source, "command_rate_hz": rate_hz}
+        if progress:
+            result = _run_with_progress(link, t, cmd, out, rob, config, observers, meta, where)
+        else:
+            result = run_record_session(link, t, cmd, out, rob, config=config,
+                                        observers=observers, metadata=meta)
+    finally:
+        link.close()
+        if shadow_obs is not None:
+            typer.echo(shadow_obs.close())
+        if live_view is not None:
+            live_view.live.close()
+    typer.echo(format_summary(result))
+    if result.exit_code == 0:
+        return
+    if result.error is not None and result.reason in ("error", "link_lost"):
+        raise result.error
+    raise typer.Exit(result.exit_code)
+
+
+def _command_stream(profile: str | None, commands: Path | None, rate_hz: float):
+    """The commands to send, ``(t [s], commands, where they come from)``."""
+    from ..io.recording import read_recording
+    from ..link.record import stream_from_recording
+    from ..profiles import resolve_profile
+
     if profile is not None:
         prof = resolve_profile(profile)
         t, cmd = prof.sample(rate_hz)
-        source = f"profile {prof.name}"
-    else:
-        t, cmd = stream_from_recording(read_recording(commands), rate_hz, str(commands))
-        source = str(commands)
-    rob.check_commands(cmd, source)  # before anything is opened or sent
+        return t, cmd, f"profile {prof.name}"
+    t, cmd = stream_from_recording(read_recording(commands), rate_hz, str(commands))
+    return t, cmd, str(commands)
+
+
+def _transport_options(transport: str, port: str | None, interface: str | None,
+                       channel: str | None, bitrate: int | None,
+                       link_option: list[str] | None) -> dict[str, object]:
+    """The transport's options: those its kind takes, then each ``--link-option``."""
+    from ..errors import ConfigError
+    from ..link.transport import parse_option_value
 
     options: dict[str, object] = {}
     if transport == "serial":
@@ -87,13 +161,17 @@ def command(
         if not sep or not key:
             raise ConfigError(f"--link-option needs KEY=VALUE, got {item!r}")
         options[key.strip()] = parse_option_value(value)
-    where = port or f"{interface}:{channel}"
-    if dry_run:
-        typer.echo(dry_run_report(t, cmd, rob, transport, where))
-        return
+    return options
 
-    # Observers see every telemetry sample (their own thread). Options that watch the run
-    # (shadow mode, ...) append theirs here.
+
+def _observers(shadow, on_divergence, foxglove, rob, t, cmd, out):
+    """The run's observers, ``(all, the shadow monitor or None, the live view or None)``.
+
+    Observers see every telemetry sample (their own thread). Options that watch the run
+    (shadow mode, ...) append theirs here.
+    """
+    from ..errors import ConfigError
+
     observers: list = []
     shadow_obs = None
     if shadow is None and on_divergence != "none":
@@ -104,26 +182,14 @@ def command(
 
         shadow_obs = record_shadow(shadow, rob, t, cmd, out, on_divergence, echo=typer.echo)
         observers.append(shadow_obs)
+    live_view = None
+    if foxglove is not None:
+        from ..monitor.foxglove import start_live_view
 
-    link = open_transport(transport, options)
-    try:
-        config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
-        meta = {"commands_from": source, "command_rate_hz": rate_hz}
-        if progress:
-            result = _run_with_progress(link, t, cmd, out, rob, config, observers, meta, where)
-        else:
-            result = run_record_session(link, t, cmd, out, rob, config=config,
-                                        observers=observers, metadata=meta)
-    finally:
-        link.close()
-        if shadow_obs is not None:
-            typer.echo(shadow_obs.close())
-    typer.echo(format_summary(result))
-    if result.exit_code == 0:
-        return
-    if result.error is not None and result.reason in ("error", "link_lost"):
-        raise result.error
-    raise typer.Exit(result.exit_code)
+        # after the shadow observer: it publishes the prediction of the sample just seen
+        live_view = start_live_view(foxglove, shadow_obs, echo=typer.echo)
+        observers.append(live_view)
+    return observers, shadow_obs, live_view
 
 
 def _run_with_progress(link, t, cmd, out, rob, config, observers, meta, where):

@@ -1,0 +1,128 @@
+"""``mecanum-hil record --policy``: a trained (or the scripted) policy drives the robot.
+
+Called by :mod:`mecanum_hil.cli.record` when ``--policy`` is given; the library side is
+:mod:`mecanum_hil.link.policy_session`. ``--out`` is then a folder: one recording per episode
+and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def record_policy(*, out: Path, transport: str, port, interface, channel, bitrate, link_option,
+                  robot: str, policy: str, task: str | None, episodes: int, seed: int,
+                  connect_timeout_s: float, link_timeout_s: float, progress: bool,
+                  shadow: str | None, on_divergence: str, json_out: bool, profile, commands,
+                  dry_run: bool, foxglove=None) -> None:
+    """Run ``episodes`` episodes of ``policy`` on the robot (see ``record --help``)."""
+    import json
+
+    from ..errors import ConfigError
+    from ..link.policy_session import run_policy_episodes
+    from ..link.session import SessionConfig
+    from ..link.transport import open_transport, parse_option_value
+    from ..model import load_robot_profile
+    from ..policy import resolve_policy
+
+    if profile is not None or commands is not None:
+        raise ConfigError("--policy makes the commands itself: give no --profile or --commands")
+    if dry_run:
+        raise ConfigError("--dry-run checks a fixed command stream; a policy's commands depend "
+                          "on the robot (try it with sim-robot, or `mecanum-hil evaluate`)")
+    if foxglove is not None:
+        raise ConfigError("--foxglove is not available with --policy yet")
+    if episodes < 1 or seed < 0:
+        raise ConfigError("--episodes must be >= 1 and --seed >= 0")
+    if shadow is None and on_divergence != "none":
+        raise ConfigError("--on-divergence acts on shadow mode's alarms: give --shadow CAL too "
+                          "(without it nothing watches the run)")
+    rob = load_robot_profile(robot)
+    pol = resolve_policy(policy, rob, task)  # refuses another robot's or task's policy
+    cal = pol.calibration()  # its slip efficiencies turn wheel speeds into odometry
+
+    options: dict[str, object] = {}
+    if transport == "serial":
+        options.update(port=port, baudrate=bitrate)
+    elif transport == "can":
+        options.update(interface=interface, channel=channel, bitrate=bitrate)
+    else:
+        options.update(port=port, interface=interface, channel=channel, bitrate=bitrate)
+    for item in link_option or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--link-option needs KEY=VALUE, got {item!r}")
+        options[key.strip()] = parse_option_value(value)
+    where = port or f"{interface}:{channel}"
+
+    make_observers = close_observers = None
+    if shadow is not None:
+        from ..model import load_calibration
+        from ..monitor.core import ShadowConfig
+        from ..monitor.eventlog import event_log_path
+        from ..monitor.live import LiveShadow
+
+        shadow_cal = load_calibration(shadow)
+        closed: list[str] = []
+
+        def make_observers(csv: Path):
+            return [LiveShadow(shadow_cal, rob, ShadowConfig(), event_log_path(csv),
+                               stop_on_divergence=on_divergence == "stop", echo=typer.echo,
+                               header={"mode": "record --policy", "recording": str(csv),
+                                       "on_divergence": on_divergence})]
+
+        def close_observers(observers):
+            for obs in observers:
+                closed.append(obs.close())
+                typer.echo(closed[-1])
+
+    echo = None if json_out else typer.echo
+    link = open_transport(transport, options)
+    try:
+        config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
+        meta = {"policy": str(policy), "policy_info": pol.describe()}
+        kwargs = dict(episodes=episodes, seed=seed, out_dir=out, config=config,
+                      make_observers=make_observers, close_observers=close_observers,
+                      metadata=meta, echo=echo)
+        if progress and not json_out:
+            run = _run_with_progress(link, pol, rob, cal, where, kwargs)
+        else:
+            run = run_policy_episodes(link, pol, rob, cal, **kwargs)
+    finally:
+        link.close()
+    s = run.summary
+    if json_out:
+        typer.echo(json.dumps(s))
+    else:
+        typer.echo(f"{s['end_reason']} (exit {s['exit_code']}): {s['episodes']} of {episodes} "
+                   f"episodes, success {100 * s['success_rate']:.1f} %, mean return "
+                   f"{s['mean_return']:+.3f}; wrote {Path(out) / 'summary.json'}")
+    if run.exit_code == 0:
+        return
+    last = run.results[-1]
+    if last.error is not None and last.reason not in ("interrupted", "terminated",
+                                                      "observer_stop"):
+        raise last.error
+    raise typer.Exit(run.exit_code)
+
+
+def _run_with_progress(link, pol, rob, cal, where, kwargs):
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from ..link.policy_session import run_policy_episodes
+
+    columns = (TextColumn("[bold]record --policy[/] {task.description}"), BarColumn(),
+               TextColumn("episode {task.fields[episode]}/{task.total:.0f}"),
+               TextColumn("{task.fields[counts]}"))
+    with Progress(*columns, transient=True) as bar:
+        task = bar.add_task(where, total=kwargs["episodes"], episode=1, counts="")
+
+        def update(i, elapsed_s, total_s, counts):
+            bar.update(task, completed=i + min(elapsed_s / total_s, 1.0) if total_s else i,
+                       episode=i + 1,
+                       counts=f"{elapsed_s:.1f} s  sent {counts['sent']} rx {counts['received']} "
+                              f"lost {counts['lost']}")
+
+        return run_policy_episodes(link, pol, rob, cal, progress=update, **kwargs)
