@@ -1,0 +1,175 @@
+"""``mecanum-hil batch``: fit, diagnose, shadow-replay or measure a fleet's archive on Dask."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ._options import JsonOpt, RobotOpt
+
+_STAGES = ("fit", "diagnose", "shadow", "measure-video")
+
+
+def command(
+    stage: Annotated[str, typer.Argument(
+        help="fit, diagnose (fit then diagnose), shadow (replay each recording) or "
+             "measure-video (each video).", metavar="fit|diagnose|shadow|measure-video")],
+    archive: Annotated[str, typer.Argument(
+        help="Folder or fsspec URL (file://, s3://...); each first-level folder is a robot.",
+        metavar="ARCHIVE")],
+    out: Annotated[Path, typer.Option(
+        "--out", "-o", help="Results table: .parquet or .csv (one row per group).",
+        metavar="RESULTS")],
+    scheduler: Annotated[str | None, typer.Option(
+        "--scheduler", help="An existing Dask cluster (tcp://HOST:PORT); default: a local "
+        "cluster on this machine.", metavar="tcp://HOST:PORT")] = None,
+    workers: Annotated[int | None, typer.Option(
+        "--workers", min=1, help="Local cluster: worker processes, one thread each "
+        "(default: the cores).")] = None,
+    group_by: Annotated[str | None, typer.Option(
+        "--group-by", help="Robot = this path level (1 = first-level folder, the default) or "
+        "this sidecar key (dotted for nested).", metavar="LEVEL|KEY")] = None,
+    period: Annotated[str | None, typer.Option(
+        "--period", help="Also group per day or week (UTC; sidecar started_utc, else the "
+        "file's modification time).", metavar="day|week")] = None,
+    period_level: Annotated[int | None, typer.Option(
+        "--period-level", min=0, help="Also group per period named by this path level's folder "
+        "(robot/DAY/run.csv: 2; 0: the ARCHIVE folder's own name); no sidecar is read.",
+        metavar="LEVEL")] = None,
+    calibration: Annotated[str, typer.Option(
+        "--calibration", "-c", metavar="CAL",
+        help="fit/diagnose: effects held (as for fit); shadow: the model to replay against. A "
+        "shipped name, a file, an fsspec URL or a template such as 'cals/{group}.toml' "
+        "({group}, {period}).")] = "paper",
+    robot: RobotOpt = "tdam-stm",
+    method: Annotated[str, typer.Option(
+        "--method", "-m", help="fit/diagnose: lsq or paper-grid.")] = "lsq",
+    candidates: Annotated[str | None, typer.Option(
+        "--candidates", help="diagnose: comma-separated effects to consider.")] = None,
+    noise_rpm: Annotated[float | None, typer.Option(
+        "--noise-rpm", help="shadow: wheel noise (1 sigma) \\[rpm]; default: estimated.")
+    ] = None,
+    drift: Annotated[float, typer.Option(
+        "--drift", help="shadow: CUSUM allowance k \\[noise sigmas].")] = 1.0,
+    threshold: Annotated[float, typer.Option(
+        "--threshold", help="shadow: CUSUM decision threshold h \\[noise sigmas].")] = 10.0,
+    warmup: Annotated[float, typer.Option(
+        "--warmup", help="shadow: noise estimation window \\[s].")] = 2.0,
+    wheel: Annotated[int, typer.Option(
+        "--wheel", min=1, max=4, help="measure-video: wheel column to fill.")] = 1,
+    roi: Annotated[list[str] | None, typer.Option(
+        "--roi", help="measure-video: search region [N:]x,y,w,h \\[px].",
+        metavar="[N:]X,Y,W,H")] = None,
+    marker: Annotated[str, typer.Option(
+        "--marker", help="measure-video: auto or aruco.")] = "auto",
+    fps: Annotated[float | None, typer.Option(
+        "--fps", help="measure-video: frame rate overriding the timestamps \\[1/s].")] = None,
+    min_found: Annotated[float, typer.Option(
+        "--min-found", help="measure-video: smallest share of frames with the marker.")
+    ] = 0.5,
+    write: Annotated[str | None, typer.Option(
+        "--write", help="Folder or fsspec URL for each group's output: fit/diagnose "
+        "GROUP.toml (GROUP/PERIOD.toml with --period), measure-video the measured "
+        "recordings.", metavar="DIR")] = None,
+    no_resume: Annotated[bool, typer.Option(
+        "--no-resume", help="Run every group, even those whose inputs did not change.")
+    ] = False,
+    drift_threshold: Annotated[float, typer.Option(
+        "--drift-threshold", help="Smallest coefficient change flagged as drift (also outside "
+        "the 95 % intervals) \\[%].")] = 5.0,
+    json_out: JsonOpt = False,
+) -> None:
+    """Run a stage over a fleet's archive on Dask: one task per robot (and period).
+
+    Writes one table row per group (coefficients with intervals, effects, RMSE, alarms, drift
+    against the robot's previous period, error). A bad recording or group fails alone, in its
+    row; a re-run skips groups whose inputs did not change.
+    """
+    import json
+    import os
+    import sys
+
+    from ..errors import ConfigError
+
+    # before numpy loads OpenBLAS in this process (as fit does; workers get it from the cluster)
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    from ..fleet.runner import BatchSettings
+
+    if stage not in _STAGES:
+        raise ConfigError(f"batch runs {', '.join(_STAGES)}; got {stage!r}")
+    if period is not None and period not in ("day", "week"):
+        raise ConfigError(f"--period must be day or week, got {period!r}")
+    if method not in ("lsq", "paper-grid"):
+        raise ConfigError(f"--method must be lsq or paper-grid, got {method!r}")
+    if marker not in ("auto", "aruco"):
+        raise ConfigError(f"--marker must be auto or aruco, got {marker!r}")
+    if scheduler is not None and workers is not None:
+        raise ConfigError("--workers sizes the local cluster; it does not go with --scheduler")
+    options: dict = {}
+    if stage in ("fit", "diagnose"):
+        options["method"] = method
+    if stage == "diagnose" and candidates:
+        options["candidates"] = [c.strip() for c in candidates.split(",") if c.strip()]
+    if stage == "shadow":
+        options["config"] = {"drift_k": drift, "threshold_h": threshold, "warmup_s": warmup,
+                             "noise_rpm": noise_rpm}
+    if stage == "measure-video":
+        options["video"] = {"wheel": wheel, "roi": list(roi or []), "marker": marker,
+                            "fps": fps, "min_found": min_found}
+    settings = BatchSettings(
+        command=stage, archive=archive, out=out, group_by=group_by, period=period,
+        period_level=period_level,
+        scheduler=scheduler, workers=workers, calibration=calibration, robot=robot,
+        options=options, write_to=write, resume=not no_resume,
+        drift_min_relative=drift_threshold / 100.0)
+    outcome = _run_with_progress(settings, quiet=json_out)
+    c = outcome.counts
+    drifted = sorted({r["group"] for r in outcome.rows if r.get("drifted")})
+    alarmed = sorted({r["group"] for r in outcome.rows if (r.get("alarms") or 0) > 0})
+    failed = [r for r in outcome.rows if r["status"] == "failed"]
+    partial = [r for r in outcome.rows if r["status"] == "partial"]
+    if json_out:
+        typer.echo(json.dumps({
+            "results": str(outcome.results), "groups": c.total, "done": c.done,
+            "failed": c.failed, "unchanged": c.unchanged, "partial": len(partial),
+            "drifted": drifted, "alarms": alarmed, "dashboard": outcome.dashboard,
+            "wall_s": outcome.wall_s}))
+        return
+    typer.echo(f"{c.total} group(s): {c.done} run, {c.unchanged} unchanged (skipped), "
+               f"{c.failed} failed, {len(partial)} with inputs left out; "
+               f"{outcome.wall_s:.1f} s")
+    if drifted:
+        typer.echo(f"drifted: {', '.join(drifted)}")
+    if alarmed:
+        typer.echo(f"alarms: {', '.join(alarmed)}")
+    for r in failed + partial:
+        print(f"warning: {r['group']} {r['period'] or ''}".rstrip() + f": {r['error']}",
+              file=sys.stderr)
+    typer.echo(f"wrote {outcome.results}")
+
+
+def _run_with_progress(settings, quiet: bool):
+    """Run the batch with a progress bar on stderr (done / failed / skipped / remaining)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from ..fleet.runner import run_batch
+
+    console = Console(stderr=True)
+    columns = (TextColumn("batch {task.fields[stage]}"), BarColumn(),
+               TextColumn("{task.fields[text]}"), TimeElapsedColumn())
+    with Progress(*columns, console=console, disable=quiet, transient=False) as bar:
+        task = bar.add_task("batch", total=None, stage=settings.command, text="planning")
+
+        def progress(c) -> None:
+            bar.update(task, total=c.total, completed=c.total - c.remaining,
+                       text=f"{c.done} done, {c.failed} failed, {c.unchanged} unchanged, "
+                            f"{c.remaining} remaining")
+
+        def echo(line: str) -> None:
+            if not quiet:
+                bar.console.print(line, markup=False, highlight=False)
+
+        return run_batch(settings, progress=progress, echo=echo)

@@ -1,0 +1,39 @@
+"""``mecanum-hil fleet-report``: which robots drifted and how, from a batch's results table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def command(
+    results: Annotated[list[Path], typer.Argument(
+        help="Results tables of mecanum-hil batch (.parquet or .csv); several (e.g. one per "
+             "day) are joined and the drift recomputed across them.", metavar="RESULTS...")],
+    out: Annotated[Path, typer.Option(
+        "--out", "-o", help="Folder for summary.md and the PNG plots.", metavar="DIR")],
+    drift_threshold: Annotated[float | None, typer.Option(
+        "--drift-threshold", help="Recompute the drift with this smallest coefficient change "
+        "\\[%] (default: as the batch wrote it; 5 when joining tables).")] = None,
+) -> None:
+    """Write drift plots (PNG) and a Markdown summary of a fleet's batch results."""
+    from ..fleet.report import write_report
+    from ..fleet.results import DRIFT_MIN_RELATIVE, add_drift, read_results, row_key
+
+    joined: dict = {}
+    for path in results:
+        for row in read_results(path):
+            joined[row_key(row)] = row  # a later table's row replaces an earlier one's
+    rows = list(joined.values())
+    threshold = None if drift_threshold is None else drift_threshold / 100.0
+    if threshold is None and len(results) > 1:
+        threshold = DRIFT_MIN_RELATIVE
+    if threshold is not None:
+        rows = add_drift(rows, threshold)
+    written = write_report(rows, out, source=", ".join(p.name for p in results))
+    drifted = sorted({r["group"] for r in rows if r["drifted"]})
+    typer.echo(f"{len(rows)} row(s); drifted: {', '.join(drifted) or 'none'}")
+    for path in written.values():
+        typer.echo(f"wrote {path}")

@@ -1,0 +1,415 @@
+"""Run a batch on Dask: plan the groups, submit one task each, journal rows, write the table.
+
+The client side holds only the list of files and the rows (a few hundred bytes each); the
+recordings are read by the tasks on the workers. Rows are appended to a journal
+(``RESULTS.journal.jsonl``, one JSON object per line, flushed) as they arrive, so an
+interrupted batch loses nothing: the next run reads the table and the journal, and every group
+whose content hash did not change is not run again. At the end the table is written
+atomically and the journal removed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import tempfile
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .. import __version__
+from ..errors import ConfigError, MecanumHILError
+from .archive import Group, group_files, open_archive
+from .results import add_drift, normalise, read_results, row_key, table_format, write_results
+from .tasks import COMMANDS, GroupSpec, run_group
+
+#: Environment of the local cluster's worker processes: one core each, no nested thread pools
+#: (OpenBLAS and numba threads on top of several workers oversubscribe a small machine).
+WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+              "NUMBA_NUM_THREADS": "1"}
+
+
+@dataclass(frozen=True)
+class BatchSettings:
+    """What ``mecanum-hil batch`` was asked to do.
+
+    Attributes
+    ----------
+    command : str
+        ``fit``, ``diagnose``, ``shadow`` or ``measure-video``.
+    archive : str
+        Folder or fsspec URL.
+    out : Path
+        Results table (``.parquet`` or ``.csv``).
+    group_by : str or None
+        Path level or sidecar key (:func:`~.archive.group_files`).
+    period : str or None
+        ``day`` or ``week``.
+    period_level : int or None
+        The period is this path level's folder name (instead of ``period``).
+    scheduler : str or None
+        ``tcp://HOST:PORT`` of an existing cluster; None: a local cluster.
+    workers : int or None
+        Local cluster: worker processes (default: the machine's cores), one thread each.
+    calibration : str
+        Shipped name, file, fsspec URL, or a template with ``{group}``/``{period}``.
+    robot : str
+        Robot profile (shipped name or file).
+    options : dict
+        Stage options (``method``, ``candidates``, ``config``, ``video``).
+    write_to : str or None
+        Folder (or fsspec URL) for per-group outputs.
+    resume : bool
+        Skip groups whose content hash matches the existing table or journal.
+    drift_min_relative : float
+        Smallest relative coefficient change that counts as drift [-].
+    connect_timeout_s : float
+        How long to try reaching ``scheduler`` [s].
+    """
+
+    command: str
+    archive: str
+    out: Path
+    group_by: str | None = None
+    period: str | None = None
+    period_level: int | None = None
+    scheduler: str | None = None
+    workers: int | None = None
+    calibration: str = "paper"
+    robot: str = "tdam-stm"
+    options: dict[str, Any] = field(default_factory=dict)
+    write_to: str | None = None
+    resume: bool = True
+    drift_min_relative: float = 0.05
+    connect_timeout_s: float = 30.0
+
+
+@dataclass
+class Counts:
+    """Progress of a batch (groups)."""
+
+    total: int = 0
+    done: int = 0
+    failed: int = 0
+    unchanged: int = 0
+
+    @property
+    def remaining(self) -> int:
+        """Groups not finished yet."""
+        return self.total - self.done - self.failed - self.unchanged
+
+
+@dataclass(frozen=True)
+class BatchOutcome:
+    """What a batch did.
+
+    Attributes
+    ----------
+    rows : list of dict
+        The table as written.
+    counts : Counts
+    results : Path
+    dashboard : str or None
+        The Dask dashboard's address, when there was one.
+    wall_s : float
+        Time from the first submitted task to the last result [s].
+    startup_s : float
+        Time to plan the groups and reach the cluster [s].
+    """
+
+    rows: list[dict[str, Any]]
+    counts: Counts
+    results: Path
+    dashboard: str | None
+    wall_s: float
+    startup_s: float
+
+
+def journal_path(out: Path) -> Path:
+    """The journal next to the results table."""
+    return out.with_name(out.name + ".journal.jsonl")
+
+
+def spec_key(command: str, group: str, period: str, inputs: Sequence[str]
+             ) -> tuple[str, str, str]:
+    """The results-table key of a task (:func:`~.results.row_key`)."""
+    return row_key({"command": command, "group": group, "period": period,
+                    "inputs": ";".join(inputs)})
+
+
+def previous_rows(out: Path, command: str) -> dict[tuple[str, str, str], dict[str, Any]]:
+    """Rows of an earlier run of the same batch (its table, then its journal), by key."""
+    rows: dict[tuple[str, str, str], dict[str, Any]] = {}
+    if out.exists():
+        for r in read_results(out):
+            rows[row_key(r)] = r
+    jpath = journal_path(out)
+    if jpath.exists():
+        for line in jpath.read_text(encoding="utf-8").splitlines():
+            try:
+                r = normalise(json.loads(line))
+            except ValueError:
+                continue  # a line cut off by the interruption
+            rows[row_key(r)] = r
+    other = {r["command"] for r in rows.values()} - {command}
+    if other:
+        raise ConfigError(f"{out} holds results of batch {', '.join(sorted(other))}, not "
+                          f"{command}: write to another table")
+    return rows
+
+
+def _digest(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+class _Calibrations:
+    """Calibrations by reference, loaded once each (a template gives one per robot)."""
+
+    def __init__(self) -> None:
+        self._cache: dict[str, tuple[Any, str] | MecanumHILError] = {}
+
+    def get(self, ref: str) -> tuple[Any, str]:
+        if ref not in self._cache:
+            try:
+                self._cache[ref] = self._load(ref)
+            except MecanumHILError as err:
+                self._cache[ref] = err
+        got = self._cache[ref]
+        if isinstance(got, MecanumHILError):
+            raise got
+        return got
+
+    @staticmethod
+    def _load(ref: str) -> tuple[Any, str]:
+        from ..io.resources import resolve
+        from ..model import load_calibration
+
+        if "://" not in ref:
+            path = resolve("calibration", ref)
+            return load_calibration(path), _digest(path.read_bytes())
+        from . import require_extra
+
+        fsspec = require_extra("fsspec")
+        try:
+            with fsspec.open(ref, "rb") as fh:
+                data = fh.read()
+        except (OSError, ValueError) as err:
+            raise ConfigError(f"{ref}: cannot read the calibration: {err}") from err
+        with tempfile.TemporaryDirectory() as tmp:
+            local = Path(tmp) / "calibration.toml"
+            local.write_bytes(data)
+            cal = load_calibration(local)
+        return cal, _digest(data)
+
+
+def plan(settings: BatchSettings,
+         previous: Mapping[tuple[str, str, str], Mapping[str, Any]] | None = None
+         ) -> tuple[list[GroupSpec], Any]:
+    """The archive's groups as task specs (nothing is run).
+
+    Returns
+    -------
+    (specs, archive)
+    """
+    from ..io.resources import resolve
+    from ..model import load_robot_profile
+
+    if settings.command not in COMMANDS:
+        raise ConfigError(f"batch command must be one of {', '.join(COMMANDS)}, got "
+                          f"{settings.command!r}")
+    kind = "videos" if settings.command == "measure-video" else "recordings"
+    archive = open_archive(settings.archive, kind)
+    groups: list[Group] = group_files(archive, settings.group_by, settings.period,
+                                      per_file=settings.command == "measure-video",
+                                      period_level=settings.period_level)
+    robot = load_robot_profile(settings.robot)
+    robot_hash = _digest(resolve("drivers", settings.robot).read_bytes())
+    cals = _Calibrations()
+    specs = []
+    for g in groups:
+        error = g.error
+        cal, cal_hash = None, ""
+        if settings.command != "measure-video" or "{" not in settings.calibration:
+            ref = settings.calibration.format(group=g.group, period=g.period)
+            try:
+                cal, cal_hash = cals.get(ref)
+            except MecanumHILError as err:
+                error = error or f"calibration: {err}"
+        key = spec_key(settings.command, g.group, g.period, [f.rel for f in g.files])
+        settings_doc = {"command": settings.command, "options": settings.options,
+                        "robot": robot_hash, "calibration": cal_hash, "version": __version__,
+                        "write_to": settings.write_to}
+        prev = (previous or {}).get(key)
+        prev_hash = prev.get("content_hash") if prev and prev.get("status") in (
+            "ok", "partial") else None
+        specs.append(GroupSpec(
+            command=settings.command, group=g.group, period=g.period,
+            files=tuple((f.path, f.rel, f.sidecar) for f in g.files), fs=archive.fs,
+            robot=robot, calibration=cal, options=dict(settings.options),
+            settings_hash=_digest(json.dumps(settings_doc, sort_keys=True, default=str)
+                                  .encode()),
+            previous_hash=prev_hash, write_to=settings.write_to, error=error))
+    return specs, archive
+
+
+def local_cluster(workers: int | None = None, dashboard: bool = True):
+    """A local Dask cluster: ``workers`` processes (default: the cores), one thread each."""
+    from . import require_extra
+
+    distributed = require_extra("dask.distributed")
+    dask = require_extra("dask")
+    n = workers or os.cpu_count() or 1
+    # The statistical profiler samples every worker thread each 10 ms: a third of an idle
+    # worker's CPU here; batch tasks are coarse, its flame graph not needed. Dask's default
+    # worker environment sets MALLOC_TRIM_THRESHOLD_=65536, which fixes glibc's mmap threshold
+    # too: every large numpy temporary of a fit is then mapped and unmapped anew, +22 % CPU
+    # per fit here (docs/scale.md); the workers keep glibc's adaptive default instead.
+    with dask.config.set({"distributed.worker.profile.enabled": False,
+                          "distributed.nanny.pre-spawn-environ": dict(WORKER_ENV)}), \
+            warnings.catch_warnings():
+        # without a dashboard the scheduler still serves its health routes, on 8787 or, when
+        # another cluster has it, a free port: that is fine, not worth a warning
+        warnings.filterwarnings("ignore", message="Port 8787 is already in use")
+        return distributed.LocalCluster(
+            n_workers=n, threads_per_worker=1, processes=True,
+            dashboard_address="127.0.0.1:0" if dashboard else None,
+            silence_logs=logging.ERROR, env=dict(WORKER_ENV))
+
+
+def dashboard_of(client) -> str | None:
+    """The dashboard address of a client's scheduler, when it serves one."""
+    try:
+        services = client.scheduler_info().get("services", {})
+    except (OSError, MecanumHILError):
+        return None
+    return client.dashboard_link if "dashboard" in services else None
+
+
+def execute(client, specs: Sequence[GroupSpec], previous: Mapping[tuple[str, str, str], Any],
+            journal: Path | None, progress: Callable[[Counts], None] | None = None
+            ) -> tuple[list[dict[str, Any]], Counts, float]:
+    """Submit one task per spec, collect the rows as they finish, journal them.
+
+    A task that dies (its worker lost, an error outside the stage) becomes a failed row; the
+    others go on.
+
+    Returns
+    -------
+    (rows, counts, wall_s)
+    """
+    from . import require_extra
+
+    distributed = require_extra("dask.distributed")
+    counts = Counts(total=len(specs))
+    t0 = time.perf_counter()
+    futures = {}
+    for i, spec in enumerate(specs):
+        # readable keys on the dashboard; the index and start time keep them unique
+        fut = client.submit(run_group, spec, pure=False,
+                            key=f"mecanum-hil-{spec.command}-{i}-" + _digest(
+                                f"{spec.group}\0{spec.period}\0{t0}".encode())[:12])
+        futures[fut] = spec
+    rows: list[dict[str, Any]] = []
+    jfile = journal.open("a", encoding="utf-8") if journal is not None else None
+    if progress:
+        progress(counts)
+    try:
+        for fut in distributed.as_completed(list(futures)):
+            spec = futures.pop(fut)
+            try:
+                row = fut.result()
+            except Exception as err:  # the task itself died: only this group fails
+                row = normalise({"group": spec.group, "period": spec.period,
+                                 "command": spec.command, "status": "failed",
+                                 "n_inputs": len(spec.files),
+                                 "inputs": [rel for _, rel, _ in spec.files],
+                                 "error": f"task failed: {type(err).__name__}: {err}"})
+            if row["status"] == "unchanged":
+                counts.unchanged += 1
+                row = dict(previous[spec_key(spec.command, spec.group, spec.period,
+                                             [rel for _, rel, _ in spec.files])])
+            elif row["status"] == "failed":
+                counts.failed += 1
+            else:
+                counts.done += 1
+            row = normalise(row)
+            rows.append(row)
+            if jfile is not None:
+                jfile.write(json.dumps(row) + "\n")
+                jfile.flush()
+            if progress:
+                progress(counts)
+    finally:
+        if jfile is not None:
+            jfile.close()
+        for fut in futures:
+            fut.cancel()
+    return rows, counts, time.perf_counter() - t0
+
+
+def run_batch(settings: BatchSettings, progress: Callable[[Counts], None] | None = None,
+              echo: Callable[[str], None] | None = None, client=None) -> BatchOutcome:
+    """Plan, run and write a batch (``mecanum-hil batch``).
+
+    Parameters
+    ----------
+    settings : BatchSettings
+    progress : callable, optional
+        Called with the :class:`Counts` after each group.
+    echo : callable, optional
+        Status lines (the plan, the dashboard's address).
+    client : dask.distributed.Client, optional
+        Use this client instead of the one ``settings.scheduler`` names (tests, benchmarks).
+    """
+    say = echo or (lambda _m: None)
+    t0 = time.perf_counter()
+    table_format(settings.out)
+    previous = previous_rows(settings.out, settings.command) if settings.resume else {}
+    specs, _archive = plan(settings, previous)
+    say(f"{settings.archive}: {describe_specs(specs)}")
+    own_cluster = own_client = None
+    try:
+        if client is None:
+            from . import require_extra
+
+            distributed = require_extra("dask.distributed")
+            if settings.scheduler:
+                try:
+                    own_client = client = distributed.Client(settings.scheduler,
+                                                           timeout=settings.connect_timeout_s)
+                except (OSError, TimeoutError) as err:
+                    raise ConfigError(f"cannot reach the Dask scheduler at "
+                                      f"{settings.scheduler}: {err}") from err
+            else:
+                own_cluster = local_cluster(settings.workers)
+                own_client = client = distributed.Client(own_cluster)
+        dashboard = dashboard_of(client)
+        if dashboard:
+            say(f"Dask dashboard: {dashboard}")
+        startup = time.perf_counter() - t0
+        jpath = journal_path(settings.out)
+        settings.out.parent.mkdir(parents=True, exist_ok=True)
+        rows, counts, wall = execute(client, specs, previous, jpath, progress)
+    finally:
+        if own_client is not None:
+            own_client.close()
+        if own_cluster is not None:
+            own_cluster.close()
+    table = add_drift(rows, settings.drift_min_relative)
+    write_results(table, settings.out)
+    jpath.unlink(missing_ok=True)
+    return BatchOutcome(table, counts, settings.out, dashboard, wall, startup)
+
+
+def describe_specs(specs: Sequence[GroupSpec]) -> str:
+    """One line about the planned tasks."""
+    robots = {s.group for s in specs}
+    periods = {s.period for s in specs if s.period}
+    files = sum(len(s.files) for s in specs)
+    return (f"{len(robots)} robot(s)" + (f", {len(periods)} period(s)" if periods else "")
+            + f", {files} file(s), {len(specs)} task(s)")
