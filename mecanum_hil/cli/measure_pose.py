@@ -40,57 +40,25 @@ def command(
 ) -> None:
     """Measure the robot's pose per frame: static camera from the floor markers over the whole
     video, the robot's marker on its known plane, smoothed without lag."""
-    import math
-
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn
-
-    from ..errors import ConfigError
-    from ..io.pose_track import fill_pose, onset_offset
+    from ..io.pose_track import fill_pose
     from ..io.recording import read_recording, write_metadata, write_recording
     from ..vision.camera import load_camera
-    from ..vision.pose import PoseOptions, measure_pose, write_pose_csv
+    from ..vision.pose import PoseOptions, write_pose_csv
     from ..vision.scene import load_scene
 
-    start_auto = False
-    start_s = 0.0
-    if video_start is None:
-        start_auto = recording is not None
-    elif video_start.strip().lower() == "auto":
-        if recording is None:
-            raise ConfigError("--video-start-s auto needs --recording (the commands to find the "
-                              "robot's motion onset against)")
-        start_auto = True
-    else:
-        try:
-            start_s = float(video_start)
-        except ValueError:
-            start_s = math.nan
-        if not math.isfinite(start_s):
-            raise ConfigError(f"--video-start-s must be a number of seconds or auto, got "
-                              f"{video_start!r}")
+    start_auto, start_s = _parse_video_start(video_start, recording)
     cam = load_camera(camera)
     scn = load_scene(scene)
     rec = read_recording(recording) if recording is not None else None
-    with Progress(TextColumn("measuring pose"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total} frames"),
-                  console=Console(stderr=True), transient=True) as bar:
-        task = bar.add_task("measure", total=None)
-        m = measure_pose(video, cam, scn, PoseOptions(window_s=window_s, fps=fps,
-                                                      min_found=min_found),
-                         progress=lambda d, t: bar.update(task, completed=d, total=t or None))
+    m = _measure_with_progress(video, cam, scn, PoseOptions(window_s=window_s, fps=fps,
+                                                            min_found=min_found))
     for w in m.warnings:
         typer.echo(f"warning: {w}", err=True)
     summary = dict(m.summary)
     method = "given"
     if start_auto:
-        from ..model import load_calibration, load_robot_profile
-        from ..prediction import predict
-
         assert rec is not None
-        model = predict(rec, load_calibration(calibration), load_robot_profile(robot),
-                        source=str(recording))
-        start_s = onset_offset(m.t_s, m.pose, model.t_s, model.pose, source=str(video))
+        start_s = _motion_onset_start(m, rec, calibration, robot, recording, video)
         method = "auto: the robot's motion onset (1 cm) against the model for the commands"
     summary["video_start_s"] = round(start_s, 6)
     summary["video_start_method"] = method
@@ -114,3 +82,54 @@ def command(
                f" camera at {cp['position_m']} m, tilt {cp['tilt_deg']:.1f} deg, floor markers "
                f"reproject {summary['camera_reprojection_rms_px']:.3f} px RMS; video start "
                f"{start_s:.3f} s ({method}) -> {out}")
+
+
+def _parse_video_start(video_start: str | None, recording: Path | None) -> tuple[bool, float]:
+    """``(found from the motion onset?, the video's start [s] when given)``."""
+    import math
+
+    from ..errors import ConfigError
+
+    if video_start is None:
+        return recording is not None, 0.0
+    if video_start.strip().lower() == "auto":
+        if recording is None:
+            raise ConfigError("--video-start-s auto needs --recording (the commands to find the "
+                              "robot's motion onset against)")
+        return True, 0.0
+    try:
+        start_s = float(video_start)
+    except ValueError:
+        start_s = math.nan
+    if not math.isfinite(start_s):
+        raise ConfigError(f"--video-start-s must be a number of seconds or auto, got "
+                          f"{video_start!r}")
+    return False, start_s
+
+
+def _measure_with_progress(video: Path, cam, scn, opts):
+    """:func:`~mecanum_hil.vision.pose.measure_pose` behind a frame-count bar on stderr."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    from ..vision.pose import measure_pose
+
+    with Progress(TextColumn("measuring pose"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total} frames"),
+                  console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("measure", total=None)
+        return measure_pose(video, cam, scn, opts,
+                            progress=lambda d, t: bar.update(task, completed=d, total=t or None))
+
+
+def _motion_onset_start(m, rec, calibration: str, robot: str, recording: Path | None,
+                        video: Path) -> float:
+    """The video's start on the recording's clock [s]: where the measured motion begins
+    against the model's prediction for the recorded commands."""
+    from ..io.pose_track import onset_offset
+    from ..model import load_calibration, load_robot_profile
+    from ..prediction import predict
+
+    model = predict(rec, load_calibration(calibration), load_robot_profile(robot),
+                    source=str(recording))
+    return onset_offset(m.t_s, m.pose, model.t_s, model.pose, source=str(video))

@@ -49,12 +49,11 @@ def command(
 ) -> None:
     """Measure wheel speed from a video of wheel markers; write a recording."""
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from ..errors import VideoError
     from ..io.recording import read_recording, write_recording
     from ..vision.detect import MarkerSpec, parse_hsv, parse_roi
-    from ..vision.measure import MeasureOptions, align_with_recording, measure_video
+    from ..vision.measure import MeasureOptions, align_with_recording
     from ..vision.speed import parse_speed_range
 
     if marker not in ("auto", "aruco"):
@@ -68,29 +67,10 @@ def command(
                           expected_rpm=None if speed_range is None
                           else parse_speed_range(speed_range))
     # Refuse before the (long) measurement: writing over the inputs would lose them.
-    targets = [out]
-    if recording is not None:
-        targets.append(merged or out.with_name(out.stem + ".merged.csv"))
-        if targets[1].resolve() == out.resolve():
-            raise VideoError(f"{out}: --merged and --out name the same file")
-    for target in targets:
-        for given, what in ((recording, "the recording given with --recording"),
-                            (video, "the video being measured")):
-            if given is not None and target.resolve() == given.resolve():
-                raise VideoError(f"{target}: would overwrite {what}; write the measurement "
-                                 "to another file")
+    _refuse_overwriting_inputs(video, recording, out, merged)
     rec = read_recording(recording) if recording is not None else None
     err_console = Console(stderr=True)
-    with Progress(TextColumn("measuring {task.fields[name]}"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),
-                  console=err_console, transient=True) as bar:
-        task = bar.add_task("measure", total=None, name=video.name)
-
-        def progress(done: int, total: int) -> None:
-            if done % 10 == 0 or done == total:
-                bar.update(task, completed=done, total=total or None)
-
-        result = measure_video(video, opts, progress)
+    result = _measure_with_progress(video, opts, err_console)
     merged_path = None
     if rec is not None:
         from ..model import load_calibration, load_robot_profile
@@ -107,6 +87,46 @@ def command(
     if as_json:
         typer.echo(json.dumps(summary, indent=2))
         return
+    _echo_summary(video, summary, out, merged_path)
+
+
+def _refuse_overwriting_inputs(video: Path, recording: Path | None, out: Path,
+                               merged: Path | None) -> None:
+    from ..errors import VideoError
+
+    targets = [out]
+    if recording is not None:
+        targets.append(merged or out.with_name(out.stem + ".merged.csv"))
+        if targets[1].resolve() == out.resolve():
+            raise VideoError(f"{out}: --merged and --out name the same file")
+    for target in targets:
+        for given, what in ((recording, "the recording given with --recording"),
+                            (video, "the video being measured")):
+            if given is not None and target.resolve() == given.resolve():
+                raise VideoError(f"{target}: would overwrite {what}; write the measurement "
+                                 "to another file")
+
+
+def _measure_with_progress(video: Path, opts, err_console):
+    """:func:`~mecanum_hil.vision.measure.measure_video` behind a frame-count bar on stderr."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from ..vision.measure import measure_video
+
+    with Progress(TextColumn("measuring {task.fields[name]}"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),
+                  console=err_console, transient=True) as bar:
+        task = bar.add_task("measure", total=None, name=video.name)
+
+        def progress(done: int, total: int) -> None:
+            if done % 10 == 0 or done == total:
+                bar.update(task, completed=done, total=total or None)
+
+        return measure_video(video, opts, progress)
+
+
+def _echo_summary(video: Path, summary: dict, out: Path, merged_path: Path | None) -> None:
+    """The measurement in a few lines: timing, each wheel, the offset, what was written."""
     typer.echo(f"{video}: {summary['frames']} frames, {summary['fps']:g} fps "
                f"({summary['timing']}), {summary['duration_s']:.2f} s")
     for w in summary["wheels"]:

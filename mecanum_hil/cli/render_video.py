@@ -74,11 +74,7 @@ def command(
     as_json: JsonOpt = False,
 ) -> None:
     """Render wheels with markers turning as a recording's wheel speeds say."""
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn
-
     from ..errors import VideoError
-    from ..io.recording import empty_like_times, write_recording
     from ..vision.render import RenderSettings, render_video
 
     if overhead:
@@ -111,28 +107,12 @@ def command(
                               drift_px=drift, flicker=flicker, flicker_hz=flicker_hz,
                               hue_shift_deg=hue_shift)
     if truth is not None:
-        source = None if str(recording).startswith("scenario:") else Path(recording)
-        for given, what in ((out, "the video (--out)"),
-                            (source, "the recording given with --recording")):
-            if given is not None and Path(truth).resolve() == given.resolve():
-                raise VideoError(f"{truth}: --truth would overwrite {what}")
+        _check_truth_overwrites_nothing(truth, out, recording)
     rec = recording_or_scenario(recording)
-    with Progress(TextColumn("rendering"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total} frames"),
-                  console=Console(stderr=True), transient=True) as bar:
-        task = bar.add_task("render", total=None)
-        result = render_video(rec, out, settings,
-                              progress=lambda d, t: bar.update(task, completed=d, total=t))
+    result = _with_progress_bar(lambda progress: render_video(rec, out, settings,
+                                                              progress=progress))
     if truth is not None:
-        w = empty_like_times(result.frame_t_s).wheel_rpm
-        for k, wheel in enumerate(shown):
-            w[:, wheel - 1] = result.wheel_rpm[:, k]
-        from ..vision.scenarios import truth_extra
-
-        write_recording(empty_like_times(result.frame_t_s, {
-            "source": "mecanum-hil render-video (truth)", "video": str(out),
-            "recording": str(recording), "camera_start_s": start_s}).with_values(
-                wheel_rpm=w, extra=truth_extra(result)), truth)
+        _write_wheel_truth(result, shown, out, recording, start_s, truth)
     summary = {"video": str(out), "frames": int(result.frame_t_s.size), "fps": fps,
                "size_px": [width, height], "wheels": list(shown),
                "rois": {str(p.wheel): list(p.roi) for p in result.placements},
@@ -145,13 +125,47 @@ def command(
                f"wheel regions: {rois}")
 
 
+def _check_truth_overwrites_nothing(truth: Path, out: Path, recording: Path) -> None:
+    from ..errors import VideoError
+
+    source = None if str(recording).startswith("scenario:") else Path(recording)
+    for given, what in ((out, "the video (--out)"),
+                        (source, "the recording given with --recording")):
+        if given is not None and Path(truth).resolve() == given.resolve():
+            raise VideoError(f"{truth}: --truth would overwrite {what}")
+
+
+def _with_progress_bar(render):
+    """Run ``render(progress)`` behind a frame-count bar on stderr; return its result."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    with Progress(TextColumn("rendering"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total} frames"),
+                  console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("render", total=None)
+        return render(lambda d, t: bar.update(task, completed=d, total=t))
+
+
+def _write_wheel_truth(result, shown: tuple[int, ...], out: Path, recording: Path,
+                       start_s: float, truth: Path) -> None:
+    """The true wheel speeds at the frame times (video clock), with the markers' view."""
+    from ..io.recording import empty_like_times, write_recording
+    from ..vision.scenarios import truth_extra
+
+    w = empty_like_times(result.frame_t_s).wheel_rpm
+    for k, wheel in enumerate(shown):
+        w[:, wheel - 1] = result.wheel_rpm[:, k]
+    write_recording(empty_like_times(result.frame_t_s, {
+        "source": "mecanum-hil render-video (truth)", "video": str(out),
+        "recording": str(recording), "camera_start_s": start_s}).with_values(
+            wheel_rpm=w, extra=truth_extra(result)), truth)
+
+
 def _overhead(recording: Path, out: Path, fps: float, size: str, start_s: float,
               duration_s: float | None, noise: float, tilt: float, jpeg: int | None, seed: int,
               distortion: str | None, truth: Path | None, as_json: bool) -> None:
     """``render-video --overhead``: the video, its camera and scene files, the pose truth."""
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn
-
     from ..errors import VideoError
     from ..io.recording import empty_like_times, read_recording, write_recording
     from ..vision.camera import save_camera
@@ -170,12 +184,8 @@ def _overhead(recording: Path, out: Path, fps: float, size: str, start_s: float,
     settings = OverheadSettings(width, height, fps, start_s, duration_s, tilt_deg=tilt,
                                 noise_std=noise, jpeg_quality=jpeg, seed=seed, **lens)
     rec = read_recording(recording)
-    with Progress(TextColumn("rendering"), BarColumn(),
-                  TextColumn("{task.completed}/{task.total} frames"),
-                  console=Console(stderr=True), transient=True) as bar:
-        task = bar.add_task("render", total=None)
-        res = render_overhead(rec, out, settings,
-                              progress=lambda d, t: bar.update(task, completed=d, total=t))
+    res = _with_progress_bar(lambda progress: render_overhead(rec, out, settings,
+                                                              progress=progress))
     stem = out.with_suffix("")
     camera_path = save_camera(res.camera, f"{stem}.camera.toml",
                               "the renderer's camera (exact intrinsics and distortion)")

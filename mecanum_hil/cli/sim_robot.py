@@ -48,14 +48,8 @@ def command(
     if serial + slcan + (can is not None) != 1:
         raise ConfigError("give exactly one of --serial, --slcan and --can INTERFACE:CHANNEL")
     from ..link.protocol import PROTOCOL_VERSION
-    from ..link.simulated import telemetry_ticks_for
 
-    ticks = telemetry_ticks_for(telemetry_rate_hz, internal_rate_hz)  # ConfigError if not
-    if ticks and abs(internal_rate_hz / ticks - telemetry_rate_hz) > 0.01 * telemetry_rate_hz:
-        # samples are taken on ticks: say so rather than send another rate than asked for
-        raise ConfigError(f"--telemetry-rate {telemetry_rate_hz:g} Hz is not a whole divisor "
-                          f"of the {internal_rate_hz:g} Hz internal tick; the nearest it gives "
-                          f"is {internal_rate_hz / ticks:.6g} Hz")
+    _check_telemetry_rate(telemetry_rate_hz, internal_rate_hz)
     # one robot per process: spare the machine's cores (set before numba is imported)
     from ..link.sim_process import SINGLE_THREAD_ENV
 
@@ -93,3 +87,16 @@ def command(
         log(f"stopped; {ctrl.commands_received} commands, {ctrl.stops_received} stops, "
             f"{ctrl.bad_commands} commands refused, {transport.stats.sent} frames sent, "
             f"{model.calls} model calls")
+
+
+def _check_telemetry_rate(telemetry_rate_hz: float, internal_rate_hz: float) -> None:
+    """Refuse a telemetry rate the internal tick cannot give (within 1 %)."""
+    from ..errors import ConfigError
+    from ..link.simulated import telemetry_ticks_for
+
+    ticks = telemetry_ticks_for(telemetry_rate_hz, internal_rate_hz)  # ConfigError if not
+    if ticks and abs(internal_rate_hz / ticks - telemetry_rate_hz) > 0.01 * telemetry_rate_hz:
+        # samples are taken on ticks: say so rather than send another rate than asked for
+        raise ConfigError(f"--telemetry-rate {telemetry_rate_hz:g} Hz is not a whole divisor "
+                          f"of the {internal_rate_hz:g} Hz internal tick; the nearest it gives "
+                          f"is {internal_rate_hz / ticks:.6g} Hz")

@@ -233,13 +233,44 @@ def _hold_last(values: np.ndarray) -> np.ndarray:
 def read_log(path: str | Path, *, dbc_path: str | Path | None = None,
              map_path: str | Path | None = None, wheel_radius_m: float | None = None):
     """Read a CAN log into a recording; returns ``(Recording, notes)``. See :func:`read`."""
-    from .rosbag import twist_to_commands
-
     p = Path(path)
     mapping = load_mapping(map_path) if map_path is not None else DEFAULT_MAPPING
     dbc = Path(dbc_path) if dbc_path is not None else (mapping.dbc or default_dbc())
     db = _load_dbc(dbc)
     plan = _resolve(db, mapping, dbc)
+    kind = _log_kind_of(p)
+    twist = TWIST_COLUMNS[0] in {s.column for s in mapping.signals}
+    cmd_cols = TWIST_COLUMNS if twist else COMMAND_COLUMNS
+    got = _Decoded(twist, cmd_cols)
+    _decode_log(p, kind, plan, got)
+    frames = got.frames
+    if not frames:
+        raise RecordingError(f"{p}: the log holds no frames")
+    cmd_names = sorted({s.message for s in mapping.signals if s.column in cmd_cols})
+    if not got.cmd_t:
+        raise RecordingError(f"{p}: no frames of {', '.join(cmd_names)} (the commands) among "
+                             f"{frames} frames; check the DBC ({dbc}) and the mapping")
+    notes = [f"{frames} frames ({kind}), {got.decoded} decoded with {dbc.name}"]
+    if got.bad:
+        notes.append(f"{got.bad} frame(s) that do not decode skipped")
+    cmd_stream = _command_stream(p, got, wheel_radius_m)
+    pose_stream = None
+    if got.pose_t:
+        pose_stream = Stream.of(got.pose_t, got.pose_v, 3)
+        _hold_last(pose_stream.values)
+    meta = {"source": f"mecanum-hil import (canlog) {p.name}",
+            "import": {"format": NAME, "log_kind": kind, "dbc": str(dbc),
+                       "mapping": mapping.source}}
+    if twist:  # the radius that turned m/s into wheel rpm
+        meta["import"]["wheel_radius_m"] = wheel_radius_m
+    rec, merge_notes = merge_streams(cmd_stream, Stream.of(got.wheel_t, got.wheel_v, 4)
+                                     if got.wheel_t else Stream.of([], np.zeros((0, 4)), 4),
+                                     pose_stream, meta, str(p))
+    return rec, tuple(notes) + merge_notes
+
+
+def _log_kind_of(p: Path) -> str:
+    """The log's kind from its first bytes (see :func:`log_kind`)."""
     try:
         with p.open("rb") as fh:
             kind = log_kind(fh.read(4096))
@@ -247,18 +278,56 @@ def read_log(path: str | Path, *, dbc_path: str | Path | None = None,
         raise RecordingError(f"{p}: cannot read: {err.strerror or err}") from err
     if kind is None:
         raise RecordingError(f"{p}: not a candump, ASC or BLF log")
-    twist = TWIST_COLUMNS[0] in {s.column for s in mapping.signals}
-    cmd_cols = TWIST_COLUMNS if twist else COMMAND_COLUMNS
-    col_index = {c: i for i, c in enumerate(cmd_cols)}
-    col_index.update({c: i for i, c in enumerate(WHEEL_COLUMNS)})
-    col_index.update({c: i for i, c in enumerate(POSE_COLUMNS)})
-    cmd_t, cmd_v, wheel_t, wheel_v, pose_t, pose_v = [], [], [], [], [], []
-    frames = decoded = bad = 0
+    return kind
+
+
+class _Decoded:
+    """The mapped signals of a log's frames, by stream (bus time [ns], row), and counts."""
+
+    def __init__(self, twist: bool, cmd_cols: tuple[str, ...]) -> None:
+        self.twist, self.cmd_cols = twist, cmd_cols
+        self.col_index = {c: i for i, c in enumerate(cmd_cols)}
+        self.col_index.update({c: i for i, c in enumerate(WHEEL_COLUMNS)})
+        self.col_index.update({c: i for i, c in enumerate(POSE_COLUMNS)})
+        self.cmd_t: list[int] = []
+        self.cmd_v: list[list[float]] = []
+        self.wheel_t: list[int] = []
+        self.wheel_v: list[list[float]] = []
+        self.pose_t: list[int] = []
+        self.pose_v: list[list[float]] = []
+        self.frames = self.decoded = self.bad = 0
+
+    def add(self, t_ns: int, values, sigs, is_stop: bool) -> None:
+        """Add one decoded frame's mapped signals (and a STOP's zero command)."""
+        self.decoded += 1
+        if is_stop:
+            self.cmd_t.append(t_ns)
+            stop = [np.nan] * 3
+            if self.twist:
+                stop[:] = (0.0, 0.0, 0.0)
+            else:
+                stop[0], stop[1] = 0.0, 0.0
+            self.cmd_v.append(stop)
+        rows = {}
+        for s in sigs:
+            group = ("cmd" if s.column in self.cmd_cols
+                     else "wheel" if s.column in WHEEL_COLUMNS else "pose")
+            row = rows.setdefault(group, [np.nan] * (4 if group == "wheel" else 3))
+            row[self.col_index[s.column]] = s.scale * float(values[s.signal]) + s.offset
+        for group, row in rows.items():
+            ts, vs = {"cmd": (self.cmd_t, self.cmd_v), "wheel": (self.wheel_t, self.wheel_v),
+                      "pose": (self.pose_t, self.pose_v)}[group]
+            ts.append(t_ns)
+            vs.append(row)
+
+
+def _decode_log(p: Path, kind: str, plan: dict, got: _Decoded) -> None:
+    """Decode every frame the plan maps into ``got``; a damaged log is a RecordingError."""
     try:
         # the reader closes its file only at the end of the log: also on a corrupt frame
         with _reader(p, kind) as reader:
             for frame in reader:
-                frames += 1
+                got.frames += 1
                 if frame.is_error_frame or frame.is_remote_frame:
                     continue
                 entry = plan.get((frame.arbitration_id, bool(frame.is_extended_id)))
@@ -268,72 +337,39 @@ def read_log(path: str | Path, *, dbc_path: str | Path | None = None,
                 try:
                     values = msg.decode(bytes(frame.data), decode_choices=False)
                 except Exception:  # cantools DecodeError, a short frame: counted, not fatal
-                    bad += 1
+                    got.bad += 1
                     continue
-                decoded += 1
-                t_ns = round(frame.timestamp * 1e9)
-                if is_stop:
-                    cmd_t.append(t_ns)
-                    stop = [np.nan] * 3
-                    if twist:
-                        stop[:] = (0.0, 0.0, 0.0)
-                    else:
-                        stop[0], stop[1] = 0.0, 0.0
-                    cmd_v.append(stop)
-                rows = {}
-                for s in sigs:
-                    group = ("cmd" if s.column in cmd_cols
-                             else "wheel" if s.column in WHEEL_COLUMNS else "pose")
-                    row = rows.setdefault(group, [np.nan] * (4 if group == "wheel" else 3))
-                    row[col_index[s.column]] = s.scale * float(values[s.signal]) + s.offset
-                for group, row in rows.items():
-                    ts, vs = {"cmd": (cmd_t, cmd_v), "wheel": (wheel_t, wheel_v),
-                              "pose": (pose_t, pose_v)}[group]
-                    ts.append(t_ns)
-                    vs.append(row)
+                got.add(round(frame.timestamp * 1e9), values, sigs, is_stop)
             size = getattr(reader, "file_size", None)  # BLF: the header's file size
             if size and p.stat().st_size < size:
                 raise RecordingError(f"{p}: truncated BLF: {p.stat().st_size} of the header's "
-                                     f"{size} bytes ({frames} frames readable)")
+                                     f"{size} bytes ({got.frames} frames readable)")
     except MecanumHILError:
         raise
     except Exception as err:  # python-can readers: a damaged or truncated log
         raise RecordingError(f"{p}: cannot read the {kind} log (truncated or corrupt?) after "
-                             f"{frames} frames: {type(err).__name__}: {err}") from err
-    if not frames:
-        raise RecordingError(f"{p}: the log holds no frames")
-    cmd_names = sorted({s.message for s in mapping.signals if s.column in cmd_cols})
-    if not cmd_t:
-        raise RecordingError(f"{p}: no frames of {', '.join(cmd_names)} (the commands) among "
-                             f"{frames} frames; check the DBC ({dbc}) and the mapping")
-    notes = [f"{frames} frames ({kind}), {decoded} decoded with {dbc.name}"]
-    if bad:
-        notes.append(f"{bad} frame(s) that do not decode skipped")
-    cmd_stream = Stream.of(cmd_t, cmd_v, 3)
+                             f"{got.frames} frames: {type(err).__name__}: {err}") from err
+
+
+def _command_stream(p: Path, got: _Decoded, wheel_radius_m: float | None) -> Stream:
+    """The commands ``(n [rpm], omega [deg/s], theta [deg])`` from the frames heard: each
+    signal held between its frames, rows before all are known dropped, a twist converted."""
+    from .rosbag import twist_to_commands
+
+    cmd_stream = Stream.of(got.cmd_t, got.cmd_v, 3)
     vals = _hold_last(cmd_stream.values)  # each command keeps its value between its frames
     known = np.isfinite(vals).all(axis=1)
     if not known.any():
-        raise RecordingError(f"{p}: the commands are never all known ({', '.join(cmd_cols)})")
+        raise RecordingError(f"{p}: the commands are never all known "
+                             f"({', '.join(got.cmd_cols)})")
     cmd_stream = Stream(cmd_stream.t_ns[known], vals[known])
-    if twist:
+    if got.twist:
         if wheel_radius_m is None:
             raise RecordingError("a twist in m/s needs the wheel radius (--robot)")
         v = cmd_stream.values
         cmd_stream = Stream(cmd_stream.t_ns, twist_to_commands(v[:, 0], v[:, 1], v[:, 2],
                                                                wheel_radius_m))
-    pose_stream = None
-    if pose_t:
-        pose_stream = Stream.of(pose_t, pose_v, 3)
-        _hold_last(pose_stream.values)
-    meta = {"source": f"mecanum-hil import (canlog) {p.name}",
-            "import": {"format": NAME, "log_kind": kind, "dbc": str(dbc),
-                       "mapping": mapping.source}}
-    if twist:  # the radius that turned m/s into wheel rpm
-        meta["import"]["wheel_radius_m"] = wheel_radius_m
-    rec, merge_notes = merge_streams(cmd_stream, Stream.of(wheel_t, wheel_v, 4)
-                                     if wheel_t else Stream.of([], np.zeros((0, 4)), 4),
-                                     pose_stream, meta, str(p))
-    return rec, tuple(notes) + merge_notes
+    return cmd_stream
 
 
 def read(path: Path, *, dbc_path: str | Path | None = None,

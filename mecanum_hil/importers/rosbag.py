@@ -483,6 +483,45 @@ def read_bag(path: str | Path, *, cmd_topic: str = "/cmd_vel",
     mapping = parse_joints(joints) if joints is not None else None
     js = _Samples(joint_topic, joint_state_layout, _joint_state_values)
     odo = _Samples(odom_topic or "", odometry_layout, _odometry_values)
+    cmd = _read_topics(p, cmd_topic, joint_topic, odom_topic, js, odo)
+    notes: list[str] = []
+    if not len(cmd):
+        raise RecordingError(f"{p}: topic {cmd_topic} has no messages")
+    if not len(js):
+        raise RecordingError(f"{p}: topic {joint_topic} has no messages with velocities"
+                             + (f" ({js.skipped} without)" if js.skipped else ""))
+    if js.skipped:
+        notes.append(f"{js.skipped} {joint_topic} message(s) without velocities skipped")
+    mapping = _wheel_joints(p, js, joint_topic, mapping, notes)
+    times = _sample_times((cmd, js, odo), notes)
+    tw = cmd.values()
+    commands = twist_to_commands(tw[:, 0], tw[:, 1], tw[:, 2], wheel_radius_m)
+    wheels = _wheel_rpm(js, mapping, signs)
+    pose_stream = None
+    if len(odo):
+        pa = odo.values()
+        pose_vals = np.column_stack([pa[:, 0], pa[:, 1], quaternion_yaw_deg(*pa[:, 2:6].T)])
+        pose_stream = Stream.of(times[odo.name], pose_vals, 3)
+    meta = {
+        "source": f"mecanum-hil import (rosbag) {p.name}",
+        "import": {"format": NAME, "cmd_topic": cmd_topic, "joint_topic": joint_topic,
+                   "joints": list(mapping), "wheel_signs": signs.tolist(),
+                   "odom_topic": odom_topic, "wheel_radius_m": wheel_radius_m},
+    }
+    rec, merge_notes = merge_streams(Stream.of(times[cmd.name], commands, 3),
+                                     Stream.of(times[js.name], wheels, 4), pose_stream, meta,
+                                     str(p))
+    notes.extend(merge_notes)
+    notes.insert(0, f"{len(cmd)} commands ({cmd_topic}), {len(js)} wheel samples "
+                    f"({joint_topic})" + (f", {len(odo)} poses ({odom_topic})" if len(odo)
+                                          else ""))
+    return rec, tuple(notes)
+
+
+def _read_topics(p: Path, cmd_topic: str, joint_topic: str, odom_topic: str | None,
+                 js: _Samples, odo: _Samples) -> _Samples:
+    """Read the three topics' messages into ``js``, ``odo`` and the returned command samples;
+    a bag that cannot be read is a :class:`RecordingError`."""
     try:
         reader = _open_reader(p)
         with reader:
@@ -517,15 +556,12 @@ def read_bag(path: str | Path, *, cmd_topic: str = "/cmd_vel",
     except Exception as err:  # rosbags, sqlite, struct ...: a corrupt or truncated bag
         raise RecordingError(f"{p}: cannot read the bag (truncated or corrupt?): "
                              f"{type(err).__name__}: {err}") from err
-    notes: list[str] = []
-    if not len(cmd):
-        raise RecordingError(f"{p}: topic {cmd_topic} has no messages")
-    if not len(js):
-        raise RecordingError(f"{p}: topic {joint_topic} has no messages with velocities"
-                             + (f" ({js.skipped} without)" if js.skipped else ""))
-    if js.skipped:
-        notes.append(f"{js.skipped} {joint_topic} message(s) without velocities skipped")
+    return cmd
 
+
+def _wheel_joints(p: Path, js: _Samples, joint_topic: str, mapping: Sequence[str] | None,
+                  notes: list[str]) -> Sequence[str]:
+    """The joints of wheels 1-4: as given, or told apart by their names."""
     all_names = list(dict.fromkeys(n for b in js.blocks for n in b[0]))
     if mapping is None:
         mapping = wheel_joints(all_names)
@@ -540,11 +576,15 @@ def read_bag(path: str | Path, *, cmd_topic: str = "/cmd_vel",
     if missing:
         raise RecordingError(f"{p}: joint(s) {', '.join(missing)} not in {joint_topic}; joints "
                              f"found: {', '.join(all_names)}")
+    return mapping
 
+
+def _sample_times(topics: Sequence[_Samples], notes: list[str]) -> dict[str, np.ndarray]:
+    """Each topic's sample times [s]: header stamps, or receive times where they disagree."""
     # clocks: header stamps and receive times are assumed to be one clock (a bag recorded on
     # the robot); if the topics disagree by more than a second (simulated time, an unsynced
     # sensor computer), align everything on receive times instead
-    used = [tp for tp in (cmd, js, odo) if len(tp)]
+    used = [tp for tp in topics if len(tp)]
     times = {tp.name: tp.column(1) for tp in used}
     offsets = [tp.offset_s(times[tp.name]) for tp in used]
     if max(offsets) - min(offsets) > 1.0:
@@ -559,9 +599,11 @@ def read_bag(path: str | Path, *, cmd_topic: str = "/cmd_vel",
             if 0 < n_stamped < len(tp):
                 notes.append(f"{tp.name}: {len(tp) - n_stamped} message(s) without a "
                              "header stamp timed by receive time")
+    return times
 
-    tw = cmd.values()
-    commands = twist_to_commands(tw[:, 0], tw[:, 1], tw[:, 2], wheel_radius_m)
+
+def _wheel_rpm(js: _Samples, mapping: Sequence[str], signs: np.ndarray) -> np.ndarray:
+    """Wheel speeds 1-4 [rpm] from the joint states' velocities [rad/s]."""
     wheels = np.full((len(js), 4), np.nan)
     start = 0
     for names, t_block, _, _, vel in js.blocks:
@@ -571,25 +613,7 @@ def read_bag(path: str | Path, *, cmd_topic: str = "/cmd_vel",
                 # + 0.0: a flipped wheel at rest is 0, not -0, in the CSV
                 wheels[rows, w] = vel[:, names.index(joint)] / RPM_TO_RAD_S * signs[w] + 0.0
         start += t_block.size
-    pose_stream = None
-    if len(odo):
-        pa = odo.values()
-        pose_vals = np.column_stack([pa[:, 0], pa[:, 1], quaternion_yaw_deg(*pa[:, 2:6].T)])
-        pose_stream = Stream.of(times[odo.name], pose_vals, 3)
-    meta = {
-        "source": f"mecanum-hil import (rosbag) {p.name}",
-        "import": {"format": NAME, "cmd_topic": cmd_topic, "joint_topic": joint_topic,
-                   "joints": list(mapping), "wheel_signs": signs.tolist(),
-                   "odom_topic": odom_topic, "wheel_radius_m": wheel_radius_m},
-    }
-    rec, merge_notes = merge_streams(Stream.of(times[cmd.name], commands, 3),
-                                     Stream.of(times[js.name], wheels, 4), pose_stream, meta,
-                                     str(p))
-    notes.extend(merge_notes)
-    notes.insert(0, f"{len(cmd)} commands ({cmd_topic}), {len(js)} wheel samples "
-                    f"({joint_topic})" + (f", {len(odo)} poses ({odom_topic})" if len(odo)
-                                          else ""))
-    return rec, tuple(notes)
+    return wheels
 
 
 def read(path: Path, *, cmd_topic: str = "/cmd_vel", joint_topic: str = "/joint_states",

@@ -562,94 +562,138 @@ def read(path: Path, *, map_path: Path | None = None) -> ImportResult:
         raise ConfigError("format 'text' needs --map MAP.toml (which column is which; "
                           "docs/formats.md)")
     m = load_map(map_path)
-    where = str(map_path)
-    f = m.file
-    encoding = f.get("encoding", "utf-8-sig")
-    comments = f.get("comments", list(DEFAULT_COMMENTS))
-    if isinstance(comments, str):
-        comments = [comments]
-    try:
-        with path.open("rb") as fh:
-            head = fh.read(1 << 20)
-    except OSError as err:
-        raise RecordingError(f"{path}: cannot read: {err.strerror or err}") from err
-    text = _decode(head, encoding)
-    if text is None or "\x00" in text:
-        raise RecordingError(f"{path}: not a text file (in {encoding})")
-    lines = text.splitlines()
-    if len(head) >= 1 << 20:
-        lines = lines[:-1]
-    cols: list[Column] = ([m.time] if m.time else []) + list(m.wheels.values()) + list(
-        m.commands.values())
-    layout = detect_layout(lines, delimiter=f.get("delimiter", "auto"),
-                           header=f.get("header", "auto"), comments=comments,
-                           skip_lines=int(f.get("skip_lines", 0)), where=str(path),
-                           wanted=tuple({c.column for c in cols if isinstance(c.column, str)}))
-    used = sorted({_index(c, layout, where) for c in cols if c.column is not None})
-    table, cut = read_table(path, layout, used or [0], encoding)
-    n = table.shape[0]
-    if n == 0:
-        raise RecordingError(f"{path}: no data rows")
-    pos = {c: j for j, c in enumerate(used)}
-    if np.isinf(table).any():
-        i, j = (int(v[0]) for v in np.nonzero(np.isinf(table)))
-        raise RecordingError(f"{path}, line {_line_of(path, layout, i, encoding)}, column "
-                             f"{layout.names[used[j]] if layout.names else used[j]}: infinite "
-                             "value (leave missing values empty or nan)")
-
-    def raw(col: Column) -> np.ndarray:
-        if col.column is None:
-            return np.full(n, col.value)
-        return table[:, pos[_index(col, layout, where)]]
-
-    def first_row_of(mask: np.ndarray) -> int:
-        return int(np.argmax(mask))
-
-    def row_name(i: int) -> str:
-        return f"{path}, line {_line_of(path, layout, i, encoding)}"
-
+    tab = _MappedTable.load(path, m, str(map_path))
     notes: list[str] = []
-    if cut:
-        notes.append(f"last line cut off mid-row (no newline at the end): dropped: {cut[:60]!r}")
-    # time
-    if m.time is not None:
-        t_raw = raw(m.time) * m.time.sign
-        if not np.isfinite(t_raw).all():
-            i = first_row_of(~np.isfinite(t_raw))
-            raise RecordingError(f"{row_name(i)}: time is missing")
-        scale = TIME_UNITS_S[m.time.unit]
-        res_src = m.resolution
-        if res_src is None and isinstance(m.time.column, (str, int)):
-            # what the log writes (0.341 -> 1 ms), from the first data lines
-            j = _index(m.time, layout, where)
-            sample = [_split(x.strip(), layout.delimiter) for x in
-                      lines[layout.data_line: layout.data_line + 2000]]
-            res_src = decimal_resolution(
-                f[j] for f in sample
-                if len(f) > j and not any(f[0].startswith(c) for c in layout.comments))
-        if res_src is None:
-            res_src = detect_resolution(t_raw)
-        t0 = t_raw[0]
-        period_guess = float(np.median(np.diff(t_raw))) * scale if n > 1 else 0.0
-        max_gap = m.max_gap_s if m.max_gap_s is not None else max(
-            MIN_DEFAULT_MAX_GAP_S, DEFAULT_MAX_GAP_PERIODS * max(period_guess, 0.0))
-        rep = repair_time((t_raw - t0) * scale, resolution_s=res_src * scale,
-                          max_gap_s=max_gap, wrap_s=None if m.wrap is None else m.wrap * scale,
-                          row_name=row_name)
-        t = rep.t_s + m.start_s
-        if rep.note:
-            notes.append(rep.note)
-        time_meta = {**rep.summary, "max_gap_s": max_gap, "source_unit": m.time.unit,
-                     "first_stamp": float(t0)}
-    else:
-        t = m.start_s + m.period_s * np.arange(n)
-        time_meta = {"period_s": m.period_s, "note": "no time column: fixed period"}
-    # wheels
-    wheel = np.full((n, 4), np.nan)
+    if tab.cut:
+        notes.append(f"last line cut off mid-row (no newline at the end): dropped: "
+                     f"{tab.cut[:60]!r}")
+    t, time_meta = _times(m, tab, notes)
+    wheel = np.full((tab.n, 4), np.nan)
     for j, col in m.wheels.items():
-        wheel[:, j - 1] = speed_to_rpm(raw(col), col.unit, col.counts_per_rev) * col.sign
-    # commands
-    commands = np.full((n, 3), np.nan)
+        wheel[:, j - 1] = speed_to_rpm(tab.raw(col), col.unit, col.counts_per_rev) * col.sign
+    commands = _commands(m, tab, notes)
+    named = ([("time", m.time)] if m.time else []) + [
+        (f"wheels.wheel{j}", c) for j, c in m.wheels.items()] + [
+        (f"commands.{key}", c) for key, c in m.commands.items()]
+    metadata: dict[str, Any] = {
+        "source": str(path), "format": NAME, "map": str(map_path),
+        "columns": {name: {"column": c.column, "value": c.value, "unit": c.unit,
+                           "sign": c.sign} for name, c in named},
+        "command_form": m.command_mode, "time_repair": time_meta, "notes": list(notes),
+    }
+    rec = Recording(t, commands, wheel, np.full((tab.n, 3), np.nan), {}, metadata)
+    return ImportResult(rec, tuple(notes))
+
+
+@dataclass
+class _MappedTable:
+    """The mapped columns of a text log, read as numbers, and where each row came from."""
+
+    path: Path
+    where: str
+    encoding: str
+    lines: list[str]
+    layout: Layout
+    used: list[int]
+    table: np.ndarray
+    cut: str
+
+    @classmethod
+    def load(cls, path: Path, m: TextMap, where: str) -> _MappedTable:
+        """Read the columns ``m`` maps from ``path`` (``where``: the map, for errors)."""
+        f = m.file
+        encoding = f.get("encoding", "utf-8-sig")
+        comments = f.get("comments", list(DEFAULT_COMMENTS))
+        if isinstance(comments, str):
+            comments = [comments]
+        try:
+            with path.open("rb") as fh:
+                head = fh.read(1 << 20)
+        except OSError as err:
+            raise RecordingError(f"{path}: cannot read: {err.strerror or err}") from err
+        text = _decode(head, encoding)
+        if text is None or "\x00" in text:
+            raise RecordingError(f"{path}: not a text file (in {encoding})")
+        lines = text.splitlines()
+        if len(head) >= 1 << 20:
+            lines = lines[:-1]
+        cols: list[Column] = ([m.time] if m.time else []) + list(m.wheels.values()) + list(
+            m.commands.values())
+        layout = detect_layout(lines, delimiter=f.get("delimiter", "auto"),
+                               header=f.get("header", "auto"), comments=comments,
+                               skip_lines=int(f.get("skip_lines", 0)), where=str(path),
+                               wanted=tuple({c.column for c in cols
+                                             if isinstance(c.column, str)}))
+        used = sorted({_index(c, layout, where) for c in cols if c.column is not None})
+        table, cut = read_table(path, layout, used or [0], encoding)
+        if table.shape[0] == 0:
+            raise RecordingError(f"{path}: no data rows")
+        if np.isinf(table).any():
+            i, j = (int(v[0]) for v in np.nonzero(np.isinf(table)))
+            raise RecordingError(f"{path}, line {_line_of(path, layout, i, encoding)}, column "
+                                 f"{layout.names[used[j]] if layout.names else used[j]}: "
+                                 "infinite value (leave missing values empty or nan)")
+        return cls(path, where, encoding, lines, layout, used, table, cut)
+
+    @property
+    def n(self) -> int:
+        return self.table.shape[0]
+
+    def raw(self, col: Column) -> np.ndarray:
+        """The column's values as written (a constant's, repeated)."""
+        if col.column is None:
+            return np.full(self.n, col.value)
+        return self.table[:, self.used.index(_index(col, self.layout, self.where))]
+
+    def row_name(self, i: int) -> str:
+        return f"{self.path}, line {_line_of(self.path, self.layout, i, self.encoding)}"
+
+
+def _first_row_of(mask: np.ndarray) -> int:
+    return int(np.argmax(mask))
+
+
+def _times(m: TextMap, tab: _MappedTable, notes: list[str]) -> tuple[np.ndarray, dict]:
+    """Row times [s], repaired (resets, wraps, gaps), and what the repair did."""
+    n = tab.n
+    if m.time is None:
+        t = m.start_s + m.period_s * np.arange(n)
+        return t, {"period_s": m.period_s, "note": "no time column: fixed period"}
+    t_raw = tab.raw(m.time) * m.time.sign
+    if not np.isfinite(t_raw).all():
+        i = _first_row_of(~np.isfinite(t_raw))
+        raise RecordingError(f"{tab.row_name(i)}: time is missing")
+    scale = TIME_UNITS_S[m.time.unit]
+    res_src = m.resolution
+    if res_src is None and isinstance(m.time.column, (str, int)):
+        # what the log writes (0.341 -> 1 ms), from the first data lines
+        layout = tab.layout
+        j = _index(m.time, layout, tab.where)
+        sample = [_split(x.strip(), layout.delimiter) for x in
+                  tab.lines[layout.data_line: layout.data_line + 2000]]
+        res_src = decimal_resolution(
+            f[j] for f in sample
+            if len(f) > j and not any(f[0].startswith(c) for c in layout.comments))
+    if res_src is None:
+        res_src = detect_resolution(t_raw)
+    t0 = t_raw[0]
+    period_guess = float(np.median(np.diff(t_raw))) * scale if n > 1 else 0.0
+    max_gap = m.max_gap_s if m.max_gap_s is not None else max(
+        MIN_DEFAULT_MAX_GAP_S, DEFAULT_MAX_GAP_PERIODS * max(period_guess, 0.0))
+    rep = repair_time((t_raw - t0) * scale, resolution_s=res_src * scale,
+                      max_gap_s=max_gap, wrap_s=None if m.wrap is None else m.wrap * scale,
+                      row_name=tab.row_name)
+    if rep.note:
+        notes.append(rep.note)
+    time_meta = {**rep.summary, "max_gap_s": max_gap, "source_unit": m.time.unit,
+                 "first_stamp": float(t0)}
+    return rep.t_s + m.start_s, time_meta
+
+
+def _commands(m: TextMap, tab: _MappedTable, notes: list[str]) -> np.ndarray:
+    """The commands ``(n [rpm], omega [deg/s], theta [deg])`` in the map's command form."""
+    raw = tab.raw
+    commands = np.full((tab.n, 3), np.nan)
     if m.command_mode == "n_omega_theta":
         c = m.commands
         commands[:, 0] = speed_to_rpm(raw(c["n"]), c["n"].unit, c["n"].counts_per_rev) \
@@ -664,40 +708,38 @@ def read(path: Path, *, map_path: Path | None = None) -> ImportResult:
         commands[:, 2] = np.where(s < 0, 270.0, 90.0)
         commands[~np.isfinite(s)] = np.nan
     elif m.command_mode == "wheels":
-        sp = np.column_stack([
-            speed_to_rpm(raw(c), c.unit, c.counts_per_rev) * c.sign
-            for c in (m.commands[f"wheel{j}"] for j in range(1, 5))])
-        k = _kinematic_k(m)
-        commands, residual = wheel_setpoints_to_commands(sp, k)
-        finite = np.isfinite(residual)
-        commands[~np.isfinite(sp).all(axis=1)] = np.nan
-        scale = float(np.nanmax(np.abs(sp))) if np.isfinite(sp).any() else 0.0
-        tol = m.residual_tolerance_rpm if m.residual_tolerance_rpm is not None else max(
-            0.5, 0.01 * scale)
-        worst = float(residual[finite].max()) if finite.any() else 0.0
-        if worst > tol:
-            i = first_row_of(finite & (residual > tol))
-            raise RecordingError(
-                f"{row_name(i)}: the four wheel setpoints are {residual[i]:.4g} rpm off the "
-                f"kinematics' image (w1 + w2 - w3 - w4 must be 0; tolerance {tol:.4g} rpm, "
-                "residual_tolerance_rpm in [commands])")
-        if worst > 1e-9 * max(1.0, scale):
-            notes.append(f"wheel setpoints off the kinematics' image by up to {worst:.4g} rpm "
-                         f"(tolerance {tol:.4g} rpm): commands are their least-squares fit")
+        commands = _commands_from_wheel_setpoints(m, tab, notes)
     for j in range(3):
         bad = np.isinf(commands[:, j])
         if bad.any():
-            raise RecordingError(f"{row_name(first_row_of(bad))}: command is infinite")
+            raise RecordingError(f"{tab.row_name(_first_row_of(bad))}: command is infinite")
     if m.command_mode == "none":
         notes.append("no commands mapped: command columns left empty")
-    named = ([("time", m.time)] if m.time else []) + [
-        (f"wheels.wheel{j}", c) for j, c in m.wheels.items()] + [
-        (f"commands.{key}", c) for key, c in m.commands.items()]
-    metadata: dict[str, Any] = {
-        "source": str(path), "format": NAME, "map": str(map_path),
-        "columns": {name: {"column": c.column, "value": c.value, "unit": c.unit,
-                           "sign": c.sign} for name, c in named},
-        "command_form": m.command_mode, "time_repair": time_meta, "notes": list(notes),
-    }
-    rec = Recording(t, commands, wheel, np.full((n, 3), np.nan), {}, metadata)
-    return ImportResult(rec, tuple(notes))
+    return commands
+
+
+def _commands_from_wheel_setpoints(m: TextMap, tab: _MappedTable,
+                                   notes: list[str]) -> np.ndarray:
+    """Commands from four wheel setpoints: their least-squares fit, refused when the
+    setpoints are further off the kinematics' image than the map's tolerance."""
+    sp = np.column_stack([
+        speed_to_rpm(tab.raw(c), c.unit, c.counts_per_rev) * c.sign
+        for c in (m.commands[f"wheel{j}"] for j in range(1, 5))])
+    k = _kinematic_k(m)
+    commands, residual = wheel_setpoints_to_commands(sp, k)
+    finite = np.isfinite(residual)
+    commands[~np.isfinite(sp).all(axis=1)] = np.nan
+    scale = float(np.nanmax(np.abs(sp))) if np.isfinite(sp).any() else 0.0
+    tol = m.residual_tolerance_rpm if m.residual_tolerance_rpm is not None else max(
+        0.5, 0.01 * scale)
+    worst = float(residual[finite].max()) if finite.any() else 0.0
+    if worst > tol:
+        i = _first_row_of(finite & (residual > tol))
+        raise RecordingError(
+            f"{tab.row_name(i)}: the four wheel setpoints are {residual[i]:.4g} rpm off the "
+            f"kinematics' image (w1 + w2 - w3 - w4 must be 0; tolerance {tol:.4g} rpm, "
+            "residual_tolerance_rpm in [commands])")
+    if worst > 1e-9 * max(1.0, scale):
+        notes.append(f"wheel setpoints off the kinematics' image by up to {worst:.4g} rpm "
+                     f"(tolerance {tol:.4g} rpm): commands are their least-squares fit")
+    return commands

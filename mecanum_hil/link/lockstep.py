@@ -38,7 +38,7 @@ from ..io.recording import Recording
 from ..model.calibration import Calibration
 from ..model.robot import RobotProfile
 from .effects_file import SimEffects
-from .protocol import PROTOCOL_VERSION, Hello, Message, Stop, StreamDecoder, encode
+from .protocol import PROTOCOL_VERSION, Hello, HelloAck, Message, Stop, StreamDecoder, encode
 from .session import COLUMN_NOTES, EXTRA_COLUMNS, check_command_stream, next_row_time
 from .simulated import ControllerModel, SimulatedController
 from .transport import Transport
@@ -175,12 +175,7 @@ def record_lockstep(
     LimitError
         A command beyond ``robot``'s limits (before anything is simulated).
     """
-    if not (math.isfinite(internal_rate_hz) and internal_rate_hz > 0
-            and math.isfinite(telemetry_rate_hz) and telemetry_rate_hz >= 0
-            and math.isfinite(link_delay_s) and link_delay_s >= 0):
-        raise ConfigError(f"rates must be positive and the link delay >= 0, got "
-                          f"{internal_rate_hz!r} Hz, {telemetry_rate_hz!r} Hz, "
-                          f"{link_delay_s!r} s")
+    _check_rates(telemetry_rate_hz, internal_rate_hz, link_delay_s)
     to_ctrl = FramedLoopback()
     t, cmd = check_command_stream(t_s, commands, robot, to_ctrl)
     cal = calibration or Calibration()
@@ -190,17 +185,68 @@ def record_lockstep(
     to_host = FramedLoopback()
     ctrl = SimulatedController(to_host, model, telemetry_rate_hz, clock=clock)
     d = float(link_delay_s)
+    hello_ack = _handshake(to_ctrl, ctrl, to_host)
+    pose_sd = None if pose_noise is None else np.asarray(pose_noise, dtype=float)
+    rows = _exchange(t, cmd, to_ctrl, ctrl, to_host, model, clock, d, tail_s, pose_sd,
+                     np.random.default_rng(pose_seed))
+    times, cmds, wheels, poses, extra = _rows_as_written(rows)
+    meta = {**_sidecar(robot, hello_ack, ctrl, fx, d, pose_sd), **(metadata or {})}
+    return Recording(times, cmds, wheels, poses, extra, meta)
 
+
+def _sidecar(robot: RobotProfile, hello_ack: HelloAck, ctrl: SimulatedController,
+             fx: SimEffects, d: float, pose_sd: np.ndarray | None) -> dict[str, Any]:
+    """The metadata ``record`` writes to the sidecar, for a lockstep run that completed."""
+    return {
+        "source": "mecanum-hil record_lockstep",
+        "tool_version": __version__,
+        "transport": "lockstep",
+        "protocol_version": PROTOCOL_VERSION,
+        "robot_profile": robot.source,
+        "controller": hello_ack.name,
+        "telemetry_rate_hz": ctrl.telemetry_rate_hz,
+        "sample_rate_hz": ctrl.telemetry_rate_hz,
+        "link_delay_s": d,
+        "columns": dict(COLUMN_NOTES),
+        "simulated_controller": {"effects": fx.source,
+                                 "pose_noise": None if pose_sd is None else pose_sd.tolist()},
+        "end_reason": "completed",
+        "exit_code": 0,
+        "stops_received": ctrl.stops_received,
+    }
+
+
+def _check_rates(telemetry_rate_hz: float, internal_rate_hz: float,
+                 link_delay_s: float) -> None:
+    if not (math.isfinite(internal_rate_hz) and internal_rate_hz > 0
+            and math.isfinite(telemetry_rate_hz) and telemetry_rate_hz >= 0
+            and math.isfinite(link_delay_s) and link_delay_s >= 0):
+        raise ConfigError(f"rates must be positive and the link delay >= 0, got "
+                          f"{internal_rate_hz!r} Hz, {telemetry_rate_hz!r} Hz, "
+                          f"{link_delay_s!r} s")
+
+
+def _handshake(to_ctrl: FramedLoopback, ctrl: SimulatedController,
+               to_host: FramedLoopback) -> HelloAck:
+    """HELLO and its answer; HELLO is seq 0, so the first command is seq 1."""
+    to_ctrl.send(Hello(PROTOCOL_VERSION))
+    ctrl.handle(to_ctrl.delivered.popleft())
+    return to_host.delivered.popleft()
+
+
+def _exchange(t: np.ndarray, cmd: np.ndarray, to_ctrl: FramedLoopback,
+              ctrl: SimulatedController, to_host: FramedLoopback, model: ControllerModel,
+              clock: VirtualClock, d: float, tail_s: float, pose_sd: np.ndarray | None,
+              rng: np.random.Generator) -> list[tuple]:
+    """Run commands, STOP and telemetry in the order of their controller times.
+
+    Returns the rows ``(host time [s], command in force or None, wheels [rpm], pose, extra
+    columns)`` in the order they happened (not yet sorted by host time).
+    """
     # as with record, HELLO leaves the host one round trip before the first command (its
     # answer comes back just as the first command leaves); its arrival is controller time 0,
     # so host time h and controller time c are related by c = h + lead - d = h + d
     lead = 2.0 * d
-    to_ctrl.send(Hello(PROTOCOL_VERSION))
-    ctrl.handle(to_ctrl.delivered.popleft())
-    hello_ack = to_host.delivered.popleft()  # HELLO was seq 0: the first command is seq 1
-    rng = np.random.default_rng(pose_seed)
-    pose_sd = None if pose_noise is None else np.asarray(pose_noise, dtype=float)
-
     rows: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, tuple]] = []
     nan3, nan4 = np.full(3, np.nan), np.full(4, np.nan)
     stop_h = float(t[-1]) + 1e-6
@@ -241,7 +287,16 @@ def record_lockstep(
             rows.append((h, None, np.array(tlm.wheel_rpm, dtype=float), pose,
                          ("tlm", tlm.seq, f"{tlm.time_us * 1e-6:.6f}", tlm.status)))
         tick += tick_step
+    return rows
 
+
+def _rows_as_written(rows: list[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                 np.ndarray, dict[str, list[str]]]:
+    """Sort the rows by host time and fill them in as ``record`` writes them.
+
+    A telemetry row carries the command in force; equal host times are nudged apart
+    (:func:`~mecanum_hil.link.session.next_row_time`).
+    """
     rows.sort(key=lambda r: r[0])
     n = len(rows)
     times = np.empty(n)
@@ -256,22 +311,4 @@ def record_lockstep(
         cmds[i], wheels[i], poses[i] = force, w, p
         for name, v in zip(EXTRA_COLUMNS, ex, strict=True):
             extra[name].append(str(v))
-    meta = {
-        "source": "mecanum-hil record_lockstep",
-        "tool_version": __version__,
-        "transport": "lockstep",
-        "protocol_version": PROTOCOL_VERSION,
-        "robot_profile": robot.source,
-        "controller": hello_ack.name,
-        "telemetry_rate_hz": ctrl.telemetry_rate_hz,
-        "sample_rate_hz": ctrl.telemetry_rate_hz,
-        "link_delay_s": d,
-        "columns": dict(COLUMN_NOTES),
-        "simulated_controller": {"effects": fx.source,
-                                 "pose_noise": None if pose_sd is None else pose_sd.tolist()},
-        "end_reason": "completed",
-        "exit_code": 0,
-        "stops_received": ctrl.stops_received,
-        **(metadata or {}),
-    }
-    return Recording(times, cmds, wheels, poses, extra, meta)
+    return times, cmds, wheels, poses, extra

@@ -726,7 +726,40 @@ def run_record_session(
     """
     config = config or SessionConfig()
     t, cmd = check_command_stream(t_s, commands, robot, transport)
-    meta = {
+    # fsync at every flush (at least every 0.2 s): a power loss keeps what was received
+    writer = RecordingWriter(out, EXTRA_COLUMNS, _start_metadata(transport, robot, metadata),
+                             fsync=True)
+    peak = float(np.abs(command_to_wheels(cmd[:, 0], cmd[:, 1], cmd[:, 2], robot.k)).max())
+    sess = _Session(transport, t, cmd, writer, config, observers, progress, peak)
+    reason, message, error = "completed", "", None
+    saved_handlers = _end_on_hangup(config)
+    try:
+        reason, message, error, tail = _stream_until_end(sess, config)
+        # every way out: STOP first, then the recording is closed cleanly
+        try:
+            sess.stop(tail)
+        except (KeyboardInterrupt, SessionTerminated):
+            pass
+    finally:
+        _restore_handlers(saved_handlers)
+        sess.pump.close()
+        duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
+        latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
+        writer.close(_end_metadata(sess, transport, reason, message, latency))
+    if sess.pump.error is not None and reason == "error" and error is None:
+        error = sess.pump.error
+    exit_code = EXIT_CODES[reason]
+    if reason == "error" and isinstance(error, MecanumHILError):
+        exit_code = error.exit_code
+    return RecordResult(reason, exit_code, Path(out), writer.rows, sess.commands_sent,
+                        sess.telemetry, duration, transport.stats.as_dict(), latency, message,
+                        sess.pump.dropped, sess.controller, error)
+
+
+def _start_metadata(transport: Transport, robot: RobotProfile,
+                    metadata: dict[str, Any] | None) -> dict[str, Any]:
+    """The sidecar's keys known before the first byte is sent."""
+    return {
         "source": "mecanum-hil record",
         "tool_version": __version__,
         "transport": transport.name,
@@ -738,65 +771,65 @@ def run_record_session(
         "notes": "",
         **(metadata or {}),
     }
-    # fsync at every flush (at least every 0.2 s): a power loss keeps what was received
-    writer = RecordingWriter(out, EXTRA_COLUMNS, meta, fsync=True)
-    peak = float(np.abs(command_to_wheels(cmd[:, 0], cmd[:, 1], cmd[:, 2], robot.k)).max())
-    sess = _Session(transport, t, cmd, writer, config, observers, progress, peak)
-    reason, message, error = "completed", "", None
-    old_handler = None
-    if config.handle_sigterm and threading.current_thread() is threading.main_thread():
-        def _on_sigterm(signum, frame):
-            raise SessionTerminated()
-        old_handler = signal.signal(signal.SIGTERM, _on_sigterm)
-        # a closed terminal or dropped SSH session (SIGHUP) ends the run the same way
-        old_hup = signal.signal(signal.SIGHUP, _on_sigterm)
-    tail = 0.0
+
+
+def _end_on_hangup(config: SessionConfig) -> tuple | None:
+    """Make SIGTERM and SIGHUP end the stream; return the handlers to put back, if any."""
+    if not (config.handle_sigterm and threading.current_thread() is threading.main_thread()):
+        return None
+
+    def _on_sigterm(signum, frame):
+        raise SessionTerminated()
+    old_term = signal.signal(signal.SIGTERM, _on_sigterm)
+    # a closed terminal or dropped SSH session (SIGHUP) ends the run the same way
+    old_hup = signal.signal(signal.SIGHUP, _on_sigterm)
+    return old_term, old_hup
+
+
+def _restore_handlers(saved: tuple | None) -> None:
+    if saved is not None:
+        signal.signal(signal.SIGTERM, saved[0])
+        signal.signal(signal.SIGHUP, saved[1])
+
+
+def _stream_until_end(sess: _Session, config: SessionConfig
+                      ) -> tuple[str, str, BaseException | None, float]:
+    """Handshake and stream until the profile ends or something ends it first.
+
+    Returns ``(reason, message, error, tail_s)``: how it ended (a key of :data:`EXIT_CODES`)
+    and the telemetry to keep after STOP [s] (only after a completed profile). The caller
+    sends STOP whatever this returns or raises.
+    """
     try:
-        try:
-            sess.run()
-            tail = config.tail_s
-        except _ObserverStopError:
-            reason = "observer_stop"
-        except TelemetryCheckError as err:
-            reason, message, error = err.reason, str(err), err
-        except LinkLostError as err:
-            reason, message, error = "link_lost", str(err), err
-        except KeyboardInterrupt:
-            reason = "interrupted"
-        except SessionTerminated:
-            reason = "terminated"
-        except Exception as err:
-            reason, message, error = "error", str(err), err
-        # every way out: STOP first, then the recording is closed cleanly
-        try:
-            sess.stop(tail)
-        except (KeyboardInterrupt, SessionTerminated):
-            pass
-    finally:
-        if old_handler is not None:
-            signal.signal(signal.SIGTERM, old_handler)
-            signal.signal(signal.SIGHUP, old_hup)
-        sess.pump.close()
-        duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
-        latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
-        result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
-                       "link_stats": transport.stats.as_dict(), "latency_ms": latency,
-                       "link_events": sess.events,
-                       "controller": sess.controller,
-                       "controller_wheel_limit_rpm": (sess.wheel_limit_rpm
-                                                      if math.isfinite(sess.wheel_limit_rpm)
-                                                      else None),
-                       "telemetry_rate_hz": sess.telemetry_rate_hz,
-                       # the recording's sample rate is the telemetry's (commands interleave)
-                       "sample_rate_hz": sess.telemetry_rate_hz or None}
-        if message:
-            result_meta["end_message"] = message
-        writer.close(result_meta)
-    if sess.pump.error is not None and reason == "error" and error is None:
-        error = sess.pump.error
-    exit_code = EXIT_CODES[reason]
-    if reason == "error" and isinstance(error, MecanumHILError):
-        exit_code = error.exit_code
-    return RecordResult(reason, exit_code, Path(out), writer.rows, sess.commands_sent,
-                        sess.telemetry, duration, transport.stats.as_dict(), latency, message,
-                        sess.pump.dropped, sess.controller, error)
+        sess.run()
+        return "completed", "", None, config.tail_s
+    except _ObserverStopError:
+        return "observer_stop", "", None, 0.0
+    except TelemetryCheckError as err:
+        return err.reason, str(err), err, 0.0
+    except LinkLostError as err:
+        return "link_lost", str(err), err, 0.0
+    except KeyboardInterrupt:
+        return "interrupted", "", None, 0.0
+    except SessionTerminated:
+        return "terminated", "", None, 0.0
+    except Exception as err:
+        return "error", str(err), err, 0.0
+
+
+def _end_metadata(sess: _Session, transport: Transport, reason: str, message: str,
+                  latency: dict[str, float]) -> dict[str, Any]:
+    """The sidecar's keys known once the stream has ended: how, and what the link did."""
+    result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
+                   "link_stats": transport.stats.as_dict(), "latency_ms": latency,
+                   "link_events": sess.events,
+                   "controller": sess.controller,
+                   "controller_wheel_limit_rpm": (sess.wheel_limit_rpm
+                                                  if math.isfinite(sess.wheel_limit_rpm)
+                                                  else None),
+                   "telemetry_rate_hz": sess.telemetry_rate_hz,
+                   # the recording's sample rate is the telemetry's (commands interleave)
+                   "sample_rate_hz": sess.telemetry_rate_hz or None}
+    if message:
+        result_meta["end_message"] = message
+    return result_meta

@@ -226,23 +226,17 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
     int
         Number of alarms.
     """
-    import can
+    import can  # noqa: F401  (python-can missing fails here, before the bus is opened)
 
-    from ..errors import ConfigError, LinkLostError
-    from ..io.recording import RecordingWriter
-    from ..link.can_link import CanCodec, CanTransport
-    from ..link.protocol import Command, FrameError, HelloAck, Stop, Telemetry
-    from ..link.session import EXTRA_COLUMNS
-    from ..model import load_calibration, load_robot_profile
+    from ..errors import ConfigError
+    from ..link.can_link import CanTransport
+    from ..model import load_calibration
 
     if bus is None and not channel:
         raise ConfigError("passive CAN listening needs --channel (and --interface)")
     cal = load_calibration(calibration)
-    rob = load_robot_profile(robot)
-    log_path = events if events is not None else (event_log_path(out) if out else None)
-    live = LiveShadow(cal, rob, config, log_path, stop_on_divergence=stop_on_divergence,
-                      echo=echo, header={"mode": "listen-can", "bus": f"{interface}:{channel}",
-                                         "recording": str(out) if out else None})
+    live = _listening_shadow(cal, robot, config, out, events, stop_on_divergence, echo,
+                             f"{interface}:{channel}")
     link = None
     writer = None
     view = None
@@ -253,80 +247,12 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
 
             view = start_live_view(foxglove, live, echo=echo)
         link = CanTransport(interface, channel, bitrate, bus=bus)
-        codec = CanCodec()
-        clock = ControllerClock()
         if out is not None:
-            writer = RecordingWriter(out, EXTRA_COLUMNS, {
-                "source": "mecanum-hil shadow (listen)", "bus": link.port,
-                "calibration": cal.source,
-                "columns": {"t_s": "bus time since the first frame heard (telemetry: controller "
-                                   "time mapped onto it)"}})
+            writer = _open_heard_recording(out, link.port, cal)
         echo(f"shadow: listening on {link.port} (sending nothing"
              + (", STOP on divergence)" if stop_on_divergence else ")"))
-        tty = sys.stderr.isatty()
-        start = time.perf_counter()
-        end = math.inf if duration_s is None else start + duration_s
-        t0: float | None = None
-        last_t = -math.inf
-        cmd: np.ndarray | None = None
-        next_status = start + status_every_s
-        while (now := time.perf_counter()) < end:
-            try:
-                frame = link.bus.recv(timeout=min(0.1, end - now))
-            except (can.CanError, OSError, ValueError) as err:
-                raise LinkLostError(f"CAN {link.port}: link lost: {err}") from err
-            if time.perf_counter() >= next_status:
-                next_status = time.perf_counter() + status_every_s
-                if tty:
-                    print("\r" + live.status_line()[:150], end="", file=sys.stderr, flush=True)
-            if frame is None or frame.is_error_frame or frame.is_remote_frame:
-                continue
-            try:
-                msg = codec.decode(frame.arbitration_id, bytes(frame.data))
-            except FrameError:
-                heard["bad_frames"] += 1
-                continue
-            if msg is None:
-                continue  # first half of a telemetry sample
-            stamp = frame.timestamp or time.time()
-            if t0 is None:
-                t0 = stamp
-            if isinstance(msg, Command | Stop):
-                t = max(stamp - t0, last_t)
-                if isinstance(msg, Command):
-                    heard["commands"] += 1
-                    cmd = np.array([msg.n_rpm, msg.omega_dps, msg.theta_deg])
-                else:
-                    heard["stops"] += 1
-                    cmd = np.array([0.0, 0.0, 90.0 if cmd is None else cmd[2]])
-                live.monitor.on_command(t, cmd)
-                if view is not None:
-                    view.on_command(t, cmd)
-                if writer is not None and t > last_t:
-                    writer.write(t, cmd, extra=("cmd" if isinstance(msg, Command) else "stop",
-                                                msg.seq, "", ""))
-                last_t = t
-                if live.stop_requested and isinstance(msg, Command):
-                    # python-can stamps frames on the epoch clock: our STOP goes out now
-                    _send_stop(link, live, max(time.time() - t0, t), cmd, heard)
-            elif isinstance(msg, HelloAck):
-                clock.reset()  # the controller's clock restarts at the HELLO it answers
-            elif isinstance(msg, Telemetry):
-                heard["telemetry"] += 1
-                t = max(clock(msg.time_us * 1e-6, stamp - t0), last_t)
-                wheels = np.array(msg.wheel_rpm, dtype=float)
-                if writer is not None and t > last_t:
-                    writer.write(t, cmd if cmd is not None else (math.nan,) * 3, wheels,
-                                 extra=("tlm", msg.seq, f"{msg.time_us * 1e-6:.6f}", msg.status))
-                last_t = t
-                if cmd is None:
-                    continue  # the command in force is unknown until one is heard
-                was = live.stop_requested
-                live.on_telemetry(t, cmd, wheels)
-                if view is not None:
-                    view.on_telemetry(t, cmd, wheels)
-                if live.stop_requested and not was:
-                    _send_stop(link, live, max(time.time() - t0, t), cmd, heard)
+        _listen(link, _Listening(live, link, view, writer, heard), duration_s,
+                status_every_s)
     except KeyboardInterrupt:
         pass  # Ctrl-C is how an open-ended listen ends
     finally:
@@ -344,3 +270,139 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
                                  else ""))
     echo(summary)
     return len(live.monitor.alarms)
+
+
+def _listening_shadow(cal: Calibration, robot: str | Path, config: ShadowConfig,
+                      out: str | Path | None, events: str | Path | None,
+                      stop_on_divergence: bool, echo: Callable[[str], None],
+                      bus_name: str) -> LiveShadow:
+    """The shadow monitor of a passive listen, its event log next to ``out`` by default."""
+    from ..model import load_robot_profile
+
+    rob = load_robot_profile(robot)
+    log_path = events if events is not None else (event_log_path(out) if out else None)
+    return LiveShadow(cal, rob, config, log_path, stop_on_divergence=stop_on_divergence,
+                      echo=echo, header={"mode": "listen-can", "bus": bus_name,
+                                         "recording": str(out) if out else None})
+
+
+def _listen(link, listening: _Listening, duration_s: float | None,
+            status_every_s: float) -> None:
+    """Receive frames until ``duration_s`` has passed (or forever), refreshing the status line."""
+    import can
+
+    from ..errors import LinkLostError
+    from ..link.can_link import CanCodec
+
+    live, heard = listening.live, listening.heard
+    codec = CanCodec()
+    tty = sys.stderr.isatty()
+    start = time.perf_counter()
+    end = math.inf if duration_s is None else start + duration_s
+    next_status = start + status_every_s
+    while (now := time.perf_counter()) < end:
+        try:
+            frame = link.bus.recv(timeout=min(0.1, end - now))
+        except (can.CanError, OSError, ValueError) as err:
+            raise LinkLostError(f"CAN {link.port}: link lost: {err}") from err
+        if time.perf_counter() >= next_status:
+            next_status = time.perf_counter() + status_every_s
+            if tty:
+                print("\r" + live.status_line()[:150], end="", file=sys.stderr, flush=True)
+        msg = _decode_frame(codec, frame, heard)
+        if msg is not None:
+            listening.on_message(msg, frame.timestamp or time.time())
+
+
+def _open_heard_recording(out: str | Path, port: str, cal: Calibration):
+    """The recording of what is heard, in the ``record`` format."""
+    from ..io.recording import RecordingWriter
+    from ..link.session import EXTRA_COLUMNS
+
+    return RecordingWriter(out, EXTRA_COLUMNS, {
+        "source": "mecanum-hil shadow (listen)", "bus": port,
+        "calibration": cal.source,
+        "columns": {"t_s": "bus time since the first frame heard (telemetry: controller "
+                           "time mapped onto it)"}})
+
+
+def _decode_frame(codec, frame, heard: dict):
+    """The message a received CAN frame completes, or ``None`` (none, an error or remote
+    frame, a corrupt one, counted in ``heard``, or the first half of a telemetry sample)."""
+    from ..link.protocol import FrameError
+
+    if frame is None or frame.is_error_frame or frame.is_remote_frame:
+        return None
+    try:
+        return codec.decode(frame.arbitration_id, bytes(frame.data))
+    except FrameError:
+        heard["bad_frames"] += 1
+        return None
+
+
+class _Listening:
+    """What a passive listen has heard so far: the bus time origin, the command in force.
+
+    Each message heard goes to the model, the live view and the recording in bus time
+    since the first frame; with ``stop_on_divergence``, STOP goes out from the first alarm
+    and after every command heard from then on.
+    """
+
+    def __init__(self, live: LiveShadow, link, view, writer, heard: dict) -> None:
+        self.live, self.link, self.view, self.writer = live, link, view, writer
+        self.heard = heard
+        self.clock = ControllerClock()
+        self.t0: float | None = None
+        self.last_t = -math.inf
+        self.cmd: np.ndarray | None = None
+
+    def on_message(self, msg, stamp: float) -> None:
+        """Take one decoded message stamped at ``stamp`` on the bus clock [s]."""
+        from ..link.protocol import Command, HelloAck, Stop, Telemetry
+
+        if self.t0 is None:
+            self.t0 = stamp
+        if isinstance(msg, Command | Stop):
+            self._on_command(msg, stamp, isinstance(msg, Command))
+        elif isinstance(msg, HelloAck):
+            self.clock.reset()  # the controller's clock restarts at the HELLO it answers
+        elif isinstance(msg, Telemetry):
+            self._on_telemetry(msg, stamp)
+
+    def _on_command(self, msg, stamp: float, is_command: bool) -> None:
+        live, heard = self.live, self.heard
+        t = max(stamp - self.t0, self.last_t)
+        if is_command:
+            heard["commands"] += 1
+            self.cmd = np.array([msg.n_rpm, msg.omega_dps, msg.theta_deg])
+        else:
+            heard["stops"] += 1
+            self.cmd = np.array([0.0, 0.0, 90.0 if self.cmd is None else self.cmd[2]])
+        live.monitor.on_command(t, self.cmd)
+        if self.view is not None:
+            self.view.on_command(t, self.cmd)
+        if self.writer is not None and t > self.last_t:
+            self.writer.write(t, self.cmd, extra=("cmd" if is_command else "stop",
+                                                  msg.seq, "", ""))
+        self.last_t = t
+        if live.stop_requested and is_command:
+            # python-can stamps frames on the epoch clock: our STOP goes out now
+            _send_stop(self.link, live, max(time.time() - self.t0, t), self.cmd, heard)
+
+    def _on_telemetry(self, msg, stamp: float) -> None:
+        live, cmd = self.live, self.cmd
+        self.heard["telemetry"] += 1
+        t = max(self.clock(msg.time_us * 1e-6, stamp - self.t0), self.last_t)
+        wheels = np.array(msg.wheel_rpm, dtype=float)
+        if self.writer is not None and t > self.last_t:
+            self.writer.write(t, cmd if cmd is not None else (math.nan,) * 3, wheels,
+                              extra=("tlm", msg.seq, f"{msg.time_us * 1e-6:.6f}", msg.status))
+        self.last_t = t
+        if cmd is None:
+            return  # the command in force is unknown until one is heard
+        was = live.stop_requested
+        live.on_telemetry(t, cmd, wheels)
+        if self.view is not None:
+            self.view.on_telemetry(t, cmd, wheels)
+        if live.stop_requested and not was:
+            _send_stop(self.link, live, max(time.time() - self.t0, t), cmd, self.heard)

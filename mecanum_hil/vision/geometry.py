@@ -183,20 +183,35 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
         No candidate moves on a circle.
     """
     rng = rng or np.random.default_rng(12345)
-    m = len(frame_idx)
-    if m < 5:
+    if len(frame_idx) < 5:
         raise VideoError(f"{source}: no marker: no saturated blob found in the video "
                          "(give --marker-hsv, or --roi around the wheel)")
+    score, path, hue0 = _search_path(frame_idx, xy, hue_deg, n_frames, max_radius_px, rng,
+                                     hypotheses, rho_tol, hue_tol_deg, initial)
+    if path is None or score < 3:
+        raise VideoError(f"{source}: no marker: no saturated blob moves on a circle "
+                         "(give --marker-hsv, or --roi around the wheel)")
+    path, shape = _refine_path(path, frame_idx, xy, hue_deg, hue0, n_frames, max_radius_px,
+                               rho_tol, hue_tol_deg, source)
+    track_xy, found, index = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames,
+                                             rho_tol, hue_tol_deg, with_index=True)
+    rho, ang = path.unit(track_xy[found])
+    residual = float(np.sqrt(np.mean((rho - 1.0) ** 2)) * math.sqrt(path.a_px * path.b_px))
+    return Track(path, track_xy, found, angular_coverage(ang), shape, residual, index)
+
+
+def _search_path(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_frames: int,
+                 max_radius_px: float, rng: np.random.Generator, hypotheses: int,
+                 rho_tol: float, hue_tol_deg: float, initial: Ellipse | None
+                 ) -> tuple[float, Ellipse | None, float]:
+    """RANSAC over ellipses through five candidates: ``(score, path, hue [deg])`` of the best
+    (``path`` ``None`` when no hypothesis was plausible)."""
+    m = len(frame_idx)
     grid = np.round(xy / 2.0).astype(np.int64)
     cell = grid[:, 0] * 1_000_003 + grid[:, 1]
     best: tuple[float, Ellipse | None, float] = (-1.0, None, 0.0)
     if initial is not None:
-        rho, ang = initial.unit(xy)
-        on = np.abs(rho - 1.0) < rho_tol
-        if on.sum() >= 5:
-            hue_init = float(np.median(hue_deg[on]))
-            same = _hue_close(hue_deg, hue_init, hue_tol_deg) & on
-            best = (np.unique(cell[same]).size * angular_coverage(ang[same]), initial, hue_init)
+        best = _score_initial(initial, xy, hue_deg, cell, rho_tol, hue_tol_deg, best)
         link = np.full(m, -1)
         moving = np.arange(m)
     else:
@@ -237,10 +252,27 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
             if score > 1.05 * best[0]:
                 last_gain = h
             best = (score, e, float(hue_deg[i0]))
-    score, path, hue0 = best
-    if path is None or score < 3:
-        raise VideoError(f"{source}: no marker: no saturated blob moves on a circle "
-                         "(give --marker-hsv, or --roi around the wheel)")
+    return best
+
+
+def _score_initial(initial: Ellipse, xy: np.ndarray, hue_deg: np.ndarray, cell: np.ndarray,
+                   rho_tol: float, hue_tol_deg: float,
+                   best: tuple[float, Ellipse | None, float]
+                   ) -> tuple[float, Ellipse | None, float]:
+    """A path found before as the first hypothesis, scored as the search scores its own."""
+    rho, ang = initial.unit(xy)
+    on = np.abs(rho - 1.0) < rho_tol
+    if on.sum() < 5:
+        return best
+    hue_init = float(np.median(hue_deg[on]))
+    same = _hue_close(hue_deg, hue_init, hue_tol_deg) & on
+    return (np.unique(cell[same]).size * angular_coverage(ang[same]), initial, hue_init)
+
+
+def _refine_path(path: Ellipse, frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray,
+                 hue0: float, n_frames: int, max_radius_px: float, rho_tol: float,
+                 hue_tol_deg: float, source: str) -> tuple[Ellipse, str]:
+    """Refit the path on each frame's best candidate, twice: ``(path, "ellipse"|"circle")``."""
     for _ in range(2):  # refit on the chosen detections, then choose again with the refined path
         track_xy, found = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames, rho_tol,
                                           hue_tol_deg)
@@ -255,11 +287,7 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
             path = refit
         else:
             shape = "ellipse" if path.a_px != path.b_px else "circle"
-    track_xy, found, index = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames,
-                                             rho_tol, hue_tol_deg, with_index=True)
-    rho, ang = path.unit(track_xy[found])
-    residual = float(np.sqrt(np.mean((rho - 1.0) ** 2)) * math.sqrt(path.a_px * path.b_px))
-    return Track(path, track_xy, found, angular_coverage(ang), shape, residual, index)
+    return path, shape
 
 
 def refit_track(track: Track, max_radius_px: float) -> Track:

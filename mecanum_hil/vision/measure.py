@@ -357,35 +357,7 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
     wheels_summary = []
     for (wheel, roi), cands, det in zip(opts.rois, per_wheel, detectors, strict=True):
         where = f"{src}, wheel {wheel}"
-        if opts.marker.kind == "aruco":
-            from .aruco import aruco_angles
-
-            angle, geom = aruco_angles(cands, where)
-        else:
-            track, angle, offsets, partial = _wheel_angles(cands, n, det, opts.seed, where)
-            moved = float(np.max(np.hypot(*(offsets - np.median(offsets, axis=0)).T)))
-            geom = {"path": track.shape, "centre_px": [round(track.path.cx_px, 2),
-                                                       round(track.path.cy_px, 2)],
-                    "axes_px": [round(track.path.a_px, 2), round(track.path.b_px, 2)],
-                    "axis_angle_deg": round(track.path.angle_deg, 2),
-                    "view_tilt_deg": round(track.path.tilt_deg, 1),
-                    "path_coverage": round(track.coverage, 3),
-                    "path_residual_px": round(track.residual_px, 3),
-                    "partial_dropped": partial,
-                    "hub": "not tracked" if det.hub is None else
-                    ("tracked" if moved > 0 else "still"),
-                    "camera_motion_px": round(moved, 2)}
-            if track.residual_px > PATH_RESIDUAL_WARN_PX:
-                warnings.append(
-                    f"wheel {wheel}: the marker's detections lie {track.residual_px:.1f} px (RMS) "
-                    f"off the fitted {track.shape} (glare, a moving camera, strong perspective?): "
-                    "speeds may be off by several percent")
-            if track.coverage < SHORT_ARC:
-                warnings.append(
-                    f"wheel {wheel}: the marker was seen on only {100 * track.coverage:.0f}% of "
-                    f"a turn, too little to tell its path's shape (taken as: {track.shape}); if "
-                    "the camera looks at the wheel obliquely, speeds may be off by up to "
-                    "1 - cos(view angle); film at least half a turn")
+        angle, geom = _wheel_angles_and_path(cands, n, det, opts, wheel, where, warnings)
         found = np.isfinite(angle)
         share = float(found.mean())
         if share < opts.min_found:
@@ -396,19 +368,73 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
         _speed_warnings(est, wheel, timing, opts, where, warnings)
         wheel_rpm[:, wheel - 1] = rpm
         extra[f"wheel{wheel}_turns"] = ["" if not math.isfinite(v) else f"{v:.6f}" for v in turns]
-        speeds = rpm[np.isfinite(rpm)]
-        wheels_summary.append({
-            "wheel": wheel, "roi": list(roi) if roi is not None else None,
-            "found_fraction": round(share, 4), "frames_found": int(found.sum()),
-            "outliers_dropped": outliers,
-            "speed_samples": int(speeds.size),
-            "mean_rpm": round(float(speeds.mean()), 3) if speeds.size else None,
-            "max_abs_rpm": round(float(np.abs(speeds).max()), 3) if speeds.size else None,
-            "aliasing": est.aliasing, "aliased_frames": int(est.aliased.sum()),
-            "gaps": [g.as_dict() for g in est.gaps],
-            "gaps_unbridged": sum(not g.bridged for g in est.gaps),
-            **geom})
-    summary = {
+        wheels_summary.append(_wheel_summary(wheel, roi, found, outliers, est, geom))
+    summary = _video_summary(src, n, timing, info, opts, wheels_summary, warnings)
+    meta = {"source": "mecanum-hil measure-video", "tool_version": __version__,
+            "source_video": src, "fps": summary["fps"], "timing": timing.source,
+            "method": summary["method"], "offset_s": None,
+            "wheels": wheels_summary, "marker": opts.marker.kind, "invert": opts.invert}
+    rec = rec.with_values(wheel_rpm=wheel_rpm, extra=extra, metadata=meta)
+    return VideoMeasurement(rec, summary, tuple(warnings))
+
+
+def _wheel_angles_and_path(cands, n: int, det, opts: MeasureOptions, wheel: int, where: str,
+                           warnings: list[str]) -> tuple[np.ndarray, dict[str, Any]]:
+    """The marker's angle in each frame [rad] and its path's geometry for the summary;
+    warns when the path is a poor fit or too short an arc to tell its shape."""
+    if opts.marker.kind == "aruco":
+        from .aruco import aruco_angles
+
+        return aruco_angles(cands, where)
+    track, angle, offsets, partial = _wheel_angles(cands, n, det, opts.seed, where)
+    moved = float(np.max(np.hypot(*(offsets - np.median(offsets, axis=0)).T)))
+    geom = {"path": track.shape, "centre_px": [round(track.path.cx_px, 2),
+                                               round(track.path.cy_px, 2)],
+            "axes_px": [round(track.path.a_px, 2), round(track.path.b_px, 2)],
+            "axis_angle_deg": round(track.path.angle_deg, 2),
+            "view_tilt_deg": round(track.path.tilt_deg, 1),
+            "path_coverage": round(track.coverage, 3),
+            "path_residual_px": round(track.residual_px, 3),
+            "partial_dropped": partial,
+            "hub": "not tracked" if det.hub is None else
+            ("tracked" if moved > 0 else "still"),
+            "camera_motion_px": round(moved, 2)}
+    if track.residual_px > PATH_RESIDUAL_WARN_PX:
+        warnings.append(
+            f"wheel {wheel}: the marker's detections lie {track.residual_px:.1f} px (RMS) "
+            f"off the fitted {track.shape} (glare, a moving camera, strong perspective?): "
+            "speeds may be off by several percent")
+    if track.coverage < SHORT_ARC:
+        warnings.append(
+            f"wheel {wheel}: the marker was seen on only {100 * track.coverage:.0f}% of "
+            f"a turn, too little to tell its path's shape (taken as: {track.shape}); if "
+            "the camera looks at the wheel obliquely, speeds may be off by up to "
+            "1 - cos(view angle); film at least half a turn")
+    return angle, geom
+
+
+def _wheel_summary(wheel: int, roi, found: np.ndarray, outliers: int, est,
+                   geom: dict[str, Any]) -> dict[str, Any]:
+    """One wheel's entry in the summary: what was found, the speeds, the path."""
+    speeds = est.rpm[np.isfinite(est.rpm)]
+    return {
+        "wheel": wheel, "roi": list(roi) if roi is not None else None,
+        "found_fraction": round(float(found.mean()), 4), "frames_found": int(found.sum()),
+        "outliers_dropped": outliers,
+        "speed_samples": int(speeds.size),
+        "mean_rpm": round(float(speeds.mean()), 3) if speeds.size else None,
+        "max_abs_rpm": round(float(np.abs(speeds).max()), 3) if speeds.size else None,
+        "aliasing": est.aliasing, "aliased_frames": int(est.aliased.sum()),
+        "gaps": [g.as_dict() for g in est.gaps],
+        "gaps_unbridged": sum(not g.bridged for g in est.gaps),
+        **geom}
+
+
+def _video_summary(src: str, n: int, timing: FrameTiming, info, opts: MeasureOptions,
+                   wheels_summary: list[dict[str, Any]], warnings: list[str]
+                   ) -> dict[str, Any]:
+    """The whole video's summary (``--summary``): timing, method, wheels, warnings."""
+    return {
         "video": src, "frames": n, "fps": round(timing.fps, 4),
         "fps_declared": None if math.isnan(info.fps_nominal) else info.fps_nominal,
         "duration_s": round(float(timing.t_s[-1]), 4), "timing": timing.source,
@@ -419,12 +445,6 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
         "expected_rpm": None if opts.expected_rpm is None else
         [None if math.isinf(v) else v for v in opts.expected_rpm],
     }
-    meta = {"source": "mecanum-hil measure-video", "tool_version": __version__,
-            "source_video": src, "fps": summary["fps"], "timing": timing.source,
-            "method": summary["method"], "offset_s": None,
-            "wheels": wheels_summary, "marker": opts.marker.kind, "invert": opts.invert}
-    rec = rec.with_values(wheel_rpm=wheel_rpm, extra=extra, metadata=meta)
-    return VideoMeasurement(rec, summary, tuple(warnings))
 
 
 def _speed_warnings(est, wheel: int, timing: FrameTiming, opts: MeasureOptions, where: str,

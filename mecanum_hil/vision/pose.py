@@ -457,22 +457,11 @@ def measure_pose(path: str | Path, camera: CameraModel, scene: Scene,
     n = len(stamps)
     found = np.isfinite(pose).all(axis=1)
     share = float(found.mean())
-    warnings = []
     if share < opts.min_found:
         raise VideoError(f"{src}: the robot's marker (id {scene.robot.marker_id}) was found in "
                          f"only {100 * share:.0f} % of the frames (--min-found "
                          f"{100 * opts.min_found:.0f} %)")
-    if info.frame_count and n < info.frame_count - 1:
-        warnings.append(f"the video ends after {n} of the {info.frame_count} frames its header "
-                        "declares (truncated?); measured what could be decoded")
-    missing = sorted({m.id for m in scene.floor} - set(used))
-    if missing:
-        warnings.append(f"floor markers never seen: {missing}")
-    if len(used) < 2:
-        warnings.append("only one floor marker seen: the camera's pose rests on four corners")
-    if rms > 1.0:
-        warnings.append(f"the floor markers reproject {rms:.2f} px RMS off their sightings: "
-                        "check the scene's marker places and the camera file")
+    warnings = _pose_warnings(n, info.frame_count, scene, used, rms)
     summary = {
         "video": src, "frames": n, "found": int(found.sum()), "found_share": round(share, 4),
         "fps": round(timing.fps, 4), "timing": timing.source,
@@ -492,6 +481,24 @@ def measure_pose(path: str | Path, camera: CameraModel, scene: Scene,
         "warnings": warnings,
     }
     return PoseMeasurement(timing.t_s, pose, raw, cam_pose, rms, summary, tuple(warnings))
+
+
+def _pose_warnings(n: int, frame_count: int, scene: Scene, used, rms: float) -> list[str]:
+    """What the summary warns of: a truncated video, floor markers unseen or too few, a
+    camera pose that fits its sightings poorly (``rms`` [px])."""
+    warnings = []
+    if frame_count and n < frame_count - 1:
+        warnings.append(f"the video ends after {n} of the {frame_count} frames its header "
+                        "declares (truncated?); measured what could be decoded")
+    missing = sorted({m.id for m in scene.floor} - set(used))
+    if missing:
+        warnings.append(f"floor markers never seen: {missing}")
+    if len(used) < 2:
+        warnings.append("only one floor marker seen: the camera's pose rests on four corners")
+    if rms > 1.0:
+        warnings.append(f"the floor markers reproject {rms:.2f} px RMS off their sightings: "
+                        "check the scene's marker places and the camera file")
+    return warnings
 
 
 def measure_pose_plain(path: str | Path, camera: CameraModel, scene: Scene,

@@ -345,6 +345,27 @@ def estimate_speed(t_s: np.ndarray, angle_rad: np.ndarray, window_s: float,
     idx = np.flatnonzero(np.isfinite(a))
     if idx.size == 0:
         return SpeedEstimate(rpm, turns, outliers, (), aliased)
+    run, turns_run = _cut_into_runs(a, t, idx, expected_rpm, aliased)
+    valid = run >= 0
+    h = half_window((n - 1) / (t[-1] - t[0]) if n > 1 and t[-1] > t[0] else 1.0, window_s)
+    slope = _edge_widened_slope(t, turns_run, np.where(valid, run, -1), h)
+    rpm = 60.0 * slope
+    ids = [int(r) for r in np.unique(run[valid])]
+    turns_out, gaps = _bridge_runs(t, a, slope, run, ids, turns_run, aliased)
+    gaps += _gaps_within_runs(t, run, ids, turns_run)
+    gaps.sort(key=lambda g: g.start_s)
+    return SpeedEstimate(rpm, turns_out, outliers, tuple(gaps), aliased)
+
+
+def _cut_into_runs(a: np.ndarray, t: np.ndarray, idx: np.ndarray,
+                   expected_rpm: tuple[float, float] | None, aliased: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Cut the found frames ``idx`` into runs; unwrap the angle within each.
+
+    Returns each frame's run (-1: none) and its unwrapped angle [turns] (NaN outside a run).
+    Frames on an ambiguous step are marked in ``aliased`` (in place).
+    """
+    n = a.size
     w = a[idx] / (2 * np.pi)
     raw = (np.diff(w) + 0.5) % 1.0 - 0.5
     gap = np.diff(idx)
@@ -370,12 +391,16 @@ def estimate_speed(t_s: np.ndarray, angle_rad: np.ndarray, window_s: float,
     turns_run = np.full(n, np.nan)
     turns_run[idx] = unwrapped
     turns_run[~(run >= 0)] = np.nan
-    valid = run >= 0
-    h = half_window((n - 1) / (t[-1] - t[0]) if n > 1 and t[-1] > t[0] else 1.0, window_s)
-    slope = _edge_widened_slope(t, turns_run, np.where(valid, run, -1), h)
-    rpm = 60.0 * slope
-    # Bridge gaps between runs, in time order.
-    ids = [int(r) for r in np.unique(run[valid])]
+    return run, turns_run
+
+
+def _bridge_runs(t: np.ndarray, a: np.ndarray, slope: np.ndarray, run: np.ndarray,
+                 ids: list[int], turns_run: np.ndarray, aliased: np.ndarray
+                 ) -> tuple[np.ndarray, list[Gap]]:
+    """Bridge the gaps between runs, in time order: the turns across each, where unambiguous.
+
+    Returns the turns count of every frame [turns] and the gaps between runs.
+    """
     gaps: list[Gap] = []
     turns_out = turns_run.copy()
     prev = None
@@ -396,15 +421,20 @@ def estimate_speed(t_s: np.ndarray, angle_rad: np.ndarray, window_s: float,
                 gaps.append(Gap(float(t[i_end + 1]), float(t[max(i_end + 1, i_start - 1)]),
                                 missing, bridged, across if bridged else None, reason))
         prev = r
-    # Short gaps inside runs (bridged by the run's own unwrapping).
+    return turns_out, gaps
+
+
+def _gaps_within_runs(t: np.ndarray, run: np.ndarray, ids: list[int],
+                      turns_run: np.ndarray) -> list[Gap]:
+    """Short gaps inside runs (bridged by the run's own unwrapping)."""
+    gaps: list[Gap] = []
     for r in ids:
         members = np.flatnonzero(run == r)
         for i0, i1 in itertools.pairwise(members):
             if i1 - i0 > 1:
                 gaps.append(Gap(float(t[i0 + 1]), float(t[i1 - 1]), int(i1 - i0 - 1), True,
                                 float(turns_run[i1] - turns_run[i0])))
-    gaps.sort(key=lambda g: g.start_s)
-    return SpeedEstimate(rpm, turns_out, outliers, tuple(gaps), aliased)
+    return gaps
 
 
 def _edge_widened_slope(t: np.ndarray, y: np.ndarray, run: np.ndarray, h: int) -> np.ndarray:
