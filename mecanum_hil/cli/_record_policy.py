@@ -23,9 +23,10 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
     from ..errors import ConfigError
     from ..link.policy_session import run_policy_episodes
     from ..link.session import SessionConfig
-    from ..link.transport import open_transport, parse_option_value
+    from ..link.transport import open_transport
     from ..model import load_robot_profile
     from ..policy import resolve_policy
+    from .record import _transport_options
 
     if profile is not None or commands is not None:
         raise ConfigError("--policy makes the commands itself: give no --profile or --commands")
@@ -43,18 +44,7 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
     pol = resolve_policy(policy, rob, task)  # refuses another robot's or task's policy
     cal = pol.calibration()  # its slip efficiencies turn wheel speeds into odometry
 
-    options: dict[str, object] = {}
-    if transport == "serial":
-        options.update(port=port, baudrate=bitrate)
-    elif transport == "can":
-        options.update(interface=interface, channel=channel, bitrate=bitrate)
-    else:
-        options.update(port=port, interface=interface, channel=channel, bitrate=bitrate)
-    for item in link_option or []:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--link-option needs KEY=VALUE, got {item!r}")
-        options[key.strip()] = parse_option_value(value)
+    options = _transport_options(transport, port, interface, channel, bitrate, link_option)
     where = port or f"{interface}:{channel}"
 
     make_observers = close_observers = None

@@ -27,11 +27,8 @@ with the figures ``evaluate`` prints.
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import math
-import signal
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -40,23 +37,19 @@ from typing import Any
 
 import numpy as np
 
-from .. import __version__
-from ..errors import ConfigError, LimitError, LinkError, LinkLostError, MecanumHILError
+from ..errors import ConfigError, LimitError, MecanumHILError
 from ..io.recording import RecordingWriter
 from ..model import Calibration, RobotProfile, wheels_to_twist
 from ..units import DPS_TO_RPM, RPM_TO_RAD_S
 from .protocol import PROTOCOL_VERSION, Telemetry
 from .session import (
-    COLUMN_NOTES,
-    EXIT_CODES,
     EXTRA_COLUMNS,
     RecordResult,
     SessionConfig,
-    SessionTerminated,
-    TelemetryCheckError,
     _ObserverStopError,
     _Session,
-    percentiles_ms,
+    _start_metadata,
+    _stream_stop_close,
 )
 from .transport import Transport
 
@@ -248,23 +241,11 @@ class _PolicySession(_Session):
             self._tlm_last = msg.time_us
             self.ctl.on_telemetry((msg.time_us + self._tlm_wrap) * 1e-6, msg.wheel_rpm)
 
-    def _send_command(self, command: np.ndarray) -> None:
+    def _send_command(self, command: np.ndarray) -> float:
         # as the record session sends a profile's command (its checks come first)
         self.robot.check_commands(command, "policy command")
         self.tr.check_commands(command[None], "policy command")
-        wire = self.tr.wire_command(*command)
-        now = time.perf_counter()
-        sent = self.send(wire)
-        if sent is not None:
-            self.commands_sent += 1
-            self._acks[sent.seq] = now
-            if len(self._acks) > 64:
-                self._acks.pop(next(iter(self._acks)))
-        self.cmd_in_force = np.array([wire.n_rpm, wire.omega_dps, wire.theta_deg])
-        t_row = self._row_time(now)
-        self.writer.write(t_row, self.cmd_in_force,
-                          extra=("cmd", "" if sent is None else sent.seq, "", ""))
-        self.pump.push_command(t_row, self.cmd_in_force.copy())
+        return super()._send_command(command)
 
     def run(self) -> None:
         from .protocol import Ping
@@ -323,79 +304,13 @@ def run_policy_episode(transport: Transport, controller: EpisodeController, out:
     (:meth:`EpisodeOutcome.as_dict`, with the odometry path).
     """
     config = config or SessionConfig()
-    meta = {
-        "source": "mecanum-hil record --policy",
-        "tool_version": __version__,
-        "transport": transport.name,
-        "port": str(getattr(transport, "port", "")),
-        "protocol_version": PROTOCOL_VERSION,
-        "robot_profile": robot.source,
-        "started_utc": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-        "columns": dict(COLUMN_NOTES),
-        "notes": "",
-        **(metadata or {}),
-    }
+    meta = _start_metadata(transport, robot, metadata, source="mecanum-hil record --policy")
     writer = RecordingWriter(out, EXTRA_COLUMNS, meta, fsync=True)
     sess = _PolicySession(transport, controller, robot, writer, config, observers, progress)
-    reason, message, error = "completed", "", None
-    old = None
-    if config.handle_sigterm and threading.current_thread() is threading.main_thread():
-        def _on_sigterm(signum, frame):
-            raise SessionTerminated()
-        old = (signal.signal(signal.SIGTERM, _on_sigterm), signal.signal(signal.SIGHUP,
-                                                                        _on_sigterm))
-    try:
-        try:
-            sess.run()
-        except _ObserverStopError:
-            reason = "observer_stop"
-        except TelemetryCheckError as err:
-            reason, message, error = err.reason, str(err), err
-        except LinkLostError as err:
-            reason, message, error = "link_lost", str(err), err
-        except KeyboardInterrupt:
-            reason = "interrupted"
-        except SessionTerminated:
-            reason = "terminated"
-        except Exception as err:
-            reason, message, error = "error", str(err), err
-        if reason != "completed":
-            controller.cut_short(reason)
-        # every way out: STOP first, then the recording is closed cleanly
-        try:
-            sess.stop(0.0)
-            if reason == "completed" and sess.t0 is not None:
-                sess.wait_for_rest(rest_timeout_s)
-        except (KeyboardInterrupt, SessionTerminated):
-            reason = "interrupted"
-            sess.stop(0.0)
-        except LinkError as err:
-            reason, message, error = "link_lost", str(err), err
-    finally:
-        if old is not None:
-            signal.signal(signal.SIGTERM, old[0])
-            signal.signal(signal.SIGHUP, old[1])
-        sess.pump.close()
-        duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
-        latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
-        result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
-                       "link_stats": transport.stats.as_dict(), "latency_ms": latency,
-                       "link_events": getattr(sess, "events", []),
-                       "controller": sess.controller,
-                       "telemetry_rate_hz": sess.telemetry_rate_hz,
-                       "sample_rate_hz": sess.telemetry_rate_hz or None,
-                       "policy_episode": controller.outcome.as_dict()}
-        if message:
-            result_meta["end_message"] = message
-        writer.close(result_meta)
-    if sess.pump.error is not None and reason == "error" and error is None:
-        error = sess.pump.error
-    exit_code = EXIT_CODES[reason]
-    if reason == "error" and isinstance(error, MecanumHILError):
-        exit_code = error.exit_code
-    return RecordResult(reason, exit_code, Path(out), writer.rows, sess.commands_sent,
-                        sess.telemetry, duration, transport.stats.as_dict(), latency, message,
-                        sess.pump.dropped, sess.controller, error)
+    return _stream_stop_close(
+        sess, transport, writer, out, config,
+        settle=lambda: sess.wait_for_rest(rest_timeout_s), cut_short=controller.cut_short,
+        end_extra=lambda: {"policy_episode": controller.outcome.as_dict()})
 
 
 @dataclass(frozen=True)

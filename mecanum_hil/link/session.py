@@ -581,24 +581,29 @@ class _Session:
                                       f"{self.pump.error}") from self.pump.error
             if self.pump.stop_requested:
                 raise _ObserverStopError()
-            wire = self.tr.wire_command(*self.commands[i])
-            now = time.perf_counter()
-            sent = self.send(wire)
-            if sent is not None:
-                self.commands_sent += 1
-                self._acks[sent.seq] = now
-                if len(self._acks) > 64:
-                    self._acks.pop(next(iter(self._acks)))
-            self.cmd_in_force = np.array([wire.n_rpm, wire.omega_dps, wire.theta_deg])
-            t_row = self._row_time(now)
-            self.writer.write(t_row, self.cmd_in_force,
-                              extra=("cmd", "" if sent is None else sent.seq, "", ""))
-            self.pump.push_command(t_row, self.cmd_in_force.copy())
+            now = self._send_command(self.commands[i])
             if now >= next_ping:
                 self._ping_token = (self._ping_token + 1) & 0xFFFFFFFF
                 if self.send(Ping(self._ping_token)) is not None:
                     self._pings[self._ping_token] = time.perf_counter()
                 next_ping += ping_period
+
+    def _send_command(self, command: np.ndarray) -> float:
+        """Send one checked command, record it as in force; return when it was sent [s]."""
+        wire = self.tr.wire_command(*command)
+        now = time.perf_counter()
+        sent = self.send(wire)
+        if sent is not None:
+            self.commands_sent += 1
+            self._acks[sent.seq] = now
+            if len(self._acks) > 64:
+                self._acks.pop(next(iter(self._acks)))
+        self.cmd_in_force = np.array([wire.n_rpm, wire.omega_dps, wire.theta_deg])
+        t_row = self._row_time(now)
+        self.writer.write(t_row, self.cmd_in_force,
+                          extra=("cmd", "" if sent is None else sent.seq, "", ""))
+        self.pump.push_command(t_row, self.cmd_in_force.copy())
+        return now
 
     def stop(self, keep_receiving_s: float) -> None:
         """Send STOP (best effort, never raises) and record it, then keep the tail."""
@@ -731,21 +736,60 @@ def run_record_session(
                              fsync=True)
     peak = float(np.abs(command_to_wheels(cmd[:, 0], cmd[:, 1], cmd[:, 2], robot.k)).max())
     sess = _Session(transport, t, cmd, writer, config, observers, progress, peak)
+    return _stream_stop_close(sess, transport, writer, out, config)
+
+
+def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWriter,
+                       out: str | Path, config: SessionConfig, *,
+                       settle: Callable[[], None] | None = None,
+                       cut_short: Callable[[str], None] | None = None,
+                       end_extra: Callable[[], dict[str, Any]] | None = None) -> RecordResult:
+    """Run ``sess`` to its end, STOP at every way out, close the recording; the result.
+
+    The one place the ways out of a command stream are handled (``record`` and
+    ``record --policy``): SIGTERM/SIGHUP end the stream while it runs, how it ended is
+    classified (:func:`_stream_until_end`), STOP is sent whatever happened (guarded against a
+    Ctrl-C or SIGTERM meanwhile), the handlers are put back and the sidecar is closed.
+
+    Parameters
+    ----------
+    settle : callable, optional
+        After the STOP of a completed stream, in place of keeping ``config.tail_s`` of
+        telemetry (``record --policy`` waits for the wheels to come to rest). A Ctrl-C or
+        SIGTERM in it ends the run as ``interrupted`` (STOP again), a link error as
+        ``link_lost``.
+    cut_short : callable, optional
+        ``cut_short(reason)`` before the STOP of a stream that did not complete.
+    end_extra : callable, optional
+        Keys added to the sidecar's end (called as the recording is closed).
+    """
     reason, message, error = "completed", "", None
     saved_handlers = _end_on_hangup(config)
     try:
         reason, message, error, tail = _stream_until_end(sess, config)
+        if reason != "completed" and cut_short is not None:
+            cut_short(reason)
         # every way out: STOP first, then the recording is closed cleanly
         try:
-            sess.stop(tail)
+            sess.stop(tail if settle is None else 0.0)
+            if settle is not None and reason == "completed" and sess.t0 is not None:
+                settle()
         except (KeyboardInterrupt, SessionTerminated):
-            pass
+            # during the tail, a courtesy: the run still completed; while settling, it did not
+            if settle is not None:
+                reason = "interrupted"
+                sess.stop(0.0)
+        except LinkError as err:  # only settling receives on its own (STOP never raises)
+            reason, message, error = "link_lost", str(err), err
     finally:
         _restore_handlers(saved_handlers)
         sess.pump.close()
         duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
         latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
-        writer.close(_end_metadata(sess, transport, reason, message, latency))
+        end_meta = _end_metadata(sess, transport, reason, message, latency)
+        if end_extra is not None:
+            end_meta.update(end_extra())
+        writer.close(end_meta)
     if sess.pump.error is not None and reason == "error" and error is None:
         error = sess.pump.error
     exit_code = EXIT_CODES[reason]
@@ -757,10 +801,11 @@ def run_record_session(
 
 
 def _start_metadata(transport: Transport, robot: RobotProfile,
-                    metadata: dict[str, Any] | None) -> dict[str, Any]:
+                    metadata: dict[str, Any] | None,
+                    source: str = "mecanum-hil record") -> dict[str, Any]:
     """The sidecar's keys known before the first byte is sent."""
     return {
-        "source": "mecanum-hil record",
+        "source": source,
         "tool_version": __version__,
         "transport": transport.name,
         "port": str(getattr(transport, "port", "")),
