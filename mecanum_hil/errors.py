@@ -57,3 +57,7 @@ class FitError(MecanumHILError):
 
 class DiagnoseError(MecanumHILError):
     """The model/measurement disagreement cannot be analysed from the data given."""
+
+
+class MecanumHILWarning(UserWarning):
+    """Something was done to the data that the user should know of (the CLI prints one line)."""

@@ -10,8 +10,17 @@ from . import __version__
 from .errors import RecordingError
 from .io.recording import Recording
 from .model.calibration import Calibration
+from .model.kinematics import command_to_wheels
 from .model.robot import RobotProfile
-from .model.simulate import DEFAULT_POSE, Trajectory, simulate
+from .model.simulate import DEFAULT_POSE, Trajectory, simulate, steady_state
+
+#: A wheel reading repeated unchanged for at least this many samples at the start of a
+#: recording is a frozen sensor value (a stale reading), not motion.
+FROZEN_SAMPLES = 5
+#: Samples averaged for the initial speed of a recording that starts in motion.
+START_SAMPLES = 3
+#: A start below this speed [rpm] (or four noise levels) is taken as rest.
+REST_RPM = 2.0
 
 
 def require_commands(rec: Recording, source: str = "recording") -> None:
@@ -63,16 +72,120 @@ def start_pose(rec: Recording) -> tuple[float, float, float]:
     return tuple(DEFAULT_POSE)
 
 
+def frozen_start(rec: Recording) -> np.ndarray:
+    """Mask (T, 4) of the leading samples whose reading is frozen: a non-zero value repeated
+    unchanged for at least :data:`FROZEN_SAMPLES` samples from the first measured one."""
+    w = np.asarray(rec.wheel_rpm, dtype=float)
+    out = np.zeros(w.shape, bool)
+    for i in range(4):
+        rows = np.flatnonzero(np.isfinite(w[:, i]))
+        if rows.size < FROZEN_SAMPLES:
+            continue
+        v = w[rows, i]
+        run = int(np.argmax(v != v[0])) if (v != v[0]).any() else v.size
+        if run >= FROZEN_SAMPLES and v[0] != 0.0:
+            out[rows[:run], i] = True
+    return out
+
+
+def without_frozen_start(rec: Recording) -> Recording:
+    """The recording with frozen leading readings (:func:`frozen_start`) emptied."""
+    mask = frozen_start(rec)
+    if not mask.any():
+        return rec
+    w = np.array(rec.wheel_rpm, dtype=float)
+    w[mask] = np.nan
+    return rec.with_values(wheel_rpm=w)
+
+
+def initial_wheel_rpm(rec: Recording) -> np.ndarray:
+    """Wheel speeds [rpm] the model starts from: 0 at rest, else the first measured reading,
+    averaged with those of the next :data:`START_SAMPLES` - 1 that agree with it within four
+    noise levels (a wheel already accelerating is not averaged away). A first reading below
+    :data:`REST_RPM` or four noise levels (from the first differences) is rest; a frozen reading
+    is not motion (that wheel starts at rest); a wheel without a reading at the first sample
+    starts at rest."""
+    w = np.asarray(without_frozen_start(rec).wheel_rpm, dtype=float)
+    out = np.zeros(4)
+    frozen = frozen_start(rec).any(axis=0)
+    for i in range(4):
+        rows = np.flatnonzero(np.isfinite(w[:, i]))
+        if frozen[i] or rows.size == 0 or rows[0] > 0:
+            continue
+        d = np.diff(w[rows[:20], i])
+        sigma = float(1.4826 * np.median(np.abs(d)) / np.sqrt(2.0)) if d.size > 2 else 0.0
+        first = w[rows[0], i]
+        if abs(first) <= max(REST_RPM, 4.0 * sigma):
+            continue
+        near = w[rows[:START_SAMPLES], i]
+        near = near[np.abs(near - first) <= max(4.0 * sigma, REST_RPM)]
+        out[i] = float(near.mean())
+    return out
+
+
+def controller_clock_s(rec: Recording) -> float | None:
+    """The controller's clock at the first sample [s], from a ``controller_time_s`` column
+    (the controller's time of each telemetry row); ``None`` without one. A controller that
+    computes its output every ``T`` seconds ticks at whole multiples of ``T`` on this clock."""
+    if "controller_time_s" not in rec.extra:
+        return None
+    c = rec.extra_numeric("controller_time_s")
+    rows = np.flatnonzero(np.isfinite(c))
+    if rows.size == 0:
+        return None
+    j = int(rows[0])
+    return float(c[j] - (rec.t_s[j] - rec.t_s[0]))
+
+
+def initial_state(rec: Recording, calibration: Calibration, robot: RobotProfile,
+                  clock_s: float | None = None):
+    """The model's state at the first sample, or ``None`` for the default (at rest, the
+    controller's first tick at the first sample).
+
+    A recording that starts in motion starts in steady state at the measured speeds
+    (:func:`~mecanum_hil.model.simulate.steady_state`); with a ``controller_period`` and the
+    controller's clock known (:func:`controller_clock_s`, or ``clock_s``), the first tick is
+    placed where that clock reaches a whole period.
+    """
+    y0 = initial_wheel_rpm(rec)
+    clock = controller_clock_s(rec) if clock_s is None else clock_s
+    period = calibration.effects.controller_period_s
+    phased = period > 0 and clock is not None
+    if not y0.any() and not phased:
+        return None
+    c = np.asarray(rec.commands[0], dtype=float)
+    tg = command_to_wheels(c[None, 0], c[None, 1], c[None, 2], robot.k)[0]
+    return with_tick_phase(steady_state(calibration, y0, tg), calibration, clock)
+
+
+def with_tick_phase(state: np.ndarray, calibration: Calibration, clock_s: float | None):
+    """``state`` with the time to the controller's next tick set from its clock at the first
+    sample (unchanged without a controller period or a clock)."""
+    period = calibration.effects.controller_period_s
+    if period > 0 and clock_s is not None:
+        state = np.array(state, dtype=float)
+        state[..., 20] = (-clock_s) % period
+        if state[..., 20] >= period - 1e-12:
+            state[..., 20] = 0.0
+    return state
+
+
 def predict(rec: Recording, calibration: Calibration, robot: RobotProfile,
             initial_pose=None, source: str = "recording") -> Recording:
     """Simulate the model on a recording's commands and times.
 
-    The initial pose is :func:`start_pose` unless given. Extra columns are kept.
+    The initial pose is :func:`start_pose` unless given; a recording that starts in motion
+    starts the model in steady state at the measured speeds (:func:`initial_state`). Extra
+    columns are kept.
     """
     require_commands(rec, source)
     if initial_pose is None:
         initial_pose = start_pose(rec)
-    traj = simulate(rec.commands, rec.t_s, calibration, robot, initial_pose=initial_pose)
+    state = initial_state(rec, calibration, robot)
+    moving = initial_wheel_rpm(rec).any()
+    traj = simulate(rec.commands, rec.t_s, calibration, robot, initial_pose=initial_pose,
+                    initial_state=state,
+                    initial_command=rec.commands[0] if moving else None)
     meta = {
         "source": "mecanum-hil simulate",
         "commands_from": source,

@@ -13,7 +13,7 @@ from ._options import CalibrationOpt, JsonOpt, RobotOpt
 def command(
     recordings: Annotated[list[Path], typer.Argument(
         help="Recordings (CSV) with commands and measured wheel speeds (pose where measured); "
-             "at least two.", metavar="REC.csv...")],
+             "one is enough.", metavar="REC.csv...")],
     calibration: CalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",
     out: Annotated[Path | None, typer.Option(
@@ -24,15 +24,17 @@ def command(
         metavar="DIR")] = None,
     candidates: Annotated[str | None, typer.Option(
         "--candidates", help="Comma-separated effects to consider (default: the whole library: "
-                             "dead_time, saturation, rate_limit, deadband, wheel_gain, slip).")
+                             "dead_time, saturation, rate_limit, deadband, wheel_gain, "
+                             "controller_period, drive_lag, breakaway, slip).")
     ] = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Find where model and recordings disagree, name the missing effects, refit, show the gap.
 
     Each effect of the library is fitted together with A, B, C and compared on held-out
-    recordings; the best is added only if it explains a significant part of the gap, then the
-    next round. Structured residual that no effect explains is reported as unexplained.
+    recordings (held-out time blocks when there is one recording); the best is kept if it
+    lowers the held-out error significantly, then the next round. What remains is described by
+    its shape and compared with a generic reference model of higher order.
     """
     import json
 
@@ -61,11 +63,20 @@ def command(
     if json_out:
         typer.echo(json.dumps(diag.to_json()))
         return
-    named = ", ".join(f"{s.effect} {s.parameters}" for s in diag.steps) or "nothing missing"
+    named = ", ".join(f"{s.effect} {s.parameters} ({100 * diag.share(s):.0f} % of the gap)"
+                      for s in diag.steps) or "nothing missing"
     typer.echo(f"named: {named}")
+    for entry in diag.to_json()["effects"]:
+        if entry["effect"] == "slip" and entry["pose_rmse_before"]["position_m"] is not None:
+            b, a = entry["pose_rmse_before"], entry["pose_rmse_after"]
+            typer.echo(f"slip: pose RMSE {b['position_m']:.4g} m, {b['heading_deg']:.4g} deg "
+                       f"-> {a['position_m']:.4g} m, {a['heading_deg']:.4g} deg")
     typer.echo(f"wheel RMSE {diag.rmse_initial:.4g} -> {diag.rmse_final:.4g} rpm"
-               + ("; structured residual remains that no effect explains (unexplained)"
-                  if diag.unexplained else ""))
+               + ("; structured residual remains (unexplained)" if diag.unexplained else ""))
+    if diag.shape is not None and diag.unexplained:
+        typer.echo(f"what remains: {diag.shape.describe()}")
+    typer.echo(f"reference model: wheel RMSE {diag.rmse_reference:.4g} rpm; the named effects "
+               f"close {100 * diag.explained_share:.0f} % of the gap it explains")
     if out is not None:
         typer.echo(f"wrote {out}")
     if report is not None:

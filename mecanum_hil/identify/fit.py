@@ -32,8 +32,16 @@ from ..io.recording import Recording
 from ..model.calibration import Calibration
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
-from ..model.simulate import simulate_batch
-from ..prediction import require_commands, start_pose
+from ..model.simulate import simulate_batch, steady_state
+from ..prediction import (
+    controller_clock_s,
+    initial_state,
+    initial_wheel_rpm,
+    require_commands,
+    start_pose,
+    with_tick_phase,
+    without_frozen_start,
+)
 from ..units import RPM_TO_RAD_S
 
 #: Every parameter :func:`fit_parameters` can estimate: the coefficients, then the effects'.
@@ -41,6 +49,7 @@ PARAMETER_NAMES: tuple[str, ...] = (
     "A", "B", "C", "dead_time_s", "top_speed_rpm", "rate_limit_rpm_per_s", "deadband_rpm",
     "gains[0]", "gains[1]", "gains[2]", "gains[3]",
     "efficiency[0]", "efficiency[1]", "efficiency[2]",
+    "controller_period_s", "drive_lag_s", "breakaway_rpm_per_s",
 )
 
 _INDEXED = re.compile(r"^(gains|efficiency)\[(\d)\]$")
@@ -57,10 +66,13 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "deadband_rpm": (0.0, math.inf),
     **{f"gains[{i}]": (0.0, math.inf) for i in range(4)},
     **{f"efficiency[{i}]": (0.0, math.inf) for i in range(3)},
+    "controller_period_s": (0.0, 1.0),
+    "drive_lag_s": (0.0, 5.0),
+    "breakaway_rpm_per_s": (0.0, math.inf),
 }
 
 # Typical magnitude below which a finite-difference step stops shrinking with the value.
-_FD_FLOOR = {"dead_time_s": 0.01}
+_FD_FLOOR = {"dead_time_s": 0.01, "drive_lag_s": 0.01, "controller_period_s": 0.01}
 _FD_RELATIVE = 1e-6
 
 #: Coarse starting grid for the coefficients (log-spaced, covers slow drives to fast micro-motors).
@@ -210,6 +222,19 @@ class _Prepared:
     pose0: tuple[float, float, float]
     pose_scale: np.ndarray        # (3,) pose residual -> wheel-rpm equivalent
     source: str
+    start_rpm: np.ndarray         # (4,) wheel speeds at the start (0: at rest)
+    start_target: np.ndarray      # (4,) wheel targets of the first command [rpm]
+    clock_s: float | None = None  # the controller's clock at the first sample [s]
+
+    def initial_states(self, calibs: Sequence[Calibration]) -> np.ndarray | None:
+        """Steady states at the measured start speeds, with the controller's tick phase, one per
+        calibration; None for the default (at rest, first tick at the first sample)."""
+        phased = self.clock_s is not None and any(
+            c.effects.controller_period_s > 0 for c in calibs)
+        if not self.start_rpm.any() and not phased:
+            return None
+        return np.stack([with_tick_phase(steady_state(c, self.start_rpm, self.start_target),
+                                         c, self.clock_s) for c in calibs])
 
 
 def pose_scale(duration_s: float, robot: RobotProfile) -> np.ndarray:
@@ -249,13 +274,17 @@ def prepare(recordings: Sequence[Recording], robot: RobotProfile,
     for i, rec in enumerate(recordings):
         src = _source(i, rec, sources)
         require_commands(rec, src)
+        start = initial_wheel_rpm(rec)
+        rec = without_frozen_start(rec)
         wheel = np.asarray(rec.wheel_rpm, dtype=float)
         pose = np.asarray(rec.pose, dtype=float)
         pose0 = start_pose(rec)
         out.append(_Prepared(
             np.asarray(rec.t_s, dtype=float), np.asarray(rec.commands, dtype=float), wheel,
             np.isfinite(wheel), pose, np.isfinite(pose), pose0,
-            pose_scale(rec.t_s[-1] - rec.t_s[0], robot), src))
+            pose_scale(rec.t_s[-1] - rec.t_s[0], robot), src, start,
+            command_to_wheels(rec.commands[:1, 0], rec.commands[:1, 1], rec.commands[:1, 2],
+                              robot.k)[0], controller_clock_s(rec)))
     n = sum(int(p.wheel_mask.sum()) for p in out)
     if n == 0:
         raise FitError("no measured wheel speed in the recordings (wheel1_rpm..wheel4_rpm are "
@@ -293,8 +322,11 @@ def few_threads(work: float):
 
 
 def _simulate(p: _Prepared, calibs: Sequence[Calibration], robot: RobotProfile):
+    state = p.initial_states(calibs)
     with few_threads(len(calibs) * p.t_s.size * 4):
-        traj = simulate_batch(p.commands, p.t_s, list(calibs), robot, initial_pose=p.pose0)
+        traj = simulate_batch(p.commands, p.t_s, list(calibs), robot, initial_pose=p.pose0,
+                              initial_state=state,
+                              initial_command=p.commands[0] if p.start_rpm.any() else None)
     return traj.wheel_rpm, traj.pose
 
 
@@ -321,8 +353,9 @@ def residuals(recordings: Sequence[Recording], calibration: Calibration,
               robot: RobotProfile) -> list[np.ndarray]:
     """Measured minus model wheel speeds, per recording.
 
-    The model runs on each recording's commands and times from rest, as in
-    :func:`mecanum_hil.prediction.predict`.
+    The model runs on each recording's commands and times as in
+    :func:`mecanum_hil.prediction.predict` (from rest, or in steady state at the measured
+    speeds when the recording starts in motion).
 
     Returns
     -------
@@ -332,8 +365,11 @@ def residuals(recordings: Sequence[Recording], calibration: Calibration,
     out = []
     for rec in recordings:
         require_commands(rec)
+        state = initial_state(rec, calibration, robot)
         traj = simulate_batch(rec.commands, rec.t_s, calibration, robot,
-                              initial_pose=start_pose(rec))
+                              initial_pose=start_pose(rec), initial_state=state,
+                              initial_command=rec.commands[0] if initial_wheel_rpm(rec).any()
+                              else None)
         out.append(np.asarray(rec.wheel_rpm, dtype=float) - traj.wheel_rpm[0])
     return out
 
@@ -603,6 +639,7 @@ def fit_parameters(
     bounds: Mapping[str, tuple[float, float]] | None = None,
     pose_weight: float = 0.0,
     sources: Sequence[str] | None = None,
+    max_evaluations: int | None = None,
 ) -> FitResult:
     """Joint continuous least squares of free parameters on all measured samples.
 
@@ -627,6 +664,9 @@ def fit_parameters(
         as wheel-rpm equivalents (see :func:`pose_scale`); 0 fits wheel speeds only.
     sources : sequence of str, optional
         Names of the recordings for the provenance (default: ``recording 1`` ...).
+    max_evaluations : int, optional
+        At most this many residual evaluations per search and no restarts: a quick refit from
+        a start near the optimum (``diagnose``'s held-out folds). Default: converge.
 
     Returns
     -------
@@ -653,16 +693,19 @@ def fit_parameters(
     failures = []
     for start in _starts(data, calibration, robot, free, x0, lo, hi):
         x_start = np.array([start[n] for n in free])
+        budget = max_evaluations or 200 * len(free)
         try:
             sol = least_squares(problem.fun, x_start, jac=problem.jac, bounds=(lo, hi),
-                                x_scale="jac", method="trf", max_nfev=200 * len(free))
+                                x_scale="jac", method="trf", max_nfev=budget)
         except (ValueError, np.linalg.LinAlgError) as err:
             failures.append(f"least squares failed: {err}")
             continue
-        if sol.status <= 0 or not np.isfinite(sol.cost):
+        if (sol.status < 0 or (sol.status == 0 and max_evaluations is None)
+                or not np.isfinite(sol.cost)):
             failures.append(f"least squares did not converge: {sol.message}")
             continue
-        sol = _restarted(problem, sol, lo, hi, 200 * len(free))
+        if max_evaluations is None:
+            sol = _restarted(problem, sol, lo, hi, budget)
         if best is None or sol.cost < best.cost:
             best = sol
     if best is None:
@@ -730,8 +773,10 @@ def fit(
     FitResult
     """
     cal = calibration if calibration is not None else Calibration(source="<fit>")
-    for i, rec in enumerate(recordings):
-        _require_start_at_rest(rec, robot, _source(i, rec, sources))
+    if method == "paper-grid":
+        # the paper's grid simulates from rest; lsq starts a moving recording in steady state
+        for i, rec in enumerate(recordings):
+            _require_start_at_rest(rec, robot, _source(i, rec, sources))
     if method == "lsq":
         if grid_options:
             raise FitError(f"grid options {sorted(grid_options)} apply to --method paper-grid only")
@@ -771,5 +816,6 @@ def _require_start_at_rest(rec: Recording, robot: RobotProfile, src: str) -> Non
                    4.0 * sigma if np.isfinite(sigma) else 0.0):
         raise FitError(
             f"{src}: starts in motion (a wheel at {first:.1f} rpm at t_s={rec.t_s[rows[0]]:g}); "
-            "the model starts every recording from rest, so trim the recording to begin at "
-            "standstill (or record from standstill)")
+            "the paper's grid search starts every recording from rest: use --method lsq "
+            "(which starts it in steady state at the measured speeds) or trim the recording "
+            "to begin at standstill")

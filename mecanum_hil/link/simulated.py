@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..errors import LinkError, LinkLostError
+from ..errors import ConfigError, LinkError, LinkLostError
 from ..model.calibration import Calibration
 from ..model.robot import RobotProfile
 from ..model.simulate import DEFAULT_POSE, simulate
@@ -38,14 +38,17 @@ from .protocol import (
     Command,
     ErrorCode,
     ErrorMsg,
+    EstopReset,
     Heartbeat,
     Hello,
     HelloAck,
+    MsgType,
     Ping,
     Pong,
     Status,
     Stop,
     Telemetry,
+    command_problem,
 )
 from .transport import Transport
 
@@ -173,7 +176,11 @@ class ControllerModel:
         self._sched_cmds: list[tuple[float, float, float]] = []
         self.effects = self.sim_effects.initial_effects(self.base.effects)
         self._faults = list(self.sim_effects.faults)
-        self.estop = False
+        # a latched e-stop survives HELLO: only the controller's ESTOP_RESET clears it
+        self.estop = getattr(self, "estop", False)
+        if self._state.shape[-1] > 20:
+            # a controller_period's loop restarts with the clock: its next tick is due now
+            self._state[:, 20] = 0.0
         self._invalidate()
         self.sensor.reset()
 
@@ -285,26 +292,66 @@ class ControllerModel:
         return w + self._rng.normal(0.0, std, 4) if std > 0 else w.copy()
 
 
+def telemetry_ticks_for(telemetry_rate_hz: float, internal_rate_hz: float) -> int:
+    """Internal ticks between telemetry samples for a rate; 0 for none.
+
+    The sample rate is ``internal_rate_hz / ticks``, announced in HELLO_ACK in whole Hz, so a
+    rate that cannot be announced honestly is refused instead of being changed silently.
+
+    Raises
+    ------
+    ConfigError
+        A rate that is not finite, negative, below 1 Hz (other than 0: HELLO_ACK would
+        announce 0, "sends none"), or above the internal tick rate (or 65535 Hz).
+    """
+    rate = float(telemetry_rate_hz)
+    internal = float(internal_rate_hz)
+    if not (math.isfinite(internal) and internal > 0):
+        raise ConfigError(f"the internal tick rate must be a positive number of Hz, got "
+                          f"{internal_rate_hz!r}")
+    if not (math.isfinite(rate) and rate >= 0):
+        raise ConfigError(f"telemetry rate must be 0 (none) or a positive number of Hz, got "
+                          f"{telemetry_rate_hz!r}")
+    if rate == 0:
+        return 0
+    if rate > internal * (1 + 1e-9):
+        raise ConfigError(f"telemetry rate {rate:g} Hz is above the internal tick rate "
+                          f"{internal:g} Hz: samples are taken on ticks (raise the internal "
+                          "rate)")
+    ticks = max(1, round(internal / rate))
+    sent = internal / ticks
+    if round(sent) < 1 or sent > 0xFFFF:
+        raise ConfigError(f"telemetry rate {rate:g} Hz cannot be announced: HELLO_ACK carries "
+                          "whole Hz from 1 to 65535 (0 means none)")
+    return ticks
+
+
 class SimulatedController:
-    """The simulated controller's firmware loop on a transport.
+    """The simulated controller's firmware loop on a transport: drivers/protocol.md's duties.
+
+    It refuses (ERROR 2, counted in :attr:`bad_commands`, command ignored) every COMMAND that
+    is malformed, not finite, or beyond the robot's wheel speed limit (announced in HELLO_ACK),
+    keeps a watchdog stop until the next valid COMMAND, keeps a latched e-stop until
+    ESTOP_RESET (never cleared by HELLO), and never ends on input: an unexpected error while
+    handling a frame is answered with ERROR 255 and counted (:attr:`internal_errors`).
 
     Parameters
     ----------
     transport : Transport
         The controller's end of the link.
     model : ControllerModel
-        The simulated robot.
+        The simulated robot; its robot profile gives the wheel speed limit and ``k``.
     telemetry_rate_hz : float
-        Telemetry rate [Hz]; 0 sends none.
+        Telemetry rate [Hz]; 0 sends none (see :func:`telemetry_ticks_for`).
     name : str
         Name sent in HELLO_ACK.
     version : int
         Protocol version the controller speaks (another value lets tests exercise a mismatch).
     log : callable, optional
-        Called with one line per notable event (HELLO, STOP, watchdog).
+        Called with one line per notable event (HELLO, STOP, watchdog, refused commands).
     clock : callable, optional
         Monotonic clock [s] (default :func:`time.monotonic`); a virtual one runs the firmware in
-        simulated time (:mod:`mecanum_hil.link.lockstep`).
+        simulated time (:mod:`mecanum_hil.link.lockstep`, :meth:`run_once`).
     """
 
     def __init__(self, transport: Transport, model: ControllerModel,
@@ -314,8 +361,12 @@ class SimulatedController:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.clock = clock
         self.transport = transport
+        transport.set_role("controller")
         self.model = model
-        self.telemetry_rate_hz = float(telemetry_rate_hz)
+        self.telemetry_ticks = telemetry_ticks_for(telemetry_rate_hz, model.rate_hz)
+        self.telemetry_rate_hz = (model.rate_hz / self.telemetry_ticks if self.telemetry_ticks
+                                  else 0.0)
+        self.wheel_limit_rpm = float(model.robot.wheel_speed_max_rpm)
         self.name = name
         self.version = version
         self.log = log or (lambda line: None)
@@ -325,14 +376,13 @@ class SimulatedController:
         self.ack_seq = 0
         self.stops_received = 0
         self.commands_received = 0
+        #: COMMANDs refused with ERROR 2 (malformed, not finite, beyond the limit).
+        self.bad_commands = 0
+        #: Unexpected errors while handling a frame (answered with ERROR 255).
+        self.internal_errors = 0
         self._t0 = clock()
         self._last_valid = -math.inf
         self._next_tlm_tick = 0
-        # telemetry on whole ticks (1 kHz / 100 Hz -> every 10th tick); 0 Hz sends none
-        self.telemetry_ticks = (max(1, round(model.rate_hz / self.telemetry_rate_hz))
-                                if self.telemetry_rate_hz > 0 else 0)
-        if self.telemetry_ticks:
-            self.telemetry_rate_hz = model.rate_hz / self.telemetry_ticks
 
     def now_s(self) -> float:
         """Controller time since the last HELLO [s]."""
@@ -341,12 +391,28 @@ class SimulatedController:
     def _tick_now(self, rounding=math.floor) -> int:
         return max(int(rounding(self.now_s() * self.model.rate_hz - 1e-9)), self.model.anchor)
 
+    def _error(self, code: int, text: str) -> None:
+        try:
+            self.transport.send(ErrorMsg(code, text))
+        except LinkLostError:
+            raise
+        except LinkError:
+            pass  # a controller never stalls on its output
+
+    def _refuse_command(self, reason: str) -> None:
+        self.bad_commands += 1
+        self._error(ErrorCode.BAD_COMMAND, reason)
+        self.log(f"COMMAND refused: {reason}")
+
+    def _status_now(self) -> int:
+        return int(self.status | (Status.ESTOP if self.model.estop else 0))
+
     def handle(self, msg) -> None:
-        """Act on one received message."""
+        """Act on one received message (drivers/protocol.md, "The controller's duties")."""
         if isinstance(msg, Hello):
             if msg.version != self.version:
-                self.transport.send(ErrorMsg(ErrorCode.VERSION_MISMATCH,
-                                             f"controller speaks version {self.version}"))
+                self._error(ErrorCode.VERSION_MISMATCH,
+                            f"controller speaks version {self.version}")
                 self.log(f"HELLO of protocol version {msg.version} refused")
                 return
             self.transport.restart_sequences()
@@ -354,25 +420,30 @@ class SimulatedController:
             self.model.restart()
             self._next_tlm_tick = 0
             self.connected = True
-            self.status = Status.STOPPED
+            self.status = Status.STOPPED  # also ends a watchdog stop; never an e-stop
             self.model.set_command(0, _ZERO)
             self._last_valid = 0.0
+            self.ack_seq = msg.seq
             self.transport.send(HelloAck(self.version, round(self.telemetry_rate_hz),
-                                         int(WATCHDOG_S * 1000), self.name))
+                                         int(WATCHDOG_S * 1000), self.name,
+                                         wheel_limit_rpm=self.wheel_limit_rpm))
             self.log("HELLO: session started")
             return
         if isinstance(msg, Ping):
             self.transport.send(Pong(msg.token))
             return
-        if not isinstance(msg, Command | Stop | Heartbeat):
-            return  # a controller ignores controller-side messages
+        if not self.connected or not isinstance(msg, Command | Stop | Heartbeat | EstopReset):
+            return  # before the first HELLO only HELLO and PING are answered
+        if isinstance(msg, Command):
+            problem = self.command_problem(msg)
+            if problem is not None:
+                self._refuse_command(problem)
+                return  # ignored: the last valid command stays, or the watchdog takes over
         self.ack_seq = msg.seq
         self._last_valid = self.now_s()
-        if self.status & Status.WATCHDOG:
-            self.status &= ~Status.WATCHDOG
         if isinstance(msg, Command):
             self.commands_received += 1
-            self.status &= ~Status.STOPPED
+            self.status &= ~(Status.STOPPED | Status.WATCHDOG)
             self.model.set_command(self._tick_now(math.ceil),
                                    (msg.n_rpm, msg.omega_dps, msg.theta_deg))
         elif isinstance(msg, Stop):
@@ -380,6 +451,30 @@ class SimulatedController:
             self.status |= Status.STOPPED
             self.model.set_command(self._tick_now(math.ceil), _ZERO)
             self.log("STOP received")
+        elif isinstance(msg, EstopReset):
+            if self.model.estop:
+                # the simulated button is released at once: the latch is what is cleared
+                self.model.estop = False
+                self.status |= Status.STOPPED
+                self.model.set_command(self._tick_now(math.ceil), _ZERO, delayed=False)
+                self.log("ESTOP_RESET: e-stop cleared, wheels stopped until a COMMAND")
+        # a HEARTBEAT only feeds the watchdog: a watchdog stop waits for a new COMMAND
+
+    def command_problem(self, msg: Command) -> str | None:
+        """Why ``msg`` must be refused (:func:`~mecanum_hil.link.protocol.command_problem`
+        with the robot's ``k`` and the announced limit), or ``None``."""
+        return command_problem(msg.n_rpm, msg.omega_dps, msg.theta_deg, self.model.robot.k,
+                               self.wheel_limit_rpm)
+
+    def take_rejected(self) -> None:
+        """Answer refused frames the transport dropped: a COMMAND with ERROR 2."""
+        rejected = self.transport.rejected
+        while rejected:
+            err = rejected.popleft()
+            # a wrong version or unknown type is dropped unanswered, like damage
+            if err.mtype == MsgType.COMMAND and err.kind in ("malformed", "bad_command") \
+                    and self.connected:
+                self._refuse_command(str(err)[:40])
 
     def check_watchdog(self) -> None:
         """Stop the wheels when no valid command came for the watchdog time."""
@@ -387,47 +482,71 @@ class SimulatedController:
                 self.now_s() - self._last_valid > WATCHDOG_S:
             self.status |= Status.WATCHDOG
             self.model.set_command(self._tick_now(math.ceil), _ZERO)
-            self.log("watchdog: no command for 250 ms, wheels stopped")
+            self.log("watchdog: no command for 250 ms, wheels stopped until a new COMMAND")
 
     def send_telemetry(self, tick: int) -> None:
         """Send the telemetry sample of ``tick``."""
         wheels = self.model.measured_rpm(tick)
-        status = self.status | (Status.ESTOP if self.model.estop else 0)
         self.transport.send(Telemetry(round(tick * self.model.dt_s * 1e6),
-                                      tuple(float(w) for w in wheels), int(status),
+                                      tuple(float(w) for w in wheels), self._status_now(),
                                       self.ack_seq))
+
+    def _receive(self, wait_s: float) -> None:
+        msg = self.transport.recv(max(0.0, wait_s))
+        while msg is not None:
+            try:
+                self.handle(msg)
+            except LinkError:
+                raise
+            except Exception as err:  # never end on input; say so on the wire
+                self.internal_errors += 1
+                self.log(f"error while handling {type(msg).__name__}: {err!r}")
+                self._error(ErrorCode.OTHER, f"internal error: {type(err).__name__}")
+            msg = self.transport.recv(0.0)
+        self.take_rejected()
+
+    def _send_due_telemetry(self) -> None:
+        now_tick = self._tick_now()
+        while now_tick >= self._next_tlm_tick:
+            if now_tick - self._next_tlm_tick > 50 * self.telemetry_ticks:
+                self._next_tlm_tick = now_tick  # a long stall: skip, not burst
+            # a sample is due: report it at its own tick, even if sent late
+            tick = self._next_tlm_tick
+            self._next_tlm_tick += self.telemetry_ticks
+            self.send_telemetry(tick)
+
+    def run_once(self, wait_s: float = 0.0) -> None:
+        """One pass of the firmware loop: take what arrived within ``wait_s`` [s], run the
+        watchdog, send the telemetry samples due by the clock. A frame the transport cannot
+        send is dropped (a controller never stalls on its output).
+
+        Raises
+        ------
+        LinkLostError
+            When the link is gone.
+        """
+        try:
+            self._receive(wait_s)
+            self.check_watchdog()
+            if self.connected and self.telemetry_ticks:
+                self._send_due_telemetry()
+        except LinkLostError:
+            raise
+        except LinkError as err:
+            self.log(f"dropped a frame: {err}")
 
     def serve(self, duration_s: float | None = None) -> None:
         """Serve until :attr:`stop_event` is set (or ``duration_s`` passed) [s].
 
-        A lost link ends the loop with :class:`~mecanum_hil.errors.LinkLostError`; a frame the
-        transport cannot send is dropped (a controller never stalls on its output).
+        A lost link ends the loop with :class:`~mecanum_hil.errors.LinkLostError`.
         """
         self.model.wheel_rpm(self.model.anchor)  # load the compiled simulator before serving
         end = math.inf if duration_s is None else time.monotonic() + duration_s
-        streaming = self.telemetry_ticks > 0
         while not self.stop_event.is_set() and time.monotonic() < end:
             wait = 0.02
-            if self.connected and streaming:
+            if self.connected and self.telemetry_ticks:
                 wait = min(wait, self._next_tlm_tick * self.model.dt_s - self.now_s())
-            try:
-                msg = self.transport.recv(max(0.0, wait))
-                if msg is not None:
-                    self.handle(msg)
-                self.check_watchdog()
-                if self.connected and streaming:
-                    now_tick = self._tick_now()
-                    if now_tick >= self._next_tlm_tick:
-                        if now_tick - self._next_tlm_tick > 50 * self.telemetry_ticks:
-                            self._next_tlm_tick = now_tick  # a long stall: skip, not burst
-                        # a sample is due: report it at its own tick, even if sent late
-                        tick = self._next_tlm_tick
-                        self._next_tlm_tick += self.telemetry_ticks
-                        self.send_telemetry(tick)
-            except LinkLostError:
-                raise
-            except LinkError as err:
-                self.log(f"dropped a frame: {err}")
+            self.run_once(wait)
 
 
 def open_controller_end(kind: str, can_spec: str | None = None):

@@ -14,8 +14,16 @@ import math
 import numpy as np
 from numba import njit, prange
 
-#: Layout of the per-robot state vector used to continue a simulation.
-STATE_WIDTH = 12  # y1..y4 [rpm], z1..z4 [rpm s], drive set-points u1..u4 [rpm]
+from .stepper import discretise_step
+
+#: Layout of the per-robot state vector used to continue a simulation: y1..y4 [rpm],
+#: z1..z4 [rpm s], drive set-points u1..u4 [rpm], then the drive's own dynamics: held
+#: controller outputs h1..h4 [rpm/s], lagged drive outputs d1..d4 [rpm/s] and the time to the
+#: controller's next tick [s] (0: a tick is due). A 12-wide state (the wheels alone) is accepted
+#: by the simulator and padded with zeros.
+STATE_WIDTH = 21
+#: The first columns: the wheels' PI state and set-points.
+WHEEL_STATE_WIDTH = 12
 
 _RPM_S_TO_RAD = 2.0 * math.pi / 60.0
 
@@ -35,10 +43,161 @@ def _exp_se2(a):
     return sa / a, (1.0 - ca) / a, ca, sa
 
 
+@njit(cache=True, inline="always")
+def _lag_pair(y, dl, c, B, a, ts):
+    """Wheel speed and lagged drive after ``ts`` seconds of held controller output ``c``.
+
+    ``dl' = a (c - dl)`` (``a = 1 / drive_lag_s``; ``a = inf``: no lag, ``dl = c``) and
+    ``y' = dl - B y``, solved exactly.
+    """
+    eb = math.exp(-B * ts)
+    g = ts if B * ts < 1e-9 else (1.0 - eb) / B  # integral of exp(-B s) over the piece
+    if not a < np.inf:
+        return y * eb + c * g, c
+    ea = math.exp(-a * ts)
+    dl_new = c + (dl - c) * ea
+    # integral of exp(-B (ts - s)) (dl - c) exp(-a s) ds
+    if abs(a - B) * ts < 1e-7:
+        extra = (dl - c) * ts * eb
+    else:
+        extra = (dl - c) * (ea - eb) / (B - a)
+    return y * eb + c * g + extra, dl_new
+
+
+@njit(cache=True, inline="always")
+def _drive_at_rest(per, a, A, C, u, z, h, dl):
+    # the drive output a wheel at rest feels: held output, lagged output or PI at y = 0
+    if a < np.inf:
+        return dl
+    if per > 0:
+        return h
+    return A * u + C * z
+
+
+@njit(cache=True)
+def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q):
+    """Advance wheel ``i`` over ``ts`` seconds on the path of the drive's own dynamics.
+
+    Between controller ticks (``per > 0``) the held output drives the motor exactly; a
+    continuous PI (``per == 0``) without lag is advanced exactly too (``tab`` is its
+    discretisation over ``ts`` when ``ts`` is a whole sub-step, recomputed otherwise); a
+    continuous PI with a lag holds its output over the piece (first order in the piece). A
+    wheel at rest with ``brk > 0`` stays at rest until the drive's magnitude exceeds ``brk``,
+    at the instant it does (found in closed form, so the model is smooth in ``brk``).
+    Accumulates the integral of the speed over the piece into ``q[i]``.
+    """
+    yi = y[i]
+    rem = ts
+    if brk > 0.0 and yi == 0.0:
+        # stuck: find when the drive leaves [-brk, brk] within the piece
+        d0 = _drive_at_rest(per, a, A, C, u, z[i], hold[i], dl[i])
+        if a < np.inf:
+            c = hold[i] if per > 0 else A * u + C * z[i]
+            if c > dmax:
+                c = dmax
+            elif c < -dmax:
+                c = -dmax
+            if abs(d0) > brk:
+                t_go = 0.0
+            elif abs(c) > brk:
+                sg = 1.0 if c > 0 else -1.0
+                # dl(t) = c + (d0 - c) exp(-a t) reaches sg * brk
+                t_go = -math.log((sg * brk - c) / (d0 - c)) / a
+            else:
+                t_go = np.inf
+        elif per > 0:
+            t_go = 0.0 if abs(d0) > brk else np.inf
+        else:
+            # at rest the PI output grows linearly: A u + C (z + u t)
+            if abs(d0) > brk:
+                t_go = 0.0
+            elif C * u != 0.0:
+                sg = 1.0 if u > 0 else -1.0
+                t_go = (sg * brk - d0) / (C * u)
+                if t_go < 0:
+                    t_go = np.inf
+            else:
+                t_go = np.inf
+        t_rest = min(t_go, ts)
+        if t_rest > 0:
+            if per <= 0:
+                z[i] += u * t_rest
+            if a < np.inf:
+                c = hold[i] if per > 0 else A * u + C * z[i]
+                c = min(max(c, -dmax), dmax)
+                dl[i] = c + (dl[i] - c) * math.exp(-a * t_rest)
+            rem = ts - t_rest
+            if rem <= 1e-12:
+                return
+    # moving
+    zi = z[i]
+    if per <= 0 and not a < np.inf:
+        c = A * (u - yi) + C * zi
+        if c > dmax or c < -dmax:
+            sg = 1.0 if c > 0 else -1.0
+            y_new, _ = _lag_pair(yi, 0.0, sg * dmax, B, np.inf, rem)
+            if sg * (u - yi) < 0:
+                zi += (u - yi) * rem
+        else:
+            if rem != tab[10]:
+                _discretise_into(A, B, C, rem, tab)
+            y_new = tab[0] * yi + tab[1] * zi + tab[4] * u
+            q[i] += tab[6] * yi + tab[7] * zi + tab[8] * u
+            zi = tab[2] * yi + tab[3] * zi + tab[5] * u
+            _stick(i, y_new, yi, brk, per, a, A, C, u, zi, hold, dl, y, z)
+            return
+    else:
+        if per > 0:
+            c = hold[i]
+            clipped = False
+        else:
+            c = A * (u - yi) + C * zi
+            clipped = c > dmax or c < -dmax
+            c = min(max(c, -dmax), dmax)
+        y_new, dl[i] = _lag_pair(yi, dl[i], c, B, a, rem)
+        if per <= 0 and (not clipped or (c > 0) != (u - yi > 0)):
+            zi += (u - 0.5 * (yi + y_new)) * rem
+    q[i] += 0.5 * (yi + y_new) * rem
+    _stick(i, y_new, yi, brk, per, a, A, C, u, zi, hold, dl, y, z)
+
+
+@njit(cache=True, inline="always")
+def _stick(i, y_new, y_old, brk, per, a, A, C, u, zi, hold, dl, y, z):
+    # a wheel that reaches rest while the drive cannot break it away sticks there
+    if brk > 0.0 and y_old != 0.0 and y_new * y_old <= 0.0 and \
+            abs(_drive_at_rest(per, a, A, C, u, zi, hold[i], dl[i])) <= brk:
+        y_new = 0.0
+    y[i] = y_new
+    z[i] = zi
+
+
+@njit(cache=True)
+def _discretise_into(A, B, C, h, out):
+    discretise_step(A, B, C, h, out)
+    out[10] = h
+
+
+@njit(cache=True, inline="always")
+def _controller_tick(u, per, A, C, dmax, y, z, hold):
+    # the sampled PI: integral summed over the period, output held until the next tick
+    for i in range(4):
+        e = u[i] - y[i]
+        zn = z[i] + e * per
+        c = A * e + C * zn
+        if c > dmax or c < -dmax:
+            sg = 1.0 if c > 0 else -1.0
+            c = sg * dmax
+            if sg * e < 0:  # anti-windup: integrate only while the error pulls out
+                z[i] = zn
+        else:
+            z[i] = zn
+        hold[i] = c
+
+
 @njit(cache=True, parallel=True)
 def simulate_kernel(
     commands, didx, nsub, table, coeffs, k, wheel_radius_m,
-    deadband, gains, top_speed, rate_limit, efficiency,
+    deadband, gains, top_speed, rate_limit, efficiency, dyn,
     state, pose0, wheels_out, pose_out, state_out, pose_final,
 ):
     """Simulate N robots over T samples.
@@ -60,13 +219,16 @@ def simulate_kernel(
     deadband, top_speed, rate_limit : (N,) float64
         Effect parameters (0, inf and inf when absent); ``rate_limit`` in [rpm/s].
     gains : (N, 4) float64;  efficiency : (N, 3) float64
-    state : (N, 12) float64
+    dyn : (N, 3) float64
+        The drive's own dynamics: ``controller_period_s`` [s], ``drive_lag_s`` [s],
+        ``breakaway_rpm_per_s`` [rpm/s] (0 when absent).
+    state : (N, 21) float64
         Initial wheel state (see ``STATE_WIDTH``).
     pose0 : (N, 3) float64
         Initial pose ``(X [m], Y [m], phi [deg])``.
     wheels_out : (N, T, 4); pose_out : (N, T, 3)
         Wheel speeds [rpm] and pose at each sample (written).
-    state_out : (N, 12); pose_final : (N, 3)
+    state_out : (N, 21); pose_final : (N, 3)
         State and pose at the last sample (written).
     """
     N, T, _ = commands.shape
@@ -77,10 +239,22 @@ def simulate_kernel(
         ue = np.empty(4)
         tgt = np.empty(4)
         q = np.empty(4)
+        hold = np.empty(4)
+        dl = np.empty(4)
+        ub = np.empty(4)
+        tab = np.empty(11)
         for i in range(4):
             y[i] = state[r, i]
             z[i] = state[r, 4 + i]
             ue[i] = state[r, 8 + i]
+            hold[i] = state[r, 12 + i]
+            dl[i] = state[r, 16 + i]
+        until_tick = state[r, 20]
+        per = dyn[r, 0]
+        lag = dyn[r, 1]
+        a_lag = 1.0 / lag if lag > 0 else np.inf
+        brk = dyn[r, 2]
+        dynamics = per > 0 or lag > 0 or brk > 0
         X = pose0[r, 0]
         Y = pose0[r, 1]
         phi = math.radians(pose0[r, 2])
@@ -144,40 +318,71 @@ def simulate_kernel(
             eb = table[r, row, 9]
             hs = table[r, row, 10]
             for _ in range(nsub[t]):
-                for i in range(4):
-                    u = tgt[i]
-                    if ramping:
-                        d = u - ue[i]
-                        lim = rl * hs
-                        if d > lim:
-                            d = lim
-                        elif d < -lim:
-                            d = -lim
-                        # hold the ramp's mean over the sub-step (second order in the step)
-                        u = ue[i] + 0.5 * d
-                        ue[i] += d
-                    else:
-                        ue[i] = u
-                    yi = y[i]
-                    zi = z[i]
-                    if saturating:
-                        drive = A * (u - yi) + C * zi
-                        if drive > drive_max or drive < -drive_max:
-                            sg = 1.0 if drive > 0 else -1.0
-                            ys = sg * top
-                            if B > 0:
-                                y[i] = ys + (yi - ys) * eb
-                                q[i] = ys * hs + (yi - ys) * (1.0 - eb) / B
-                            else:
-                                y[i] = yi
-                                q[i] = yi * hs
-                            # anti-windup: integrate only while the error pulls out of the limit
-                            if sg * (u - yi) < 0:
-                                z[i] = zi + (u - yi) * hs
-                            continue
-                    q[i] = cq1 * yi + cq2 * zi + dq * u
-                    y[i] = a11 * yi + a12 * zi + b1 * u
-                    z[i] = a21 * yi + a22 * zi + b2 * u
+                if dynamics:
+                    dmax = drive_max if saturating else np.inf
+                    for i in range(4):
+                        u = tgt[i]
+                        if ramping:
+                            d = u - ue[i]
+                            lim = rl * hs
+                            d = min(max(d, -lim), lim)
+                            u = ue[i] + 0.5 * d
+                            ue[i] += d
+                        else:
+                            ue[i] = u
+                        ub[i] = u
+                        q[i] = 0.0
+                    for j in range(10):
+                        tab[j] = table[r, row, j]
+                    tab[10] = hs
+                    rem = hs
+                    # pieces end at the controller's ticks
+                    while rem > 1e-12:
+                        if per > 0 and until_tick <= 1e-12:
+                            _controller_tick(ub, per, A, C, dmax, y, z, hold)
+                            until_tick = per
+                        piece = min(rem, until_tick) if per > 0 else rem
+                        for i in range(4):
+                            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, dmax,
+                                         y, z, hold, dl, tab, q)
+                        rem -= piece
+                        if per > 0:
+                            until_tick -= piece
+                else:
+                    for i in range(4):
+                        u = tgt[i]
+                        if ramping:
+                            d = u - ue[i]
+                            lim = rl * hs
+                            if d > lim:
+                                d = lim
+                            elif d < -lim:
+                                d = -lim
+                            # hold the ramp's mean over the sub-step (second order in the step)
+                            u = ue[i] + 0.5 * d
+                            ue[i] += d
+                        else:
+                            ue[i] = u
+                        yi = y[i]
+                        zi = z[i]
+                        if saturating:
+                            drive = A * (u - yi) + C * zi
+                            if drive > drive_max or drive < -drive_max:
+                                sg = 1.0 if drive > 0 else -1.0
+                                ys = sg * top
+                                if B > 0:
+                                    y[i] = ys + (yi - ys) * eb
+                                    q[i] = ys * hs + (yi - ys) * (1.0 - eb) / B
+                                else:
+                                    y[i] = yi
+                                    q[i] = yi * hs
+                                # anti-windup: integrate only while the error pulls out
+                                if sg * (u - yi) < 0:
+                                    z[i] = zi + (u - yi) * hs
+                                continue
+                        q[i] = cq1 * yi + cq2 * zi + dq * u
+                        y[i] = a11 * yi + a12 * zi + b1 * u
+                        z[i] = a21 * yi + a22 * zi + b2 * u
                 # body twist averaged over the sub-step [rpm s], then the SE(2) exponential
                 bvx = 0.25 * (q[0] + q[1] + q[2] + q[3]) * ex
                 bvy = 0.25 * (-q[0] + q[1] + q[2] - q[3]) * ey
@@ -194,6 +399,9 @@ def simulate_kernel(
             state_out[r, i] = y[i]
             state_out[r, 4 + i] = z[i]
             state_out[r, 8 + i] = ue[i]
+            state_out[r, 12 + i] = hold[i]
+            state_out[r, 16 + i] = dl[i]
+        state_out[r, 20] = until_tick
         pose_final[r, 0] = X
         pose_final[r, 1] = Y
         pose_final[r, 2] = math.degrees(phi)

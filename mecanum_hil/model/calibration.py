@@ -34,6 +34,12 @@ File layout::
     gains = [1.0, 0.8, 1.0, 1.0]
     [effects.slip]
     efficiency = [0.95, 0.8, 0.9]
+    [effects.controller_period]
+    controller_period_s = 0.01
+    [effects.drive_lag]
+    drive_lag_s = 0.02
+    [effects.breakaway]
+    breakaway_rpm_per_s = 3000.0
 """
 
 from __future__ import annotations
@@ -59,8 +65,15 @@ class Effects:
     set-point ramp, at most ``rate_limit_rpm_per_s``) -> PI + motor, whose drive output is limited
     by ``saturation`` to ``B * top_speed_rpm`` so the wheel accelerates ever more slowly towards
     ``top_speed_rpm`` (the integrator is frozen while the limit holds it back: anti-windup) ->
-    wheel speed. ``slip`` scales the body twist ``(vx, vy, wz)`` by ``efficiency`` before the
-    pose is integrated; it does not change wheel speeds.
+    wheel speed. The drive's own dynamics: with ``controller_period`` the PI output is computed
+    every ``controller_period_s`` seconds from the sampled speed and held in between (the
+    integral summed per period); with ``drive_lag`` the drive output reaches the motor through
+    a first-order lag of ``drive_lag_s`` (winding inductance, an output filter); with
+    ``breakaway`` a wheel at rest stays at rest until the drive output exceeds
+    ``breakaway_rpm_per_s`` (static friction; the integrator keeps winding up meanwhile), and a
+    wheel that comes to rest while the drive is below it sticks. ``slip`` scales the body
+    twist ``(vx, vy, wz)`` by ``efficiency`` before the pose is integrated; it does not change
+    wheel speeds.
 
     Attributes
     ----------
@@ -76,6 +89,14 @@ class Effects:
         Per-wheel gain on the target [-].
     efficiency : tuple of 3 float
         Body-velocity efficiency for ``vx``, ``vy``, ``wz`` [-].
+    controller_period_s : float
+        Period at which the controller computes and holds its output [s]; 0 when absent
+        (continuous).
+    drive_lag_s : float
+        Time constant of the drive's second lag [s]; 0 when absent.
+    breakaway_rpm_per_s : float
+        Drive output (as an acceleration) a wheel at rest needs to start moving [rpm/s]; 0 when
+        absent.
     """
 
     dead_time_s: float = 0.0
@@ -84,6 +105,9 @@ class Effects:
     deadband_rpm: float = 0.0
     gains: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
     efficiency: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    controller_period_s: float = 0.0
+    drive_lag_s: float = 0.0
+    breakaway_rpm_per_s: float = 0.0
 
     def active(self) -> dict[str, dict[str, Any]]:
         """The effects that are present, by name, with their parameters."""
@@ -97,7 +121,14 @@ class Effects:
     @property
     def nonlinear(self) -> bool:
         """Whether an effect needs the sub-stepped (not closed-form) simulation."""
-        return math.isfinite(self.top_speed_rpm) or math.isfinite(self.rate_limit_rpm_per_s)
+        return (math.isfinite(self.top_speed_rpm) or math.isfinite(self.rate_limit_rpm_per_s)
+                or self.drive_dynamics)
+
+    @property
+    def drive_dynamics(self) -> bool:
+        """Whether an effect of the drive's own dynamics (period, lag, breakaway) is present."""
+        return (self.controller_period_s > 0 or self.drive_lag_s > 0
+                or self.breakaway_rpm_per_s > 0)
 
     def without(self, name: str) -> Effects:
         """A copy with effect ``name`` removed."""
@@ -133,6 +164,15 @@ EFFECTS: dict[str, EffectSpec] = {
     "slip": EffectSpec(
         "slip", ("efficiency",), {"efficiency": (1.0, 1.0, 1.0)},
         "body-velocity efficiency for vx, vy, wz (needs pose data) [-]"),
+    "controller_period": EffectSpec(
+        "controller_period", ("controller_period_s",), {"controller_period_s": 0.0},
+        "the controller computes its output every period and holds it [s]"),
+    "drive_lag": EffectSpec(
+        "drive_lag", ("drive_lag_s",), {"drive_lag_s": 0.0},
+        "a second time constant in the drive (inductance, filter) that makes the loop ring [s]"),
+    "breakaway": EffectSpec(
+        "breakaway", ("breakaway_rpm_per_s",), {"breakaway_rpm_per_s": 0.0},
+        "static friction: a wheel at rest moves only once the drive exceeds this [rpm/s]"),
 }
 
 
@@ -221,6 +261,13 @@ def _read_effects(reader: TableReader | None) -> Effects:
             values["gains"] = sub.numbers("gains", 4, minimum=0.0)
         elif name == "slip":
             values["efficiency"] = sub.numbers("efficiency", 3, minimum=0.0)
+        elif name == "controller_period":
+            values["controller_period_s"] = sub.number("controller_period_s", minimum=0.0,
+                                                       maximum=1.0)
+        elif name == "drive_lag":
+            values["drive_lag_s"] = sub.number("drive_lag_s", minimum=0.0, maximum=5.0)
+        elif name == "breakaway":
+            values["breakaway_rpm_per_s"] = sub.number("breakaway_rpm_per_s", minimum=0.0)
     return Effects(**values)
 
 

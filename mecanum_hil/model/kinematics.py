@@ -23,6 +23,10 @@ import numpy as np
 
 from ..units import DPS_TO_RPM
 
+#: The pose a simulation starts from unless told otherwise: the origin, facing world +Y
+#: (x [m], y [m], phi [deg]; docs/conventions.md).
+DEFAULT_POSE = (0.0, 0.0, 90.0)
+
 #: Inverse kinematics matrix for k = 1: wheels = IK @ (vx, vy, k wz).
 _IK = np.array(
     [[1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [1.0, 1.0, -1.0], [1.0, -1.0, 1.0]]

@@ -27,10 +27,8 @@ import numpy as np
 
 from ..errors import ConfigError
 from .calibration import Calibration
+from .kinematics import DEFAULT_POSE
 from .robot import RobotProfile
-
-#: Default initial pose (X [m], Y [m], phi [deg]).
-DEFAULT_POSE = (0.0, 0.0, 90.0)
 
 
 @dataclass(frozen=True)
@@ -47,9 +45,10 @@ class Trajectory:
         Wheel speeds 1..4 at each sample [rpm].
     pose : ndarray, shape (N, T, 3)
         ``(X [m], Y [m], phi [deg])`` at each sample.
-    final_state : ndarray, shape (N, 12)
+    final_state : ndarray, shape (N, 21)
         Wheel state at the last sample (``y1..y4`` [rpm], ``z1..z4`` [rpm s], drive set-points
-        ``u1..u4`` [rpm]), to continue a simulation with ``initial_state``.
+        ``u1..u4`` [rpm], then the drive's held and lagged outputs and the time to the
+        controller's next tick), to continue a simulation with ``initial_state``.
     """
 
     time_s: np.ndarray
@@ -78,6 +77,38 @@ def uniform_time(duration_s: float, rate_hz: float) -> np.ndarray:
     """Sample times ``0, 1/rate, ..., duration`` [s] (duration rounded to whole samples)."""
     n = round(duration_s * rate_hz)
     return np.arange(n + 1) / float(rate_hz)
+
+
+def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
+    """The model's state (``STATE_WIDTH`` values) in steady state at given wheel speeds.
+
+    A recording that starts in motion starts the model here: each wheel at its measured speed
+    ``y``, its drive holding it (``B y``), the integral ``z`` such that the PI output equals
+    that drive for the wheel's set-point ``u`` (the target through deadband and wheel gain):
+    ``A (u - y) + C z = B y``.
+
+    Parameters
+    ----------
+    calibration : Calibration
+    wheel_rpm : array_like, shape (4,)
+        Wheel speeds [rpm].
+    target_rpm : array_like, shape (4,)
+        Wheel targets of the first command (inverse kinematics) [rpm].
+    """
+    from ._kernels import STATE_WIDTH
+
+    e = calibration.effects
+    y = np.asarray(wheel_rpm, dtype=float)
+    u = np.where(np.abs(target_rpm) < e.deadband_rpm, 0.0,
+                 np.asarray(target_rpm, dtype=float)) * np.asarray(e.gains)
+    A, B, C = calibration.coefficients
+    state = np.zeros(STATE_WIDTH)
+    state[:4] = y
+    state[4:8] = (B * y - A * (u - y)) / C
+    state[8:12] = u
+    state[12:16] = B * y
+    state[16:20] = B * y
+    return state
 
 
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
@@ -148,8 +179,10 @@ def simulate_batch(
         Geometry (default: the paper's robot).
     initial_pose : array_like, shape (3,) or (N, 3)
         ``(X [m], Y [m], phi [deg])`` at ``time_s[0]``; default ``(0, 0, 90)``.
-    initial_state : array_like, shape (N, 12), optional
-        Wheel state to continue from (``Trajectory.final_state``); default at rest.
+    initial_state : array_like, shape (N, 21) or (N, 12), optional
+        Wheel state to continue from (``Trajectory.final_state``; see
+        :data:`~mecanum_hil.model._kernels.STATE_WIDTH`); default at rest. A 12-column state
+        (wheels only) leaves the drive's own dynamics at zero.
     initial_command : array_like, shape (3,) or (N, 3), optional
         Command in force before ``time_s[0]`` (seen through a dead time); default zero.
     max_substep_s : float
@@ -162,7 +195,7 @@ def simulate_batch(
     -------
     Trajectory
     """
-    from ._kernels import STATE_WIDTH, simulate_kernel
+    from ._kernels import STATE_WIDTH, WHEEL_STATE_WIDTH, simulate_kernel
     from .stepper import effect_arrays
 
     robot = robot or RobotProfile()
@@ -186,9 +219,13 @@ def simulate_batch(
         if math.isfinite(c.effects.top_speed_rpm) and c.B <= 0:
             raise ConfigError(f"{c.source}: the saturation effect needs B > 0")
     pose0 = np.ascontiguousarray(np.broadcast_to(np.asarray(initial_pose, float), (n_rob, 3)))
-    state0 = (np.zeros((n_rob, STATE_WIDTH)) if initial_state is None
-              else np.ascontiguousarray(np.broadcast_to(np.asarray(initial_state, float),
-                                                        (n_rob, STATE_WIDTH))))
+    state0 = np.zeros((n_rob, STATE_WIDTH))
+    if initial_state is not None:
+        given = np.asarray(initial_state, float)
+        if given.shape[-1] not in (WHEEL_STATE_WIDTH, STATE_WIDTH):
+            raise ConfigError(f"initial_state must have {STATE_WIDTH} (or {WHEEL_STATE_WIDTH}) "
+                              f"columns, got shape {given.shape}")
+        state0[:, :given.shape[-1]] = given
     cmd0 = (np.zeros((n_rob, 3)) if initial_command is None
             else np.broadcast_to(np.asarray(initial_command, float), (n_rob, 3)))
 

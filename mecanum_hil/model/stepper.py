@@ -29,9 +29,9 @@ from numba import njit
 
 from ..errors import ConfigError
 from .calibration import Calibration, Effects, check_coefficients
+from .kinematics import DEFAULT_POSE
 from .motor import TABLE_WIDTH
 from .robot import RobotProfile
-from .simulate import DEFAULT_POSE
 
 #: Default longest sub-step on the sub-stepped path (saturation, rate limit) [s].
 DEFAULT_MAX_SUBSTEP_S = 1e-3
@@ -52,7 +52,8 @@ def effect_arrays(effects: Sequence[Effects]) -> tuple[np.ndarray, ...]:
     -------
     tuple of ndarray
         ``deadband (N,)`` [rpm], ``gains (N, 4)`` [-], ``top_speed (N,)`` [rpm],
-        ``rate_limit (N,)`` [rpm/s], ``efficiency (N, 3)`` [-], in the kernel's argument order.
+        ``rate_limit (N,)`` [rpm/s], ``efficiency (N, 3)`` [-], ``drive (N, 3)`` (controller
+        period [s], drive lag [s], breakaway [rpm/s]), in the kernel's argument order.
     """
     return (
         np.array([e.deadband_rpm for e in effects], dtype=float),
@@ -60,6 +61,8 @@ def effect_arrays(effects: Sequence[Effects]) -> tuple[np.ndarray, ...]:
         np.array([e.top_speed_rpm for e in effects], dtype=float),
         np.array([e.rate_limit_rpm_per_s for e in effects], dtype=float),
         np.array([e.efficiency for e in effects], dtype=float),
+        np.array([(e.controller_period_s, e.drive_lag_s, e.breakaway_rpm_per_s)
+                  for e in effects], dtype=float).reshape(-1, 3),
     )
 
 

@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from mecanum_hil.identify.campaign import paper_campaign
@@ -21,6 +22,12 @@ ROBOT = RobotProfile()
 PROFILES = [step(60.0, duration_s=1.5, rest_s=0.3, stop_s=1.0),
             step(120.0, duration_s=1.5, rest_s=0.3, stop_s=1.0),
             ramp(130.0, 20.0, hold_s=0.5, rest_s=0.3, stop_s=1.0)]
+
+
+#: The keys of ``diagnose --json`` (issues 7 and 12), in order.
+JSON_KEYS = ["effects", "unexplained", "rmse_initial", "rmse_final", "rmse_baseline",
+             "noise_rpm", "rmse_reference", "explained_share", "pose_rmse_before",
+             "pose_rmse_after", "residual"]
 
 
 def cli(*args):
@@ -41,8 +48,11 @@ def test_cli_json_out_and_report(tmp_path, campaign):
             "--report", tmp_path / "rep", "--json")
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)  # stdout is exactly the JSON document
-    assert list(doc) == ["effects", "unexplained", "rmse_initial", "rmse_final"]
+    assert list(doc) == JSON_KEYS
     assert [e["effect"] for e in doc["effects"]] == ["saturation"]
+    assert list(doc["effects"][0]) == ["effect", "parameters", "rmse_before", "rmse_after",
+                                       "share", "pose_rmse_before", "pose_rmse_after"]
+    assert doc["effects"][0]["share"] > 0.9
     assert doc["effects"][0]["parameters"]["top_speed_rpm"] == pytest.approx(110.0, abs=1.5)
     assert doc["unexplained"] is False
     assert doc["rmse_final"] <= 0.5 * doc["rmse_initial"]
@@ -58,28 +68,70 @@ def test_cli_json_out_and_report(tmp_path, campaign):
     assert read_recording(tmp_path / "s.csv").wheel_rpm.max() < 111.0
 
 
+def test_one_recording_is_enough(tmp_path, campaign):
+    # the fast ramp alone reaches the ceiling: held-out time blocks instead of recordings
+    p = write_recording(campaign[2], tmp_path / "ramp.csv")
+    r = cli("diagnose", p, "--calibration", "paper", "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert list(doc) == JSON_KEYS
+    assert "saturation" in [e["effect"] for e in doc["effects"]]
+    assert doc["rmse_final"] <= 0.5 * doc["rmse_initial"]
+
+
 def test_cli_errors_are_one_line(tmp_path, campaign):
     p = write_recording(campaign[0], tmp_path / "one.csv")
-    r = cli("diagnose", p, "--json")
+    r = cli("diagnose", p, p, "--candidates", "backlash")
     assert r.returncode == 1
     assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1
-    assert "at least two recordings" in r.stderr
-    r = cli("diagnose", p, p, "--candidates", "backlash")
     assert r.returncode == 1 and "unknown effect 'backlash'" in r.stderr
     r = cli("diagnose", tmp_path / "missing.csv", p)
     assert r.returncode == 1 and "file not found" in r.stderr
 
 
-def test_real_micromouse_data(shared_real_data):
-    files = sorted((shared_real_data / "micromouse").glob("*.csv"))
-    if len(files) < 2:
+def _onset_s(t, w, t_step, target):
+    """Time from the step to the interpolated crossing of half the target [s]."""
+    ok = np.isfinite(w) & (t >= t_step)
+    tt, ww = t[ok], w[ok]
+    j = int(np.argmax(ww >= 0.5 * target))
+    f = (0.5 * target - ww[j - 1]) / (ww[j] - ww[j - 1]) if j else 0.0
+    return tt[max(j - 1, 0)] + f * (tt[j] - tt[max(j - 1, 0)]) - t_step
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["testPid7", "testPid8", "controllerDelayImpact1ms"])
+def test_real_micromouse_recording_alone(shared_real_data, name):
+    """Issue 12's acceptance on each real recording alone (figures in docs/diagnose.md)."""
+    from mecanum_hil.model import load_robot_profile
+    from mecanum_hil.prediction import predict
+
+    folder = shared_real_data / "micromouse"
+    if not (folder / f"{name}.csv").exists():
         pytest.skip("the micromouse recordings are not there")
-    recs = [read_recording(p) for p in files]
-    user = fit(recs, ROBOT).calibration
-    d = diagnose(recs, user, ROBOT, names=[p.stem for p in files])
-    # what it finds is recorded in docs/diagnose.md; here: it runs and never makes it worse
-    assert d.rmse_final <= d.rmse_initial * 1.001
-    assert d.noise_rpm > 0
+    robot = load_robot_profile(folder / "robot.toml")
+    rec = read_recording(folder / f"{name}.csv")
+    user = fit([rec], robot).calibration
+    d = diagnose([rec], user, robot, names=[name])
+    alone, diagnosed = predict(rec, user, robot), predict(rec, d.calibration, robot)
+    t, target = rec.t_s, float(np.max(rec.commands[:, 0]))
+    t_step = t[np.argmax(rec.commands[:, 0] != 0)]
+    last = t >= t[-1] - 1.0
+    for i in (0, 1):
+        m, p = rec.wheel_rpm[:, i], diagnosed.wheel_rpm[:, i]
+        assert abs(_onset_s(t, p, t_step, target) - _onset_s(t, m, t_step, target)) <= 0.020
+        assert abs(np.mean(p[last]) - np.nanmean(m[last])) <= 0.03 * target
+    def rmse(a):
+        return float(np.sqrt(np.nanmean((rec.wheel_rpm - a.wheel_rpm) ** 2)))
+
+    if name == "testPid7":
+        # 19 % only: what remains is beyond a linear model (docs/diagnose.md): the generic
+        # reference model of higher order does no better than the named effects
+        assert rmse(diagnosed) <= 0.85 * rmse(alone)
+        assert d.explained_share >= 0.9
+    else:
+        assert rmse(diagnosed) <= 0.7 * rmse(alone)
+    doc = d.to_json()
+    assert doc["rmse_reference"] > 0 and doc["residual"]["shares"]
 
 
 @pytest.mark.slow

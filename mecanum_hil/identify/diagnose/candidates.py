@@ -1,0 +1,493 @@
+"""Step 2, candidates: the library of effects, their start values from the data, their fit."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ...errors import ConfigError, FitError
+from ...model.calibration import EFFECTS, Calibration
+from ...model.kinematics import command_to_wheels
+from ..fit import (
+    FitResult,
+    fit_parameters,
+    parameter_value,
+    with_parameters,
+)
+from .localise import _Evaluator
+
+CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "rate_limit", "deadband", "wheel_gain",
+                               "controller_period", "drive_lag", "breakaway", "slip")
+
+_COEFFICIENTS = ("A", "B", "C")
+
+def effect_parameters(effect: str) -> tuple[str, ...]:
+    """The engine's parameter names (:data:`~mecanum_hil.identify.fit.PARAMETER_NAMES`) of an
+    effect: ``gains`` -> ``gains[0]`` .. ``gains[3]``, ``efficiency`` -> three."""
+    out: list[str] = []
+    for p in EFFECTS[effect].parameters:
+        if p == "gains":
+            out += [f"gains[{i}]" for i in range(4)]
+        elif p == "efficiency":
+            out += [f"efficiency[{i}]" for i in range(3)]
+        else:
+            out.append(p)
+    return tuple(out)
+
+
+def _effect_values(cal: Calibration, effect: str) -> dict[str, Any]:
+    """An effect's parameters as in :class:`Effects` (lists for gains and efficiency)."""
+    out = {}
+    for p in EFFECTS[effect].parameters:
+        v = getattr(cal.effects, p)
+        out[p] = [float(x) for x in v] if isinstance(v, tuple) else float(v)
+    return out
+
+
+
+# --------------------------------------------------------------------------- candidates
+
+
+def _smoothed(w: np.ndarray) -> np.ndarray:
+    k = np.ones(3) / 3.0
+    out = np.stack([np.convolve(np.nan_to_num(w[:, i]), k, "same") for i in range(w.shape[1])], 1)
+    out[~np.isfinite(w)] = np.nan
+    out[[0, -1]] = np.nan  # the convolution's edges see padding
+    return out
+
+
+def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
+    """Model-free dead time guess: median delay from a large jump of a wheel target to the
+    first measured departure of that wheel by more than four noise levels, less one sample."""
+    lat, dts = [], []
+    for r in ev.recs:
+        tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
+        w, t = r.wheel_rpm, r.t_s
+        dts.append(float(np.median(np.diff(t))))
+        big = max(20.0 * noise_rpm, 5.0)
+        for i in range(4):
+            if not np.isfinite(w[:, i]).any():
+                continue
+            for j in np.flatnonzero(np.abs(np.diff(tg[:, i])) >= big) + 1:
+                if j < 3 or not np.all(tg[j - 3:j, i] == tg[j - 1, i]):
+                    continue
+                w0 = np.nanmean(w[j - 2:j + 1, i])
+                sgn = np.sign(tg[j, i] - tg[j - 1, i])
+                window = (t > t[j]) & (t <= t[j] + 1.0)
+                hit = np.flatnonzero(window & (sgn * (w[:, i] - w0) > 4.0 * noise_rpm))
+                if hit.size:
+                    lat.append(t[hit[0]] - t[j])
+    if not lat:
+        return 0.0
+    # whole microseconds: differences of sample times carry rounding noise
+    return round(max(float(np.median(lat)) - float(np.median(dts)), 0.0), 6)
+
+
+#: Residual evaluations of the refit at each point of a grid (controller period), and at each
+#: point of its coarse stage.
+GRID_EVALUATIONS = 12
+COARSE_EVALUATIONS = 3
+#: Start values (as factors on the data-derived start) of effects whose cost has local minima.
+MULTI_START: dict[str, tuple[float, ...]] = {"breakaway": (1.0, 2.0), "drive_lag": (1.0, 3.0)}
+
+
+def _sample_period_s(ev: _Evaluator) -> float:
+    return float(np.median(np.concatenate([np.diff(r.t_s) for r in ev.recs])))
+
+
+def _rise_time_s(ev: _Evaluator, noise_rpm: float) -> float:
+    """Model-free time from a large target jump to the wheel's first crossing of half of it
+    (median over jumps and wheels; the sample period when no jump is seen)."""
+    times = []
+    for r in ev.recs:
+        tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
+        for i in range(4):
+            w = r.wheel_rpm[:, i]
+            if not np.isfinite(w).any():
+                continue
+            jumps = np.flatnonzero(np.abs(np.diff(tg[:, i])) >= max(20.0 * noise_rpm, 5.0)) + 1
+            if not jumps.size and abs(tg[0, i]) > max(20.0 * noise_rpm, 5.0):
+                jumps = np.array([0])  # the recording starts with the step
+            for j in jumps:
+                half = 0.5 * (tg[j, i] + tg[max(j - 1, 0), i] if j else tg[j, i])
+                sgn = np.sign(tg[j, i] - (tg[j - 1, i] if j else 0.0))
+                hit = np.flatnonzero((np.arange(w.size) >= j) & (sgn * (w - half) >= 0))
+                if hit.size:
+                    times.append(r.t_s[hit[0]] - r.t_s[j])
+    return float(np.median(times)) if times else _sample_period_s(ev)
+
+
+def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, float]:
+    """Data-driven starting values of an effect's parameters (engine names).
+
+    They matter: the coefficients of a fit without the effect have absorbed part of it (a slow
+    model mimics a dead time or a ramp), so starting the effect at "absent" leaves the search in
+    that local optimum. Each start is read off the measurements without the model.
+    """
+    recs = ev.recs
+    if effect == "dead_time":
+        return {"dead_time_s": _latency_s(ev, noise_rpm)}
+    if effect == "rate_limit":
+        # a ramp limit caps the measured acceleration: start at the steepest one
+        best = 1.0
+        for r in recs:
+            d = np.abs(np.diff(_smoothed(r.wheel_rpm), axis=0)) / np.diff(r.t_s)[:, None]
+            d = d[np.isfinite(d)]
+            if d.size:
+                best = max(best, float(d.max()))
+        return {"rate_limit_rpm_per_s": best}
+    if effect == "saturation":
+        peak = max(float(np.nanmax(np.abs(_smoothed(r.wheel_rpm)))) for r in recs)
+        return {"top_speed_rpm": 1.02 * peak}
+    if effect == "wheel_gain":
+        # steady-state ratio of measured speed to target, per wheel
+        num, den = np.zeros(4), np.zeros(4)
+        for r in recs:
+            tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2],
+                                   ev.robot.k)
+            ok = (np.abs(tg) > 10.0) & np.isfinite(r.wheel_rpm)
+            ok[1:] &= np.abs(np.diff(tg, axis=0)) < 1e-9
+            num += np.where(ok, r.wheel_rpm * tg, 0.0).sum(axis=0)
+            den += np.where(ok, tg * tg, 0.0).sum(axis=0)
+        g = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
+        return {f"gains[{i}]": float(np.clip(g[i], 0.2, 3.0)) for i in range(4)}
+    if effect == "slip":
+        return {f"efficiency[{i}]": 1.0 for i in range(3)}
+    if effect == "drive_lag":
+        # a second lag is a fraction of the rise time; the data's own time scale
+        return {"drive_lag_s": max(0.15 * _rise_time_s(ev, noise_rpm), _sample_period_s(ev))}
+    if effect == "breakaway":
+        return {"breakaway_rpm_per_s": 0.0}  # read off the data in fit_candidate (needs A, C)
+    if effect == "controller_period":
+        return {"controller_period_s": _sample_period_s(ev)}
+    return {}
+
+
+def _breakaway_start(ev: _Evaluator, cal: Calibration, noise_rpm: float) -> float:
+    """The drive a wheel at rest felt when it started to move: the PI output of ``cal`` at the
+    measured time the wheel first left rest after a target jump (``A u + C u t``)."""
+    lat = _latency_s(ev, noise_rpm) + _sample_period_s(ev)
+    tg = max((float(np.nanmax(np.abs(command_to_wheels(
+        r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)))) for r in ev.recs),
+        default=0.0)
+    return max(0.5 * (cal.A * tg + cal.C * tg * lat), 1.0)
+
+
+def _candidate_bounds(effect: str, guess: Mapping[str, float],
+                      duration_s: float = 2.0) -> dict[str, tuple[float, float]]:
+    """Finite search ranges from the data: an effect that is absent drives its parameter
+    towards "absent" (an infinite ceiling or ramp limit), which a bounded search reaches in a
+    few steps instead of chasing it through hundreds of evaluations; a dead time is looked for
+    up to a quarter of the recordings' median duration (at most 0.5 s)."""
+    if effect == "dead_time":
+        return {"dead_time_s": (0.0, min(0.5, 0.25 * duration_s))}
+    if effect == "saturation":
+        g = guess["top_speed_rpm"]
+        return {"top_speed_rpm": (0.2 * g, 3.0 * g)}
+    if effect == "rate_limit":
+        g = guess["rate_limit_rpm_per_s"]
+        return {"rate_limit_rpm_per_s": (min(1.0, 0.05 * g), 20.0 * g)}
+    if effect == "wheel_gain":
+        return {f"gains[{i}]": (0.1, 3.0) for i in range(4)}
+    if effect == "slip":
+        return {f"efficiency[{i}]": (0.05, 2.0) for i in range(3)}
+    if effect == "drive_lag":
+        g = guess["drive_lag_s"]
+        return {"drive_lag_s": (0.0, max(50.0 * g, 0.05))}
+    if effect == "breakaway":
+        g = guess["breakaway_rpm_per_s"]
+        return {"breakaway_rpm_per_s": (0.0, max(20.0 * g, 100.0))}
+    return {}
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """One candidate of one round.
+
+    Attributes
+    ----------
+    effect : str
+    parameters : dict
+        Its fitted parameters (as in :class:`~mecanum_hil.model.Effects`).
+    ci95 : dict of str to (float, float)
+        95 % intervals of its parameters (engine names).
+    fit_rmse, heldout_rmse : float
+        In-sample and held-out RMS residual of the scored channel [rpm or rpm equivalent].
+    explained : float
+        Fraction of the held-out excess over the noise floor it removes [-].
+    relative : float
+        Fraction of the held-out score it removes [-].
+    accepted : bool
+    note : str
+        Why it failed, when it did (fit error).
+    in_sample : float
+        Fraction of the in-sample excess over the noise floor it removes [-].
+    """
+
+    effect: str
+    parameters: dict[str, Any]
+    ci95: dict[str, tuple[float, float]]
+    fit_rmse: float
+    heldout_rmse: float
+    explained: float
+    relative: float
+    accepted: bool = False
+    note: str = ""
+    in_sample: float = math.nan
+
+
+@dataclass(frozen=True)
+class _Fitted:
+    effect: str
+    calibration: Calibration
+    free: tuple[str, ...]
+    ci95: dict[str, tuple[float, float]]
+    warnings: tuple[str, ...]
+
+
+def _deadband_grid(ev: _Evaluator, cal: Calibration, values: np.ndarray
+                   ) -> tuple[np.ndarray, int]:
+    """Wheel SSE for each deadband value (A, B, C held), on the recordings it can change."""
+    rob = ev.robot
+    touched = []
+    top = float(values.max())
+    for i, r in enumerate(ev.recs):
+        tg = np.abs(command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2],
+                                      rob.k))
+        if ((tg > 1e-9) & (tg < top)).any():
+            touched.append(i)
+    if not touched:
+        return np.zeros(values.size), 0
+    cals = [with_parameters(cal, {"deadband_rpm": float(v)}) for v in values]
+    sse = np.empty(values.size)
+    n = 0
+    for k, pred in enumerate(ev.predict(cals, subset=touched)):
+        res = ev.channel(pred, "wheel")
+        sse[k] = sum(float(r @ r) for r in res.values())
+        n = sum(r.size for r in res.values())
+    return sse, n
+
+
+def _fit_deadband(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
+                  sources: Sequence[str]) -> _Fitted:
+    """Deadband by a coarse-to-fine grid (A, B, C held), then the rest by least squares, then
+    the grid again; the interval is the set of grid values whose SSE is within the 95 % F-test
+    bound of the best."""
+    targets = np.concatenate([np.abs(command_to_wheels(
+        r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)).ravel()
+        for r in ev.recs])
+    targets = targets[targets > 1e-9]
+    top = float(min(0.3 * targets.max(), 30.0)) if targets.size else 0.0
+    if top <= 0.5:
+        raise FitError("no small wheel targets in the data: a deadband cannot be seen")
+    cal = base
+
+    def scan(cal: Calibration, center: float | None) -> tuple[float, tuple[float, float]]:
+        coarse = np.arange(0.0, top + 1e-9, 1.0) if center is None else \
+            np.arange(max(center - 1.5, 0.0), center + 1.5 + 1e-9, 0.1)
+        sse, n = _deadband_grid(ev, cal, coarse)
+        best = float(coarse[int(np.argmin(sse))])
+        if center is None:
+            return scan(cal, best)
+        lim = sse.min() * (1.0 + 3.84 / max(n - len(base_free) - 1, 1))
+        ok = coarse[sse <= lim]
+        return best, (float(ok.min()), float(ok.max()))
+
+    db, _ = scan(cal, None)
+    cal = with_parameters(cal, {"deadband_rpm": db})
+    res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
+                         x0={n: parameter_value(cal, n) for n in base_free}, sources=sources)
+    cal = with_parameters(cal, res.parameters)
+    db, ci = scan(cal, db)
+    cal = with_parameters(cal, {"deadband_rpm": db})
+    return _Fitted("deadband", cal, tuple(base_free), {**res.ci95, "deadband_rpm": ci},
+                   res.warnings)
+
+
+def _fit_controller_period(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
+                           sources: Sequence[str]) -> _Fitted:
+    """The controller period by a grid (the cost jumps where a tick crosses a sample, so least
+    squares cannot follow it): half sample periods up to 16 samples, each briefly refitted, the
+    best three and a finer grid around the best refitted quickly, the best converged. The
+    ticks' phase comes from the recordings' ``controller_time_s`` (the controller's clock)
+    where they have it. Held fixed during the held-out evaluation."""
+    dt = _sample_period_s(ev)
+    dur = float(np.median([r.t_s[-1] - r.t_s[0] for r in ev.recs]))
+
+    def refit(period: float, evaluations: int = 0) -> tuple[float, Calibration, FitResult]:
+        cal = with_parameters(base, {"controller_period_s": period})
+        res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
+                             x0={n: parameter_value(cal, n) for n in base_free},
+                             sources=sources, max_evaluations=evaluations or GRID_EVALUATIONS)
+        return res.sse, with_parameters(cal, res.parameters), res
+
+    # a dense grid of half sample periods up to 16 samples (a tenth of the recordings at most),
+    # scored by simulation alone (one batch); the best few refitted, then a finer grid
+    top = max(min(16.0 * dt, dur / 10.0), dt)
+    coarse = np.arange(0.5 * dt, top + 1e-12, 0.5 * dt)
+    sse0 = []
+    for v in coarse:
+        # a few evaluations each: the coefficients fitted without the effect are off enough
+        # that the true period scores badly with them held
+        try:
+            sse0.append(refit(float(v), COARSE_EVALUATIONS)[0])
+        except (FitError, ConfigError):
+            sse0.append(math.inf)
+    trials = {}
+    for v in coarse[np.argsort(sse0)[:3]]:
+        try:
+            trials[float(v)] = refit(float(v))
+        except (FitError, ConfigError):
+            continue
+    if not trials:
+        raise FitError("no controller period could be fitted")
+    best = min(trials, key=lambda v: trials[v][0])
+    fine = np.arange(max(best - 0.5 * dt, 1e-4), best + 0.5 * dt + 1e-9,
+                     max(dt / 8.0, 2.5e-4))
+    for v in fine:
+        if all(abs(float(v) - k) > 1e-9 for k in trials):
+            try:
+                trials[float(v)] = refit(float(v))
+            except (FitError, ConfigError):
+                continue
+    best = min(trials, key=lambda v: trials[v][0])
+    sse, cal, res = trials[best]
+    # the grid's refits were quick; converge at the best point
+    full = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
+                          x0={n: parameter_value(cal, n) for n in base_free}, sources=sources)
+    if full.sse <= sse:
+        sse, cal, res = full.sse, with_parameters(cal, full.parameters), full
+    n = res.n_samples
+    lim = sse * (1.0 + 3.84 / max(n - len(base_free) - 1, 1))
+    ok = [v for v, tr in trials.items() if tr[0] <= lim] or [best]
+    warnings = res.warnings
+    if best >= top - 1e-9:
+        warnings += (f"controller_period_s = {best:.4g} is at the edge of its search range "
+                     f"(up to {top:.4g} s, from the sample period)",)
+    return _Fitted("controller_period", cal, tuple(base_free),
+                   {**res.ci95, "controller_period_s": (min(ok), max(ok))}, warnings)
+
+
+def degenerate(cal: Calibration) -> bool:
+    """Whether the coefficients sit in a corner of the model: ``C`` (the drive's integral
+    action) or ``B`` (the motor pole) at their bound. A fit without a missing effect can end
+    there (e.g. ``C -> 0`` mimics a ceiling with a lower steady-state gain), and a search that
+    adds the effect from there stays stuck."""
+    return cal.C <= 1e-4 or cal.B <= 1e-6
+
+
+def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Sequence[str],
+                  sources: Sequence[str], noise_rpm: float, two_stage: bool = True) -> _Fitted:
+    """Fit one candidate effect together with ``base_free`` (A, B, C and accepted effects).
+
+    The search starts from the effect's data-driven values (:func:`_start_values`). With
+    ``two_stage`` (default) A, B, C (and accepted effects) are first refitted with the effect
+    held at that start, so they give back what they had absorbed; then all are fitted jointly.
+    A fit without the effect can sit in a degenerate corner (:func:`degenerate`, e.g. C at its
+    bound) from which neither stage leaves: then the joint search runs from the engine's coarse
+    grid of A, B, C (its best local minima, the effect at its start) and from the model as it
+    is, and the lowest SSE wins. Returns the fitted model; ``free`` lists the parameters fitted
+    continuously (the deadband is fitted on a grid and held during the held-out evaluation).
+    """
+    if effect == "deadband":
+        return _fit_deadband(ev, base, base_free, sources)
+    if effect == "controller_period":
+        return _fit_controller_period(ev, base, base_free, sources)
+    new = effect_parameters(effect)
+    guess = _start_values(effect, ev, noise_rpm)
+    if effect == "breakaway":
+        guess = {"breakaway_rpm_per_s": _breakaway_start(ev, base, noise_rpm)}
+    bounds = _candidate_bounds(effect, guess, float(np.median(
+        [r.t_s[-1] - r.t_s[0] for r in ev.recs])))
+    cal = with_parameters(base, guess)
+    if effect == "slip":
+        # slip changes no wheel speed, and the wheel speeds are what pin A, B, C (they were
+        # fitted on them); freeing them on the pose would credit slip with a coefficient
+        # change, so only the efficiencies are fitted, on the pose channels
+        res = fit_parameters(ev.recs, cal, ev.robot, list(new), x0=guess, bounds=bounds,
+                             pose_weight=1.0, sources=sources)
+        return _Fitted(effect, with_parameters(cal, res.parameters),
+                       tuple(n for n in base_free if n.startswith("efficiency")) + new,
+                       dict(res.ci95), res.warnings)
+    free = list(base_free) + list(new)
+    if degenerate(base):
+        # from a corner no local search leaves (C -> 0 mimics a ceiling with a lower gain):
+        # the engine's coarse grid restarts A, B, C with the effect at its start, and the
+        # joint search runs from each of the grid's best minima; the search from where the
+        # model is competes with them
+        x0 = {n: parameter_value(cal, n) for n in free if n not in _COEFFICIENTS}
+        res = _best_fit([
+            lambda: fit_parameters(ev.recs, cal, ev.robot, free, x0=x0, bounds=bounds,
+                                   sources=sources),
+            lambda: fit_parameters(ev.recs, cal, ev.robot, free,
+                                   x0={n: parameter_value(cal, n) for n in free},
+                                   bounds=bounds, sources=sources)])
+        return _Fitted(effect, with_parameters(cal, res.parameters), tuple(free),
+                       dict(res.ci95), res.warnings)
+    # the drive's own dynamics change the loop's character (ringing, overshoot): their cost
+    # has local minima, so the search also starts from a second value read off the data
+    scales = MULTI_START.get(effect, (1.0,))
+    cals = [with_parameters(base, {n: v * f for n, v in guess.items()}) for f in scales]
+
+    def search(cal: Calibration) -> tuple[Calibration, FitResult]:
+        if two_stage:
+            x0 = {n: parameter_value(cal, n) for n in base_free}
+            first = fit_parameters(ev.recs, cal, ev.robot, list(base_free), x0=x0,
+                                   sources=sources)
+            cal = with_parameters(cal, first.parameters)
+        res = fit_parameters(ev.recs, cal, ev.robot, free,
+                             x0={n: parameter_value(cal, n) for n in free},
+                             bounds=bounds, sources=sources)
+        return cal, res
+
+    best: tuple[Calibration, FitResult] | None = None
+    errors: list[Exception] = []
+    for c in cals:
+        try:
+            # a search may visit a model that diverges (a huge breakaway, a long lag): its
+            # overflow only makes that point's cost infinite, which the search rejects
+            with np.errstate(over="ignore", invalid="ignore"):
+                got = search(c)
+        except (FitError, ConfigError) as err:
+            errors.append(err)
+            continue
+        if best is None or got[1].sse < best[1].sse:
+            best = got
+    if best is None:
+        raise errors[0]
+    cal, res = best
+    warnings = res.warnings + tuple(_edge_warnings(res.parameters, bounds))
+    return _Fitted(effect, with_parameters(cal, res.parameters), tuple(free), dict(res.ci95),
+                   warnings)
+
+
+def _edge_warnings(values: Mapping[str, float], bounds: Mapping[str, tuple[float, float]]):
+    """A parameter that ends on the upper edge of its data-derived search range: say so."""
+    for n, (_, hi) in bounds.items():
+        v = values.get(n)
+        if v is not None and math.isfinite(hi) and v >= hi * (1.0 - 1e-6):
+            yield (f"{n} = {v:.4g} is at the upper edge {hi:.4g} of its search range "
+                   "(derived from the data): the data favour a larger value")
+
+
+def _best_fit(searches: Sequence[Callable[[], FitResult]]) -> FitResult:
+    """The lowest-SSE result of several searches; a search that fails is skipped (the error
+    of the first is raised when all fail)."""
+    best, errors = None, []
+    for search in searches:
+        try:
+            res = search()
+        except FitError as err:
+            errors.append(err)
+            continue
+        if best is None or res.sse < best.sse:
+            best = res
+    if best is None:
+        raise errors[0]
+    return best
+
+

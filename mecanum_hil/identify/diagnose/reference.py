@@ -1,0 +1,210 @@
+"""Step 5, the reference model: how much of the gap a generic model of higher order explains.
+
+The named model is physics: a PI loop around a motor plus effects of the library. What it
+cannot explain may be noise, physics the library lacks, or something no linear model of the
+wheel response captures. A generic **output-error model** of higher order, fitted to the same
+data, tells these apart::
+
+    y[k] = sum_{i=1..na} a_i y[k-i] + sum_{j=0..nb-1} b_j g_w u[k-d-j]     (per wheel w)
+
+with ``u`` the wheel target, ``d`` a delay in samples, a gain ``g_w`` per wheel (as
+``wheel_gain``), shared coefficients for all wheels and recordings (as A, B, C are shared). It is
+simulated from the measured initial speed (output error, not one-step prediction, so its RMSE
+compares with the model's), on a uniform grid at the median sample period (the data are
+interpolated onto it and the simulation back onto the sample times). Started from the
+least-squares ARX estimate, refined by :func:`scipy.optimize.least_squares` on the simulation
+error, for the delays (up to twice the measured latency) whose ARX estimates simulate best;
+the best is kept.
+
+Its RMSE (``rmse_reference``) is what a linear model with ``na + nb`` coefficients reaches;
+``explained_share = (MS_fit - MS_named) / (MS_fit - MS_reference)`` (mean squares) is the
+share of that explainable gap the named effects capture. Near 1: the named model is as good
+as a generic one and what remains is noise or beyond a linear model; well below 1: there is
+linear structure (a resonance, a lag) the library does not have.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...io.recording import Recording
+from ...model.kinematics import command_to_wheels
+from ...model.robot import RobotProfile
+
+#: Orders of the output-error model: past outputs and input taps.
+NA = 4
+NB = 4
+#: Largest delay tried [samples] at least, and at most (the data's own latency sets it between).
+MIN_MAX_DELAY = 6
+MAX_MAX_DELAY = 60
+#: Delays (the best by their ARX estimate's simulation error) refined as output-error models,
+#: on small data (at most SMALL_DATA samples over all wheels) and on larger data.
+REFINED_DELAYS = 3
+REFINED_DELAYS_LARGE = 1
+SMALL_DATA = 8000
+
+
+@dataclass(frozen=True)
+class ReferenceFit:
+    """The reference model's fit.
+
+    Attributes
+    ----------
+    rmse_rpm : float
+        Wheel RMSE of its simulation over all measured samples [rpm].
+    delay_samples : int
+        Its delay ``d`` [samples of ``period_s``].
+    period_s : float
+        The uniform grid's period [s].
+    order : tuple of int
+        ``(na, nb)``.
+    """
+
+    rmse_rpm: float
+    delay_samples: int
+    period_s: float
+    order: tuple[int, int]
+
+
+def _series(recordings: Sequence[Recording], robot: RobotProfile, dt: float):
+    """Per recording and measured wheel: uniform time, target, measured speed (interpolated)."""
+    out = []
+    for r in recordings:
+        tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], robot.k)
+        n = math.floor((r.t_s[-1] - r.t_s[0]) / dt) + 1
+        tu = r.t_s[0] + dt * np.arange(n)
+        # targets are held from each sample to the next
+        idx = np.clip(np.searchsorted(r.t_s, tu + 1e-9, side="right") - 1, 0, len(r) - 1)
+        for w in range(4):
+            y = r.wheel_rpm[:, w]
+            ok = np.isfinite(y)
+            if ok.sum() < 8:
+                continue
+            yu = np.interp(tu, r.t_s[ok], y[ok])
+            out.append((r, w, tu, tg[idx, w], yu, ok))
+    return out
+
+
+def _simulate(theta: np.ndarray, d: int, series, wheel_of: dict[int, int]) -> list[np.ndarray]:
+    from scipy.signal import lfilter, lfilter_zi
+
+    a = np.concatenate([[1.0], -theta[:NA]])
+    b = theta[NA:NA + NB]
+    gains = theta[NA + NB:]
+    dc = float(np.sum(b) / np.sum(a)) if abs(np.sum(a)) > 1e-12 else 0.0
+    zi_unit = lfilter_zi(b, a) if abs(dc) > 1e-12 else np.zeros(max(NA, NB - 1))
+    sims = []
+    for k, (_, _, _, u, y, _) in enumerate(series):
+        g = gains[wheel_of[k]]
+        ud = np.concatenate([np.full(d, u[0]), u[:u.size - d]]) * g if d else u * g
+        # start at rest, or in steady state at the first measured speed
+        zi = zi_unit * (y[0] / dc) if abs(y[0]) > 1e-9 and abs(dc) > 1e-12 else zi_unit * 0.0
+        sims.append(lfilter(b, a, ud, zi=zi)[0])
+    return sims
+
+
+def _arx(series, d: int, n_wheels: int) -> np.ndarray | None:
+    rows, rhs = [], []
+    m = max(NA, NB)
+    for _, _, _, u, y, _ in series:
+        ud = np.concatenate([np.full(d, u[0]), u[:u.size - d]]) if d else u
+        if y.size <= m + 1:
+            continue
+        cols = [y[m - i:y.size - i] for i in range(1, NA + 1)]
+        cols += [ud[m - j:ud.size - j] for j in range(NB)]
+        rows.append(np.stack(cols, axis=1))
+        rhs.append(y[m:])
+    if not rows:
+        return None
+    theta = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)[0]
+    return np.concatenate([theta, np.ones(n_wheels)])
+
+
+def _max_delay(series) -> int:
+    """Twice the samples from the first target change to the measured speed's first clear
+    departure (a tenth of the change), within [MIN_MAX_DELAY, MAX_MAX_DELAY]."""
+    lat = 0
+    for _, _, _, u, y, _ in series:
+        ch = np.flatnonzero(np.abs(u - u[0]) > 1e-9)
+        j = int(ch[0]) if ch.size else 0
+        size = float(np.max(np.abs(u - (u[j - 1] if j else 0.0))))
+        dep = np.flatnonzero(np.abs(y[j:] - y[j]) > 0.1 * size)
+        if dep.size:
+            lat = max(lat, int(dep[0]))
+    return int(np.clip(2 * lat, MIN_MAX_DELAY, MAX_MAX_DELAY))
+
+
+def fit_reference(recordings: Sequence[Recording], robot: RobotProfile) -> ReferenceFit | None:
+    """Fit the reference output-error model (module docstring); ``None`` when the data are too
+    short for it."""
+    dt = float(np.median(np.concatenate([np.diff(r.t_s) for r in recordings])))
+    series = _series(recordings, robot, dt)
+    if not series:
+        return None
+    wheels = sorted({w for _, w, *_ in series})
+    wheel_of = {k: wheels.index(s[1]) for k, s in enumerate(series)}
+    # a candidate that diverges only makes its cost infinite, which the search rejects
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _fit(series, wheels, wheel_of, dt)
+
+
+def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
+    from scipy.optimize import least_squares
+
+    def resid(theta, d):
+        sims = _simulate(theta, d, series, wheel_of)
+        return np.concatenate([y - s for (_, _, _, _, y, _), s in zip(series, sims,
+                                                                       strict=True)])
+
+    # the delay by the ARX estimates' simulation error (cheap), then output-error refinement
+    # from the best few
+    starts = []
+    for d in range(0, _max_delay(series) + 1):
+        theta0 = _arx(series, d, len(wheels))
+        if theta0 is None:
+            return None
+        r0 = resid(theta0, d)
+        if not np.all(np.isfinite(r0)) or np.max(np.abs(r0)) > 1e6:
+            # an unstable ARX estimate: start from a first-order lag instead
+            theta0 = np.zeros(NA + NB + len(wheels))
+            theta0[0] = 0.9
+            theta0[NA] = 0.1
+            theta0[NA + NB:] = 1.0
+            r0 = resid(theta0, d)
+        starts.append((float(r0 @ r0), d, theta0))
+    starts.sort(key=lambda s: s[0])
+    best = None
+    size = sum(y.size for _, _, _, _, y, _ in series)
+    for _, d, theta0 in starts[:REFINED_DELAYS if size <= SMALL_DATA else REFINED_DELAYS_LARGE]:
+        try:
+            sol = least_squares(resid, theta0, args=(d,), method="lm",
+                                max_nfev=25 * theta0.size)
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        if not np.isfinite(sol.cost):
+            continue
+        if best is None or sol.cost < best[0]:
+            best = (sol.cost, d, sol.x)
+    if best is None:
+        return None
+    _, d, theta = best
+    sims = _simulate(theta, d, series, wheel_of)
+    res = []
+    for (r, w, tu, _, _, ok), s in zip(series, sims, strict=True):
+        model = np.interp(r.t_s[ok], tu, s)
+        res.append(r.wheel_rpm[ok, w] - model)
+    e = np.concatenate(res)
+    return ReferenceFit(float(np.sqrt(np.mean(e * e))), int(d), dt, (NA, NB))
+
+
+def explained_share(rmse_fit: float, rmse_named: float, rmse_reference: float) -> float:
+    """Share of the explainable gap (fit alone -> reference) the named model closes [-]
+    (mean squares; NaN when the reference explains nothing beyond the fit)."""
+    gap = rmse_fit ** 2 - rmse_reference ** 2
+    if not gap > 0:
+        return math.nan
+    return float((rmse_fit ** 2 - rmse_named ** 2) / gap)
