@@ -7,13 +7,24 @@ python-can, matplotlib) happen inside the command functions, so ``--help`` stays
 from __future__ import annotations
 
 import sys
+import warnings
 
 import typer
 
-from ..errors import MecanumHILError
+from ..errors import MecanumHILError, MecanumHILWarning
+from . import batch as batch_cmd
+from . import calibrate_camera as calibrate_camera_cmd
 from . import campaign, demo, measure_video, record, render_video, shadow, sim_robot, simulate
+from . import conformance as conformance_cmd
 from . import diagnose as diagnose_cmd
+from . import evaluate as evaluate_cmd
+from . import export as export_cmd
 from . import fit as fit_cmd
+from . import fleet_report as fleet_report_cmd
+from . import import_ as import_cmd
+from . import measure_pose as measure_pose_cmd
+from . import train as train_cmd
+from ._options import fill_optional_values
 
 app = typer.Typer(
     name="mecanum-hil",
@@ -40,8 +51,27 @@ app.command("measure-video")(measure_video.command)
 app.command("render-video")(render_video.command)
 app.command("record")(record.command)
 app.command("sim-robot")(sim_robot.command)
+app.command("conformance")(conformance_cmd.command)
 app.command("campaign")(campaign.command)
 app.command("shadow")(shadow.command)
+app.command("batch")(batch_cmd.command)
+app.command("fleet-report")(fleet_report_cmd.command)
+app.command("train")(train_cmd.command)
+app.command("evaluate")(evaluate_cmd.command)
+app.command("import")(import_cmd.command)
+app.command("export")(export_cmd.command)
+app.command("measure-pose")(measure_pose_cmd.command)
+app.command("calibrate-camera")(calibrate_camera_cmd.command)
+
+
+def _warning_printer(previous):
+    """``warnings.showwarning`` printing the package's warnings as one ``warning:`` line."""
+    def show(message, category, *args, **kwargs) -> None:
+        if issubclass(category, MecanumHILWarning):
+            print(f"warning: {message}", file=sys.stderr)
+        else:
+            previous(message, category, *args, **kwargs)
+    return show
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,10 +81,14 @@ def main(argv: list[str] | None = None) -> int:
     errors are typer's (exit 2); an unexpected exception is one line too (exit 70), with the
     traceback behind ``--debug``. Commands end with other codes through ``typer.Exit``.
     """
-    args = sys.argv[1:] if argv is None else list(argv)
+    args = fill_optional_values(sys.argv[1:] if argv is None else list(argv))
     debug = "--debug" in args
     try:
-        app(args=args, prog_name="mecanum-hil")
+        with warnings.catch_warnings():
+            # what was done to the data (time repaired on reading ...): one line each, always
+            warnings.simplefilter("always", MecanumHILWarning)
+            warnings.showwarning = _warning_printer(warnings.showwarning)
+            app(args=args, prog_name="mecanum-hil")
     except SystemExit as exit_:
         code = exit_.code
         return code if isinstance(code, int) else (0 if code is None else 1)
