@@ -4,9 +4,10 @@ Each command runs as its own process (warm file caches, numba's on-disk cache al
 a first untimed run), median of ``--repeats`` runs. Baseline, measured in the same run:
 ``python -c "import numpy"``, the least any command of this package can cost.
 
-Commands (on one recording: ``../shared/data/real/micromouse/testPid7.csv`` when present, with
+Commands, on one recording (``../shared/data/real/micromouse/testPid7.csv`` when present, with
 its robot profile, else the committed sample ``recordings/samples/paper-step-60.csv``):
-``--help``, ``fit``, ``simulate``, ``shadow --replay``, ``diagnose``.
+``--help``, ``fit``, ``fit --no-report``, ``simulate``, ``shadow --replay``, ``diagnose``.
+``fit`` writes its report PNG by default, which loads matplotlib (~0.3 s).
 
 Run: ``python bench/bench_startup.py [--repeats 5] [--skip-diagnose]``
 """
@@ -55,6 +56,8 @@ def main() -> None:
         cases = [
             ("mecanum-hil --help", [*exe, "--help"], 0.15),
             ("fit", [*exe, "fit", str(rec), *robot, "--out", str(cal)], 0.5),
+            ("fit --no-report", [*exe, "fit", str(rec), *robot, "--out", str(cal),
+                                 "--no-report"], 0.5),
             ("simulate", [*exe, "simulate", "--commands", str(rec), *robot, "--calibration",
                           str(cal), "--out", str(Path(tmp) / "pred.csv")], 0.4),
             ("shadow --replay", [*exe, "shadow", "--replay", str(rec), *robot, "--calibration",

@@ -23,10 +23,9 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
     from ..errors import ConfigError
     from ..link.policy_session import run_policy_episodes
     from ..link.session import SessionConfig
-    from ..link.transport import open_transport
+    from ..link.transport import open_transport, transport_options
     from ..model import load_robot_profile
     from ..policy import resolve_policy
-    from .record import _transport_options
 
     if profile is not None or commands is not None:
         raise ConfigError("--policy makes the commands itself: give no --profile or --commands")
@@ -44,7 +43,8 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
     pol = resolve_policy(policy, rob, task)  # refuses another robot's or task's policy
     cal = pol.calibration()  # its slip efficiencies turn wheel speeds into odometry
 
-    options = _transport_options(transport, port, interface, channel, bitrate, link_option)
+    options = transport_options(transport, port=port, interface=interface, channel=channel,
+                                bitrate=bitrate, link_options=link_option)
     where = port or f"{interface}:{channel}"
 
     make_observers = close_observers = None

@@ -74,7 +74,7 @@ def command(
     from ..errors import ConfigError
     from ..link.record import dry_run_report, format_summary
     from ..link.session import SessionConfig, run_record_session
-    from ..link.transport import open_transport
+    from ..link.transport import open_transport, transport_options
     from ..model import load_robot_profile
 
     if policy is not None:
@@ -92,7 +92,8 @@ def command(
     rob = load_robot_profile(robot)
     t, cmd, source = _command_stream(profile, commands, rate_hz)
     rob.check_commands(cmd, source)  # before anything is opened or sent
-    options = _transport_options(transport, port, interface, channel, bitrate, link_option)
+    options = transport_options(transport, port=port, interface=interface, channel=channel,
+                                bitrate=bitrate, link_options=link_option)
     where = port or f"{interface}:{channel}"
     if dry_run:
         typer.echo(dry_run_report(t, cmd, rob, transport, where))
@@ -140,28 +141,6 @@ def _command_stream(profile: str | None, commands: Path | None, rate_hz: float):
         return t, cmd, f"profile {prof.name}"
     t, cmd = stream_from_recording(read_recording(commands), rate_hz, str(commands))
     return t, cmd, str(commands)
-
-
-def _transport_options(transport: str, port: str | None, interface: str | None,
-                       channel: str | None, bitrate: int | None,
-                       link_option: list[str] | None) -> dict[str, object]:
-    """The transport's options: those its kind takes, then each ``--link-option``."""
-    from ..errors import ConfigError
-    from ..link.transport import parse_option_value
-
-    options: dict[str, object] = {}
-    if transport == "serial":
-        options.update(port=port, baudrate=bitrate)
-    elif transport == "can":
-        options.update(interface=interface, channel=channel, bitrate=bitrate)
-    else:
-        options.update(port=port, interface=interface, channel=channel, bitrate=bitrate)
-    for item in link_option or []:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--link-option needs KEY=VALUE, got {item!r}")
-        options[key.strip()] = parse_option_value(value)
-    return options
 
 
 def _observers(shadow, on_divergence, foxglove, rob, t, cmd, out):

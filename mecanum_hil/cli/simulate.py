@@ -41,7 +41,7 @@ def command(
         t, cmd = prof.sample(rate_hz)
         rec = empty_like_times(t).with_values(commands=cmd)
         source = f"profile {prof.name}"
-    rob.check_commands(rec.commands[:-1] if len(rec) > 1 else rec.commands, source)
+    _warn_beyond_limit(rob, rec.commands[:-1] if len(rec) > 1 else rec.commands, source)
     pred = predict(rec, cal, rob, source=source)
     write_recording(pred, out)
     typer.echo(f"wrote {out} ({len(pred)} samples, {pred.t_s[-1] - pred.t_s[0]:.3f} s)")
@@ -50,3 +50,25 @@ def command(
 
         plot_recordings({"model": pred}, plot, title=f"model prediction: {source}")
         typer.echo(f"wrote {plot}")
+
+
+def _warn_beyond_limit(robot, commands, source: str) -> None:
+    """Commands beyond the robot's limit: one warning line, and the simulation goes on.
+
+    The limit protects a robot from what is sent to it; a simulation sends nothing, and a
+    recording brought from elsewhere may well exceed the profile given. Commands that are not
+    finite numbers still stop it (the model cannot run them).
+    """
+    import warnings
+
+    import numpy as np
+
+    from ..errors import LimitError, MecanumHILWarning
+
+    try:
+        robot.check_commands(commands, source)
+    except LimitError as err:
+        if not np.isfinite(np.asarray(commands, dtype=float)).all():
+            raise
+        warnings.warn(f"{err}; simulated all the same (a simulation sends nothing to a robot)",
+                      MecanumHILWarning, stacklevel=2)

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .stepper import discretise_step
+from .discretise import discretise_step
 
 #: Layout of the per-robot state vector used to continue a simulation: y1..y4 [rpm],
 #: z1..z4 [rpm s], drive set-points u1..u4 [rpm], then the drive's own dynamics: held

@@ -19,7 +19,6 @@ integral of ``y`` over the step, which the pose integration needs)::
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import expm
 
 #: Number of values in one row of a discretisation table (see :func:`discretise`).
 TABLE_WIDTH = 11
@@ -53,6 +52,8 @@ def discretise(A, B, C, h_s):
     m[:, 1, 0] = -1.0
     m[:, 1, 3] = 1.0
     m[:, 2, 0] = 1.0
+    from scipy.linalg import expm  # here, not at import: scipy.linalg costs ~0.1 s to load
+
     e = expm(m * h[:, None, None])
     out = np.empty((A.size, TABLE_WIDTH))
     out[:, 0] = e[:, 0, 0]

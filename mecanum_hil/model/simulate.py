@@ -138,7 +138,8 @@ def _step_tables(calibs: Sequence[Calibration], dt: np.ndarray, max_substep_s: f
     real clock have thousands of distinct step lengths, and SciPy's ``expm`` costs ~20 us
     per matrix against ~1 us compiled.
     """
-    from .stepper import discretise_many, substeps
+    from .discretise import discretise_many
+    from .stepper import substeps
 
     nsub = substeps(dt, max_substep_s)
     h = dt / nsub

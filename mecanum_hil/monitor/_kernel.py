@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from ..model._kernels import _exp_se2
-from ..model.stepper import discretise_step
+from ..model.discretise import discretise_step
 
 _RPM_S_TO_RAD = 2.0 * math.pi / 60.0
 

@@ -49,18 +49,34 @@ def test_simulate_profile_then_commands_of_a_recording(tmp_path):
          "missing.csv: file not found"),
         (["simulate", "--profile", "paper-step-60", "--calibration", "bad.toml", "--out", "x.csv"],
          "bad.toml: key 'motor.C' must be > 0"),
-        (["simulate", "--profile", "limit.toml", "--out", "x.csv"], "beyond the robot's limit"),
     ],
 )
 def test_errors_are_one_line_and_non_zero(tmp_path, args, fragment):
     (tmp_path / "bad.toml").write_text("[motor]\nA = 1\nB = 1\nC = 0\n")
-    (tmp_path / "limit.toml").write_text(
-        '[[segments]]\nkind = "step"\nduration_s = 1.0\nn_rpm = 150.0\n')
     r = cli(*args, cwd=tmp_path)
     assert r.returncode == 1
     assert r.stderr.startswith("error: ") and fragment in r.stderr
     assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
     assert not (tmp_path / "x.csv").exists()
+
+
+@pytest.mark.parametrize("source", ["profile", "commands"])
+def test_commands_beyond_the_limit_warn_and_simulate(tmp_path, source):
+    """The limit protects a robot from what is sent to it; a simulation sends nothing (issue 19)."""
+    (tmp_path / "limit.toml").write_text(
+        '[[segments]]\nkind = "step"\nduration_s = 1.0\nn_rpm = 150.0\n')
+    args = ["--profile", "limit.toml"]
+    if source == "commands":
+        r = cli("simulate", *args, "--out", "fast.csv", cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        args = ["--commands", "fast.csv"]
+    r = cli("simulate", *args, "--out", "x.csv", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    warnings = [line for line in r.stderr.splitlines() if line.startswith("warning: ")]
+    assert len(warnings) == 1 and "beyond the robot's limit" in warnings[0]
+    assert "Traceback" not in r.stderr
+    rec = read_recording(tmp_path / "x.csv")
+    assert np.nanmax(rec.wheel_rpm) > 140.0  # simulated beyond the limit, as commanded
 
 
 def test_malformed_csv_is_one_line(tmp_path):

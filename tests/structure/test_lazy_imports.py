@@ -41,3 +41,14 @@ def test_command_module_loads_no_heavy_library(module):
     loaded = set(_loaded_after_import(module))
     heavy = sorted(loaded.intersection(HEAVY))
     assert not heavy, f"importing {module} loads {heavy}: import them where they are used"
+
+
+def test_the_all_extra_holds_every_extra():
+    """CI installs ``.[test,all]``: an extra left out of ``all`` would go untested."""
+    import tomllib
+
+    with open(CLI.parents[1] / "pyproject.toml", "rb") as f:
+        extras = tomllib.load(f)["project"]["optional-dependencies"]
+    (spec,) = extras["all"]
+    named = set(spec.split("[", 1)[1].rstrip("]").split(","))
+    assert named == set(extras) - {"all", "test"}
