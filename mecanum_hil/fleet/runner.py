@@ -275,10 +275,21 @@ def local_cluster(workers: int | None = None, dashboard: bool = True):
         # without a dashboard the scheduler still serves its health routes, on 8787 or, when
         # another cluster has it, a free port: that is fine, not worth a warning
         warnings.filterwarnings("ignore", message="Port 8787 is already in use")
-        return distributed.LocalCluster(
-            n_workers=n, threads_per_worker=1, processes=True,
-            dashboard_address="127.0.0.1:0" if dashboard else None,
-            silence_logs=logging.ERROR, env=dict(WORKER_ENV))
+        # Dask's nanny writes pre-spawn-environ into *this* process's os.environ and leaves it
+        # there: numba, which re-reads NUMBA_NUM_THREADS at every compilation, then refuses
+        # to compile once its thread pool has started with another count. Put them back.
+        saved = {key: os.environ.get(key) for key in WORKER_ENV}
+        try:
+            return distributed.LocalCluster(
+                n_workers=n, threads_per_worker=1, processes=True,
+                dashboard_address="127.0.0.1:0" if dashboard else None,
+                silence_logs=logging.ERROR, env=dict(WORKER_ENV))
+        finally:
+            for key, value in saved.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
 
 
 def dashboard_of(client) -> str | None:
