@@ -37,3 +37,19 @@ def fill_optional_values(args: list[str]) -> list[str]:
         if arg in OPTIONAL_VALUE and (i + 1 == len(args) or args[i + 1].startswith("-")):
             out.append("")
     return out
+
+
+# The robot link's options, shared by the commands that open a link (record, conformance).
+TransportOpt = Annotated[str, typer.Option(
+    "--transport", "-t", help="serial, can, or a plug-in's name.")]
+PortOpt = Annotated[str | None, typer.Option(
+    "--port", help="Serial port: a device, loop://, socket://HOST:PORT ...")]
+InterfaceOpt = Annotated[str | None, typer.Option(
+    "--interface", help="python-can interface (socketcan, slcan, pcan, virtual, ...).")]
+ChannelOpt = Annotated[str | None, typer.Option(
+    "--channel", help="python-can channel (can0, /dev/ttyACM0, ...).")]
+BitrateOpt = Annotated[int | None, typer.Option(
+    "--bitrate", help="Bit rate [bit/s]: CAN bus rate, or serial baud rate.")]
+LinkOptionOpt = Annotated[list[str] | None, typer.Option(
+    "--link-option", metavar="KEY=VALUE",
+    help="Extra transport option, repeatable (e.g. sleep_after_open=0 for slcan).")]

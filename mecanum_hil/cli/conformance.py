@@ -11,25 +11,24 @@ from typing import Annotated
 
 import typer
 
-from ._options import RobotOpt
+from ._options import (
+    BitrateOpt,
+    ChannelOpt,
+    InterfaceOpt,
+    LinkOptionOpt,
+    PortOpt,
+    RobotOpt,
+    TransportOpt,
+)
 
 
 def command(
-    transport: Annotated[str, typer.Option(
-        "--transport", "-t", help="serial, can, or a plug-in's name.")] = "serial",
-    port: Annotated[str | None, typer.Option(
-        "--port", help="Serial port: a device, loop://, socket://HOST:PORT ...")] = None,
-    interface: Annotated[str | None, typer.Option(
-        "--interface", help="python-can interface (socketcan, slcan, pcan, virtual, ...).")
-    ] = None,
-    channel: Annotated[str | None, typer.Option(
-        "--channel", help="python-can channel (can0, /dev/ttyACM0, ...).")] = None,
-    bitrate: Annotated[int | None, typer.Option(
-        "--bitrate", help="Bit rate [bit/s]: CAN bus rate, or serial baud rate.")] = None,
-    link_option: Annotated[list[str] | None, typer.Option(
-        "--link-option", metavar="KEY=VALUE",
-        help="Extra transport option, repeatable (e.g. sleep_after_open=0 for slcan).")
-    ] = None,
+    transport: TransportOpt = "serial",
+    port: PortOpt = None,
+    interface: InterfaceOpt = None,
+    channel: ChannelOpt = None,
+    bitrate: BitrateOpt = None,
+    link_option: LinkOptionOpt = None,
     robot: RobotOpt = "tdam-stm",
     rule: Annotated[list[str] | None, typer.Option(
         "--rule", metavar="NAME", help="Run only this rule or group (hello, command.valid, "

@@ -14,26 +14,27 @@ from typing import Annotated
 
 import typer
 
-from ._options import FoxgloveOpt, OutOpt, RobotOpt
+from ._options import (
+    BitrateOpt,
+    ChannelOpt,
+    FoxgloveOpt,
+    InterfaceOpt,
+    LinkOptionOpt,
+    OutOpt,
+    PortOpt,
+    RobotOpt,
+    TransportOpt,
+)
 
 
 def command(
     out: OutOpt,
-    transport: Annotated[str, typer.Option(
-        "--transport", "-t", help="serial, can, or a plug-in's name.")] = "serial",
-    port: Annotated[str | None, typer.Option(
-        "--port", help="Serial port: a device, loop://, socket://HOST:PORT ...")] = None,
-    interface: Annotated[str | None, typer.Option(
-        "--interface", help="python-can interface (socketcan, slcan, pcan, virtual, ...).")
-    ] = None,
-    channel: Annotated[str | None, typer.Option(
-        "--channel", help="python-can channel (can0, /dev/ttyACM0, ...).")] = None,
-    bitrate: Annotated[int | None, typer.Option(
-        "--bitrate", help="Bit rate [bit/s]: CAN bus rate, or serial baud rate.")] = None,
-    link_option: Annotated[list[str] | None, typer.Option(
-        "--link-option", metavar="KEY=VALUE",
-        help="Extra transport option, repeatable (e.g. sleep_after_open=0 for slcan).")
-    ] = None,
+    transport: TransportOpt = "serial",
+    port: PortOpt = None,
+    interface: InterfaceOpt = None,
+    channel: ChannelOpt = None,
+    bitrate: BitrateOpt = None,
+    link_option: LinkOptionOpt = None,
     profile: Annotated[str | None, typer.Option(
         "--profile", help="Built-in profile (paper-step-60, ...) or profile TOML file.")] = None,
     commands: Annotated[Path | None, typer.Option(
