@@ -26,42 +26,68 @@ from . import measure_pose as measure_pose_cmd
 from . import train as train_cmd
 from ._options import fill_optional_values
 
-app = typer.Typer(
-    name="mecanum-hil",
-    help="Hardware-in-the-loop bridge and data acquisition for Mecanum-wheeled robots.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-    context_settings={"help_option_names": ["-h", "--help"]},
-)
+_COMMANDS = {
+    "simulate": simulate.command,
+    "demo": demo.command,
+    "fit": fit_cmd.command,
+    "diagnose": diagnose_cmd.command,
+    "measure-video": measure_video.command,
+    "render-video": render_video.command,
+    "record": record.command,
+    "sim-robot": sim_robot.command,
+    "conformance": conformance_cmd.command,
+    "campaign": campaign.command,
+    "shadow": shadow.command,
+    "batch": batch_cmd.command,
+    "fleet-report": fleet_report_cmd.command,
+    "train": train_cmd.command,
+    "evaluate": evaluate_cmd.command,
+    "import": import_cmd.command,
+    "export": export_cmd.command,
+    "measure-pose": measure_pose_cmd.command,
+    "calibrate-camera": calibrate_camera_cmd.command,
+}
 
 
-@app.callback()
 def _root(
     debug: bool = typer.Option(False, "--debug", help="Show tracebacks of errors."),
 ) -> None:
     """Hardware-in-the-loop bridge and data acquisition for Mecanum-wheeled robots."""
 
 
-app.command("simulate")(simulate.command)
-app.command("demo")(demo.command)
-app.command("fit")(fit_cmd.command)
-app.command("diagnose")(diagnose_cmd.command)
-app.command("measure-video")(measure_video.command)
-app.command("render-video")(render_video.command)
-app.command("record")(record.command)
-app.command("sim-robot")(sim_robot.command)
-app.command("conformance")(conformance_cmd.command)
-app.command("campaign")(campaign.command)
-app.command("shadow")(shadow.command)
-app.command("batch")(batch_cmd.command)
-app.command("fleet-report")(fleet_report_cmd.command)
-app.command("train")(train_cmd.command)
-app.command("evaluate")(evaluate_cmd.command)
-app.command("import")(import_cmd.command)
-app.command("export")(export_cmd.command)
-app.command("measure-pose")(measure_pose_cmd.command)
-app.command("calibrate-camera")(calibrate_camera_cmd.command)
+def build_app(names=None) -> typer.Typer:
+    """The command-line app with the commands ``names`` (default: all, in the table's order).
+
+    typer inspects every registered command's signature on each run (~0.1 s for all of them
+    here): :func:`main` registers only the command it was asked for.
+    """
+    application = typer.Typer(
+        name="mecanum-hil",
+        help="Hardware-in-the-loop bridge and data acquisition for Mecanum-wheeled robots.",
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+        # plain click help: rich's formatter costs ~70 ms of start-up on every --help (issue 19)
+        rich_markup_mode=None,
+        context_settings={"help_option_names": ["-h", "--help"]},
+    )
+    application.callback()(_root)
+    for name in names or _COMMANDS:
+        application.command(name)(_COMMANDS[name])
+    return application
+
+
+#: Every command (tests and ``python -m mecanum_hil`` help use it).
+app = build_app()
+
+
+def _command_name(args: list[str]) -> str | None:
+    """The command named in ``args`` (the first word after the root's options), if any."""
+    for arg in args:
+        if arg == "--debug":
+            continue
+        return arg if arg in _COMMANDS else None
+    return None
 
 
 def _warning_printer(previous):
@@ -88,7 +114,8 @@ def main(argv: list[str] | None = None) -> int:
             # what was done to the data (time repaired on reading ...): one line each, always
             warnings.simplefilter("always", MecanumHILWarning)
             warnings.showwarning = _warning_printer(warnings.showwarning)
-            app(args=args, prog_name="mecanum-hil")
+            name = _command_name(args)
+            build_app([name] if name else None)(args=args, prog_name="mecanum-hil")
     except SystemExit as exit_:
         code = exit_.code
         return code if isinstance(code, int) else (0 if code is None else 1)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from .._jit import njit
 
 # Layout of the reach task's parameter vector.
 R_X0, R_Y0, R_POS_SCALE, R_HEAD_SCALE, R_POS_TOL, R_HEAD_TOL, R_ARENA = range(7)

@@ -36,8 +36,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numba import njit, prange
 
+from .._jit import njit, prange
 from ..errors import FitError
 from ..model.calibration import Calibration
 from ..model.kinematics import command_to_wheels

@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
 
+from .._jit import njit, prange
 from .discretise import discretise_step
 
 #: Layout of the per-robot state vector used to continue a simulation: y1..y4 [rpm],
@@ -74,7 +74,7 @@ def _drive_at_rest(per, a, A, C, u, z, h, dl):
     return A * u + C * z
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q):
     """Advance wheel ``i`` over ``ts`` seconds on the path of the drive's own dynamics.
 

@@ -6,7 +6,7 @@ for one coefficient set and step length (a guarded closed form, else a series), 
 :func:`discretise_many` for many sets at once. The batch simulator's kernel
 (``model/_kernels.py``), the stepper (``model/stepper.py``) and the shadow monitor's kernel
 (``monitor/_kernel.py``) all use it; it lives apart from them so that none needs another to have
-it. Importing this module imports numba.
+it. Compiled by numba when first called compiled (``mecanum_hil._jit``).
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from .._jit import njit, pick
 from .motor import TABLE_WIDTH
 
 
@@ -166,5 +166,5 @@ def discretise_many(coefficients, h_s) -> np.ndarray:
     co = np.ascontiguousarray(np.asarray(coefficients, dtype=float).reshape(-1, 3))
     h = np.ascontiguousarray(np.asarray(h_s, dtype=float).reshape(-1))
     out = np.empty((co.shape[0], h.size, TABLE_WIDTH))
-    _discretise_kernel(co, h, out)
+    pick(_discretise_kernel, co.shape[0] * h.size)(co, h, out)
     return out

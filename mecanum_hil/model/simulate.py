@@ -196,6 +196,7 @@ def simulate_batch(
     -------
     Trajectory
     """
+    from .._jit import pick
     from ._kernels import STATE_WIDTH, WHEEL_STATE_WIDTH, simulate_kernel
     from .stepper import effect_arrays
 
@@ -275,14 +276,16 @@ def simulate_batch(
             state0 if whole else np.ascontiguousarray(state0[members]),
             pose0 if whole else np.ascontiguousarray(pose0[members]),
         )
+        # a small job runs in the interpreter: numba's start-up costs more than it (_jit.py)
+        kernel = pick(simulate_kernel, members.size * max(int(nsub.sum()), 1))
         if sample_idx is None and whole:
-            simulate_kernel(*args, wheels, pose, final_state, final_pose)
+            kernel(*args, wheels, pose, final_state, final_pose)
             continue
         gw = np.empty((members.size, grid.size, 4))
         gp = np.empty((members.size, grid.size, 3))
         gs = np.empty((members.size, STATE_WIDTH))
         gf = np.empty((members.size, 3))
-        simulate_kernel(*args, gw, gp, gs, gf)
+        kernel(*args, gw, gp, gs, gf)
         if sample_idx is not None:
             gw, gp = gw[:, sample_idx], gp[:, sample_idx]
         wheels[members] = gw

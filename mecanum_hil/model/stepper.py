@@ -14,8 +14,8 @@ module keeps everything the compiled kernel needs as arrays, built once:
   ``simulate_batch`` splits its grid, so stepping period by period reproduces one long call.
 
 :class:`BatchStepper` is the small stateful shell (wheel state, pose, delay line) around the
-pure kernel ``mecanum_hil.model._kernels.simulate_kernel``. Importing this module imports numba:
-import it where it is used, as ``simulate_batch`` does, so ``mecanum-hil --help`` stays fast.
+pure kernel ``mecanum_hil.model._kernels.simulate_kernel``, always compiled (a stepper steps
+thousands of times); creating one imports numba.
 """
 
 from __future__ import annotations
@@ -186,9 +186,10 @@ class BatchStepper:
                  num_threads: int | None = 1) -> None:
         import numba
 
+        from .._jit import compiled
         from ._kernels import STATE_WIDTH, simulate_kernel
 
-        self._kernel = simulate_kernel
+        self._kernel = compiled(simulate_kernel)  # stepped thousands of times: always compiled
         self._numba = numba
         self.num_threads = (numba.config.NUMBA_NUM_THREADS if num_threads is None
                             else max(1, min(int(num_threads), numba.config.NUMBA_NUM_THREADS)))

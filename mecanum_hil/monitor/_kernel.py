@@ -22,8 +22,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from .._jit import njit
 from ..model._kernels import _exp_se2
 from ..model.discretise import discretise_step
 

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from .._jit import pick
 from ..errors import ConfigError
 from ..io.recording import Recording
 from ..model.calibration import Calibration
@@ -377,10 +378,12 @@ class ShadowMonitor:
         rows = np.ascontiguousarray(rows, dtype=float)
         if rows.ndim != 2 or rows.shape[1] != 11:
             raise ConfigError(f"rows must have shape (T, 11), got {rows.shape}")
+        # a short replay runs in the interpreter: numba's start-up costs more (_jit.py)
+        monitor_run = pick(kn.monitor_run, rows.shape[0])
         start = 0
         while start < rows.shape[0]:
-            nxt, n = kn.monitor_run(rows, start, self._pp, self._fs, self._ch, self._buf,
-                                   self._queue, self._qi, self._ev, self._tab, self._q)
+            nxt, n = monitor_run(rows, start, self._pp, self._fs, self._ch, self._buf,
+                                 self._queue, self._qi, self._ev, self._tab, self._q)
             if n < 0:
                 self._grow_queue()
             self.samples += nxt - start
@@ -494,6 +497,7 @@ def replay(rec: Recording, calibration: Calibration, robot: RobotProfile | None 
         raise RecordingError(f"{source}: nothing measured to compare (wheel and pose columns "
                              "are empty)")
     events: list[dict[str, Any]] = []
-    mon = ShadowMonitor(calibration, robot, config, listeners=[events.append, *listeners])
+    mon = ShadowMonitor(calibration, robot, config, listeners=[events.append, *listeners],
+                        warm_up=False)
     mon.run(recording_rows(rec))
     return ShadowResult(tuple(mon.alarms), dict(mon.noise), mon.samples, tuple(events))

