@@ -12,8 +12,8 @@ nothing:
   module on the first call, exactly as ``numba.njit`` did;
 - :func:`pick` lets a caller that knows the size of its job run small jobs in the interpreter
   instead (the same source, the same arithmetic: results agree to rounding), until the process
-  has spent :data:`INTERPRETED_BUDGET` robot-steps there; after that, or once the module is
-  compiled anyway, it returns the compiled code.
+  has spent :data:`INTERPRETED_BUDGET` robot-steps there; after that, or once numba is loaded
+  for any kernel anyway, it returns the compiled code.
 
 ``MECANUM_HIL_JIT=always`` compiles every job, ``never`` interprets every job (slow on large
 ones), ``auto`` (default) as above.
@@ -136,14 +136,16 @@ def pick(kernel: Kernel, robot_steps: int) -> Callable:
     """The kernel to run a job of ``robot_steps`` (robots x samples x sub-steps) with.
 
     The interpreter while the process's interpreted work stays within
-    :data:`INTERPRETED_BUDGET` and the kernel's module is not compiled yet; numba's compiled
-    code otherwise (or as ``MECANUM_HIL_JIT`` says).
+    :data:`INTERPRETED_BUDGET` and no kernel module is compiled yet; numba's compiled code
+    otherwise (or as ``MECANUM_HIL_JIT`` says).
     """
     global _spent
     if not isinstance(kernel, Kernel):  # a module global already replaced by numba's dispatcher
         return kernel
     mode = _mode()
-    if kernel._dispatcher is not None or mode == "always":
+    # once numba is loaded for any kernel, another costs only its cache (tens of milliseconds)
+    if kernel._dispatcher is not None or mode == "always" or (_compiled_modules and
+                                                              mode != "never"):
         return kernel.compiled()
     with _lock:
         if mode == "never" or _spent + robot_steps <= INTERPRETED_BUDGET:
