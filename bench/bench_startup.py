@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -27,16 +28,24 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data" / "real" / "micromouse"
 
 
-def timed(argv: list[str], repeats: int, env: dict[str, str]) -> tuple[float, float, int]:
-    """Median and minimum wall time [s] of ``repeats`` runs of ``argv``, and the last exit code."""
-    times = []
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def timed(argv: list[str], repeats: int, env: dict[str, str]) -> tuple[float, float, float, int]:
+    """Median and minimum wall time [s] of ``repeats`` runs of ``argv``, their median CPU time
+    (user + system) [s], and the last exit code. On a shared machine the CPU time is what the
+    wall time would be on an idle one (every command here runs on one core)."""
+    times, cpu = [], []
     code = 0
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, cpu0 = time.perf_counter(), _children_cpu_s()
         done = subprocess.run(argv, capture_output=True, env=env, cwd=ROOT)
         times.append(time.perf_counter() - start)
+        cpu.append(_children_cpu_s() - cpu0)
         code = done.returncode
-    return statistics.median(times), min(times), code
+    return statistics.median(times), min(times), statistics.median(cpu), code
 
 
 def main() -> None:
@@ -69,16 +78,20 @@ def main() -> None:
         # untimed first run of each: fills numba's cache and the calibration file
         for _, argv, _ in cases:
             subprocess.run(argv, capture_output=True, env=env, cwd=ROOT)
-        base, base_min, _ = timed([sys.executable, "-c", "import numpy"], args.repeats, env)
+        base, base_min, base_cpu, _ = timed([sys.executable, "-c", "import numpy"],
+                                            args.repeats, env)
         print(f"recording: {rec}")
-        print(f"baseline python -c 'import numpy': median {base:.3f} s (min {base_min:.3f} s)")
-        print(f"{'command':<22}{'median [s]':>11}{'min [s]':>9}{'x baseline':>12}"
+        print(f"load average: {os.getloadavg()[0]:.2f}")
+        print(f"baseline python -c 'import numpy': median {base:.3f} s (min {base_min:.3f} s, "
+              f"CPU {base_cpu:.3f} s)")
+        print(f"{'command':<22}{'median [s]':>11}{'min [s]':>9}{'CPU [s]':>9}{'x baseline':>12}"
               f"{'target [s]':>12}  exit")
         for name, argv, target in cases:
-            med, low, code = timed(argv, args.repeats, env)
+            med, low, cpu, code = timed(argv, args.repeats, env)
             tgt = "-" if target is None else f"<= {target:.2f}"
             mark = "" if target is None else ("  met" if med <= target else "  NOT met")
-            print(f"{name:<22}{med:>11.3f}{low:>9.3f}{med / base:>11.1f}x{tgt:>12}  {code}{mark}")
+            print(f"{name:<22}{med:>11.3f}{low:>9.3f}{cpu:>9.3f}{med / base:>11.1f}x{tgt:>12}"
+                  f"  {code}{mark}")
 
 
 if __name__ == "__main__":
