@@ -219,6 +219,32 @@ class Calibration:
         return replace(self, A=float(A), B=float(B), C=float(C), ci95={}, info={})
 
 
+def exchange_drive_lag(calibration: Calibration) -> Calibration | None:
+    """The calibration with the drive lag and the motor's time constant exchanged.
+
+    With a drive lag ``tau`` the motor sees ``a / ((s + a)(s + B)) c`` of the controller output
+    ``c`` (``a = 1 / tau``): symmetric in ``a`` and ``B`` up to the factor ``a / B``, which the
+    PI gains absorb. So ``drive_lag_s = 1 / B``, ``B = 1 / tau``, ``A`` and ``C`` times
+    ``1 / (tau B)`` give exactly the same wheel speeds for every command, with every effect
+    that acts on the target or on the controller output (dead time, deadband, gains, rate limit,
+    saturation, controller period). Wheel speeds alone cannot tell the two apart; breakaway,
+    which acts on the lagged drive, can.
+
+    Returns
+    -------
+    Calibration or None
+        The twin (intervals and metrics dropped); ``None`` without a drive lag, with ``B <= 0``
+        or with breakaway (no exact twin).
+    """
+    fx = calibration.effects
+    tau, B = fx.drive_lag_s, calibration.B
+    if not (tau > 0 and B > 0) or fx.breakaway_rpm_per_s > 0:
+        return None
+    k = 1.0 / (tau * B)
+    twin = calibration.with_coefficients(calibration.A * k, 1.0 / tau, calibration.C * k)
+    return replace(twin, effects=replace(fx, drive_lag_s=1.0 / B))
+
+
 def check_coefficients(A: float, B: float, C: float, source: str = "<coefficients>") -> None:
     """Refuse coefficients of an unstable or unphysical wheel model.
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mecanum_hil.model import Calibration, Effects
-from mecanum_hil.model.calibration import load_calibration, save_calibration
+from mecanum_hil.model.calibration import exchange_drive_lag, load_calibration, save_calibration
 from mecanum_hil.model.simulate import simulate, uniform_time
 
 T = uniform_time(1.5, 500)
@@ -100,3 +100,27 @@ def test_new_effects_round_trip_through_a_calibration_file(tmp_path):
     for name in ("controller_period", "drive_lag", "breakaway"):
         assert f"[effects.{name}]" in text
     assert load_calibration(path).effects == eff
+
+
+@pytest.mark.parametrize("effects", [
+    Effects(drive_lag_s=0.12),
+    Effects(drive_lag_s=0.03, top_speed_rpm=50.0, dead_time_s=0.02, gains=(1.0, 0.9, 1.1, 1.0),
+            rate_limit_rpm_per_s=400.0, deadband_rpm=2.0, controller_period_s=0.006),
+])
+def test_drive_lag_and_motor_pole_are_interchangeable(effects):
+    # the lag's twin (lag <-> 1 / B, A and C rescaled) gives the same wheel speeds exactly:
+    # wheel speeds alone cannot tell which time constant is the drive's and which the motor's
+    cal = Calibration(effects=effects)
+    twin = exchange_drive_lag(cal)
+    assert twin.effects.drive_lag_s == pytest.approx(1.0 / cal.B)
+    assert twin.B == pytest.approx(1.0 / effects.drive_lag_s)
+    cmd = _commands(reverse_at=400)
+    a = simulate(cmd, T, cal).wheel_rpm[0]
+    b = simulate(cmd, T, twin).wheel_rpm[0]
+    assert np.abs(a - b).max() < 1e-6 * np.abs(a).max()
+    assert exchange_drive_lag(twin).effects.drive_lag_s == pytest.approx(effects.drive_lag_s)
+
+
+def test_breakaway_tells_the_lag_from_the_motor_pole():
+    fx = Effects(drive_lag_s=0.03, breakaway_rpm_per_s=1500.0)
+    assert exchange_drive_lag(Calibration(effects=fx)) is None
