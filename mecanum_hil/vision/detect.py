@@ -23,6 +23,13 @@ MIN_SATURATION = 70
 BACKGROUND_SATURATION = 30
 #: Largest number of blobs kept per frame and region (the biggest ones).
 MAX_BLOBS = 8
+#: While a single blob moves by at least FOLLOW_MIN_STEP_PX a frame (the marker turning), the
+#: next frame is searched only around where it should be (its last step again), FOLLOW_MARGIN_PX
+#: beyond its size and half its step; the whole region is searched again every
+#: FOLLOW_FULL_EVERY frames, and whenever that window shows anything but the one blob whole.
+FOLLOW_MIN_STEP_PX = 0.5
+FOLLOW_MARGIN_PX = 16
+FOLLOW_FULL_EVERY = 8
 
 
 @dataclass(frozen=True)
@@ -141,12 +148,22 @@ class BlobDetector:
         # A coarse grid of about 200 px across finds dots of a few px radius and keeps the cost
         # per frame far below decoding's.
         self.stride = max(1, math.ceil(max(self.x1 - self.x0, self.y1 - self.y0) / 200))
+        # Following one moving blob (see :meth:`_near`): its position relative to the hub and
+        # its last step [px], the last single blob's position, the frames since the whole
+        # region was searched, and the blobs' extent [px].
+        self._follow: tuple[tuple[float, float], tuple[float, float]] | None = None
+        self._single: tuple[float, float] | None = None
+        self._since_full = 0
+        self._extent = 0
 
     def focus(self, path, margin: float = 0.35) -> None:
         """Measure only blobs whose coarse centre lies within ``margin`` (relative radius) of
         ``path`` (an :class:`~mecanum_hil.vision.geometry.Ellipse`): distractors cost little."""
         self.path = path
         self.path_margin = margin
+        self._path_cos_sin = (math.cos(math.radians(path.angle_deg)),
+                              math.sin(math.radians(path.angle_deg)))
+        self._follow = self._single = None
         # Search only the path's bounding box (with the margin) from now on.
         reach = (1.0 + margin) * max(path.a_px, path.b_px) + 2 * self.stride
         self.box = (max(self.x0, int(path.cx_px - reach)), max(self.y0, int(path.cy_px - reach)),
@@ -175,10 +192,12 @@ class BlobDetector:
         """Candidates in a BGR frame: rows ``(x [px], y [px], hue [deg], weight, area [px^2])``.
 
         ``shift_px`` is the camera's offset at this frame (the hub's motion): the focused path
-        and its box move with it. The candidates are in the frame's own coordinates.
+        and its box move with it. The candidates are in the frame's own coordinates. A single
+        blob that moves is looked for only near where its last step takes it (see
+        :data:`FOLLOW_FULL_EVERY`); when it is found there alone, it is measured as the whole
+        search would measure it (which would also see any other blob that appeared elsewhere
+        since the last whole search).
         """
-        import cv2
-
         x0, y0, x1, y1 = self.box
         sx, sy = shift_px
         if self.path is not None and (sx or sy):
@@ -186,7 +205,69 @@ class BlobDetector:
             x0, x1 = max(self.x0, x0 + dx), min(self.x1, x1 + dx)
             y0, y1 = max(self.y0, y0 + dy), min(self.y1, y1 + dy)
             if x1 - x0 < 4 or y1 - y0 < 4:
+                self._follow = self._single = None
                 return np.empty((0, 5))
+        if self._follow is not None and self._since_full < FOLLOW_FULL_EVERY:
+            out = self._near(frame, (x0, y0, x1, y1), sx, sy)
+            if out is not None:
+                self._since_full += 1
+                self._followed(out, sx, sy)
+                return out
+        out, boxes = self._search(frame, x0, y0, x1, y1, sx, sy)
+        self._since_full = 1
+        self._extent = max((max(bw, bh) * self.stride for _, _, bw, bh in boxes), default=0)
+        self._followed(out, sx, sy)
+        return out
+
+    def _followed(self, out: np.ndarray, sx: float, sy: float) -> None:
+        """Follow a single blob that moves (the marker turning) from frame to frame."""
+        if out.shape[0] != 1:
+            self._follow = self._single = None
+            return
+        pos = (out[0, 0] - sx, out[0, 1] - sy)  # relative to the hub
+        last, self._single = self._single, pos
+        if last is None:
+            self._follow = None
+            return
+        step = (pos[0] - last[0], pos[1] - last[1])
+        # A blob at rest may be a distractor while the marker is hidden: not followed.
+        self._follow = (pos, step) if math.hypot(*step) >= FOLLOW_MIN_STEP_PX else None
+
+    def _near(self, frame: np.ndarray, box: tuple[int, int, int, int], sx: float, sy: float
+              ) -> np.ndarray | None:
+        """The followed blob searched only around where it should be now; None unless exactly
+        that one blob is found there, wholly inside the window (then it is measured exactly as
+        the whole search would: same grid, same window)."""
+        x0, y0, x1, y1 = box
+        s = self.stride
+        (px, py), (vx, vy) = self._follow
+        cx, cy = px + vx + sx, py + vy + sy
+        half = FOLLOW_MARGIN_PX + self._extent + 0.5 * math.hypot(vx, vy)
+        # The window on the search's own grid (its origin a whole number of steps from the
+        # box's), within the box.
+        wx0 = max(x0, x0 + s * math.floor((cx - half - x0) / s))
+        wy0 = max(y0, y0 + s * math.floor((cy - half - y0) / s))
+        wx1 = min(x1, math.ceil(cx + half))
+        wy1 = min(y1, math.ceil(cy + half))
+        if wx1 - wx0 < 4 * s or wy1 - wy0 < 4 * s:
+            return None
+        out, boxes = self._search(frame, wx0, wy0, wx1, wy1, sx, sy)
+        if out.shape[0] != 1 or len(boxes) != 1:
+            return None
+        bx, by, bw, bh = boxes[0]
+        cw, ch = -(-(wx1 - wx0) // s), -(-(wy1 - wy0) // s)
+        # Clear of the window's sides that are not the box's own (there the whole search would
+        # have seen more of the blob, or measured it in a wider window).
+        if ((bx < 2 and wx0 > x0) or (by < 2 and wy0 > y0)
+                or (bx + bw > cw - 3 and wx1 < x1) or (by + bh > ch - 3 and wy1 < y1)):
+            return None
+        return out
+
+    def _search(self, frame: np.ndarray, x0: int, y0: int, x1: int, y1: int, sx: float,
+                sy: float) -> tuple[np.ndarray, list]:
+        """Candidates in ``frame[y0:y1, x0:x1]`` and the coarse boxes of the blobs measured."""
+        import cv2
+
         crop = frame[y0:y1, x0:x1]
         s = self.stride
         hc, wc = crop.shape[:2]
@@ -201,15 +282,24 @@ class BlobDetector:
         # Outer contours are an order of magnitude cheaper than labelling connected components.
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         if not contours:
-            return np.empty((0, 5))
+            return np.empty((0, 5)), []
         boxes = sorted((cv2.boundingRect(c) for c in contours), key=lambda b: -b[2] * b[3])
         if self.path is not None and boxes:
-            centres = np.array([(x0 + (bx + 0.5 * bw) * s, y0 + (by + 0.5 * bh) * s)
-                                for bx, by, bw, bh in boxes])
-            rho, _ = self.path.unit(centres - np.array([sx, sy]))
-            boxes = [b for b, r in zip(boxes, rho, strict=True)
-                     if abs(r - 1.0) <= self.path_margin]
+            # The coarse centres' radius ratio on the path (Ellipse.unit, one point at a time:
+            # there are only a few).
+            p = self.path
+            ct, st = self._path_cos_sin
+            kept_boxes = []
+            for b in boxes:
+                bx, by, bw, bh = b
+                dx = x0 + (bx + 0.5 * bw) * s - sx - p.cx_px
+                dy = y0 + (by + 0.5 * bh) * s - sy - p.cy_px
+                rho = math.hypot((ct * dx + st * dy) / p.a_px, (-st * dx + ct * dy) / p.b_px)
+                if abs(rho - 1.0) <= self.path_margin:
+                    kept_boxes.append(b)
+            boxes = kept_boxes
         out = []
+        kept = []
         for bx, by, bw, bh in boxes[:MAX_BLOBS]:
             wx0, wy0 = max(0, (bx - 1) * s), max(0, (by - 1) * s)
             wx1, wy1 = min(wc, (bx + bw + 1) * s), min(hc, (by + bh + 1) * s)
@@ -223,9 +313,10 @@ class BlobDetector:
             total = mom["m00"]
             if total <= 0.0:
                 continue
-            mean = cv2.mean(win, mask=cv2.compare(weight, 0, cv2.CMP_GT))
+            mean = cv2.mean(win, mask=weight)  # the pixels with a weight (non-zero)
             # The area (pixels above the background's saturation) hardly changes with the light;
             # a marker partly hidden shows a smaller one.
             out.append((x0 + wx0 + mom["m10"] / total, y0 + wy0 + mom["m01"] / total,
                         _hue_deg(mean[0], mean[1], mean[2]), total, cv2.countNonZero(weight)))
-        return np.array(out, dtype=float).reshape(-1, 5)
+            kept.append((bx, by, bw, bh))
+        return np.array(out, dtype=float).reshape(-1, 5), kept

@@ -218,6 +218,8 @@ def _search_path(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
         link = _link_frames(frame_idx, xy, hue_deg, n_frames, 0.25 * max_radius_px, hue_tol_deg)
         moving = np.flatnonzero((link >= 0)
                                 & (np.hypot(*(xy[np.maximum(link, 0)] - xy).T) > 0.5))
+    moving_mask = np.zeros(m, dtype=bool)
+    moving_mask[moving] = True
     last_gain = 0
     for h in range(hypotheses):
         if h - last_gain > max(40, hypotheses // 8):
@@ -225,7 +227,8 @@ def _search_path(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
         # Half the hypotheses follow one blob from frame to frame (five points of one chain),
         # half draw moving blobs of one hue at random (robust when the linking fails).
         i0 = int(rng.choice(moving)) if moving.size and h % 4 else int(rng.integers(m))
-        same = np.flatnonzero(_hue_close(hue_deg, hue_deg[i0], hue_tol_deg))
+        same_mask = _hue_close(hue_deg, hue_deg[i0], hue_tol_deg)
+        same = np.flatnonzero(same_mask)
         if same.size < 5:
             continue
         if h % 2 and initial is None:
@@ -234,7 +237,8 @@ def _search_path(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
                 continue
             pick = np.array(chain)[np.linspace(0, len(chain) - 1, 5).astype(int)]
         else:
-            pool = np.intersect1d(same, moving) if moving.size else same
+            # (np.intersect1d(same, moving), without its sort)
+            pool = np.flatnonzero(same_mask & moving_mask) if moving.size else same
             pick = rng.choice(pool if pool.size >= 5 else same, 5, replace=False)
         pts = xy[pick]
         if np.ptp(pts[:, 0]) + np.ptp(pts[:, 1]) < 4.0:
@@ -381,7 +385,17 @@ def _link_frames(frame_idx, xy, hue_deg, n_frames, max_step_px, hue_tol) -> np.n
     link = np.full(len(frame_idx), -1, dtype=int)
     order = np.argsort(frame_idx, kind="stable")
     starts = np.searchsorted(frame_idx[order], np.arange(n_frames + 1))
-    for f in range(n_frames - 1):
+    # Frames with one candidate followed by a frame with one (the marker alone, the usual case):
+    # all at once, by the same arithmetic as the loop below.
+    counts = np.diff(starts)
+    single = (counts[:-1] == 1) & (counts[1:] == 1)
+    fs = np.flatnonzero(single)
+    ia, ib = order[starts[fs]], order[starts[fs + 1]]
+    d = np.hypot(xy[ia, 0] - xy[ib, 0], xy[ia, 1] - xy[ib, 1])
+    dh = np.abs((hue_deg[ia] - hue_deg[ib] + 180.0) % 360.0 - 180.0)
+    ok = ~(dh > hue_tol) & (d <= max_step_px)
+    link[ia[ok]] = ib[ok]
+    for f in np.flatnonzero(~single):
         a = order[starts[f]:starts[f + 1]]
         b = order[starts[f + 1]:starts[f + 2]]
         if a.size == 0 or b.size == 0:

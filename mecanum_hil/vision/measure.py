@@ -50,11 +50,17 @@ FOCUS_AFTER_FRAMES = 60
 STILL_CHECK_AFTER = 60
 STILL_CHECK_FRAMES = 10
 STILL_MOVED_PX = 0.3
+#: Frames handed over from the decoding thread at a time (see scan_video).
+SCAN_BATCH = 10
+#: Runs of frames decoded ahead at most.
+SCAN_QUEUE = 2
 #: Frames (the latest) a try to focus looks at.
 FOCUS_FRAMES = 240
 #: Share of a turn the marker must have covered before the search focuses on its path: a path
 #: fitted to a shorter arc (a wheel starting slowly from rest) may miss the rest of the turn.
 FOCUS_COVERAGE = 0.8
+#: Share of the frames the marker must have been found in before the search focuses.
+FOCUS_FOUND = 0.9
 #: A detection next to a gap whose blob is smaller than this share of the marker's usual area is
 #: the marker partly hidden (its centroid pulled off): dropped.
 PARTIAL_AREA = 0.93
@@ -137,10 +143,15 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
 
     Returns ``(info, stamps [s], per-detector lists of per-frame results, detectors)``.
     """
-    cap, info = open_video(path)
-    q: queue.Queue = queue.Queue(maxsize=8)
+    # Decoding has a thread of its own here, beside the analysis: FFmpeg's own frame threads
+    # would only add their cost (see open_video).
+    cap, info = open_video(path, decoder_threads=1)
+    q: queue.Queue = queue.Queue(maxsize=SCAN_QUEUE)
     stop = threading.Event()
-    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop), daemon=True)
+    # Frames come in runs of SCAN_BATCH: fewer hand-overs, and the hub is read for a run at once.
+    free: queue.Queue = queue.Queue()  # frames done with, for the decoder to reuse
+    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop, SCAN_BATCH, free),
+                              daemon=True)
     try:
         # Inside the try: a region outside the frame must not leave the file open.
         detectors = detectors_for((info.width_px, info.height_px))
@@ -154,19 +165,29 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
                 break
             if isinstance(item, BaseException):
                 raise item
-            _, t, frame = item
-            if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
-                raise VideoError(f"{path}: frame {len(stamps)} has another size than the first")
-            stamps.append(t)
-            for k, det in enumerate(detectors):
-                results[k].append(det(frame))
-            if len(stamps) == next_focus:
-                next_focus *= 2
+            frames = [frame for _, _, frame in item]
+            for j, frame in enumerate(frames):
+                if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
+                    raise VideoError(f"{path}: frame {len(stamps) + j} has another size than "
+                                     "the first")
+            hubs = [det.hubs(frames) if isinstance(det, _WheelScan) else None
+                    for det in detectors]
+            for j, (_, t, frame) in enumerate(item):
+                stamps.append(t)
                 for k, det in enumerate(detectors):
-                    if isinstance(det, _WheelScan) and det.blobs.path is None:
-                        det.focus(results[k])
-            if progress is not None:
-                progress(len(stamps), info.frame_count)
+                    results[k].append(det(frame) if hubs[k] is None
+                                      else det.candidates(frame, hubs[k][j]))
+                if len(stamps) == next_focus:
+                    next_focus *= 2
+                    for k, det in enumerate(detectors):
+                        if isinstance(det, _WheelScan) and det.blobs.path is None:
+                            det.focus(results[k])
+                if progress is not None:
+                    progress(len(stamps), info.frame_count)
+            # Nothing keeps a frame (the results are new arrays): the decoder may reuse them.
+            for frame in frames:
+                free.put(frame)
+            del item, frames
     finally:
         stop.set()
         if worker.is_alive():
@@ -200,16 +221,36 @@ class _WheelScan:
         return (hub[0] - self.hub0[0], hub[1] - self.hub0[1])
 
     def __call__(self, frame: np.ndarray):
-        k = self.frames
-        self.frames += 1
-        if self.hub is None or (self.sparse and k % STILL_CHECK_FRAMES):
-            hub = (math.nan, math.nan, 0.0)
-        else:
-            hub = self.hub(frame)
-            if self.hub0 is None and math.isfinite(hub[0]):
-                self.hub0 = (hub[0], hub[1])
-            self._watch(hub)
+        return self.candidates(frame, self.hubs([frame])[0])
+
+    def candidates(self, frame: np.ndarray, hub: tuple[float, float, float]):
+        """``(candidates, hub)`` of one frame whose hub :meth:`hubs` gave."""
         return self.blobs(frame, self.shift(hub)), hub
+
+    def hubs(self, frames: list[np.ndarray]) -> list[tuple[float, float, float]]:
+        """The hub in each of the next frames (NaN where it is not tracked: off, or a still
+        camera between its checks), runs of tracked frames read at once."""
+        out: list[tuple[float, float, float]] = []
+        j = 0
+        while j < len(frames):
+            if self.hub is None or (self.sparse and self.frames % STILL_CHECK_FRAMES):
+                found = [(math.nan, math.nan, 0.0)]
+            elif self.sparse:
+                found = [self.hub(frames[j])]
+            else:
+                # Up to where the still-camera test may change what is tracked.
+                end = len(frames) if len(self.first) >= STILL_CHECK_AFTER else \
+                    min(len(frames), j + STILL_CHECK_AFTER - len(self.first))
+                found = self.hub.many(frames[j:end])
+            for hub in found:
+                if self.hub is not None and math.isfinite(hub[0]):
+                    if self.hub0 is None:
+                        self.hub0 = (hub[0], hub[1])
+                    self._watch(hub)
+                self.frames += 1
+                out.append(hub)
+            j += len(found)
+        return out
 
     def _watch(self, hub: tuple[float, float, float]) -> None:
         """Decide after the first frames whether the camera is still; leave the sparse mode
@@ -233,6 +274,10 @@ class _WheelScan:
         # The latest frames only: the cost of a try stays bounded however long the video.
         results = results[-FOCUS_FRAMES:]
         n = len(results)
+        # The marker can be found at most in the frames with a candidate: when they are too few
+        # (a fender hides part of each turn), no path search can pass the test below.
+        if sum(len(c) > 0 for c, _ in results) < FOCUS_FOUND * n:
+            return
         cands = [c[:, :2] - np.array(self.shift(h)) for c, h in results]
         frame_idx = np.concatenate([np.full(len(c), i) for i, c in enumerate(cands)]).astype(int)
         xy = np.concatenate(cands)
@@ -242,7 +287,7 @@ class _WheelScan:
                                  np.random.default_rng(1), hypotheses=200)
         except VideoError:
             return
-        if track.found.mean() >= 0.9 and track.coverage >= FOCUS_COVERAGE:
+        if track.found.mean() >= FOCUS_FOUND and track.coverage >= FOCUS_COVERAGE:
             self.blobs.focus(track.path)
 
 

@@ -26,6 +26,9 @@ from ..errors import VideoError
 FOURCC_BY_SUFFIX = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG",
                     ".mkv": "MJPG", ".webm": "VP80"}
 
+#: Coarsest container clock whose rounding of a constant frame rate is undone [s] (WebM and
+#: Matroska timestamps are whole milliseconds).
+TIMESTAMP_RESOLUTION_S = 0.001
 #: Relative spread of frame intervals above which a video counts as variable frame rate.
 VARIABLE_RATE_TOLERANCE = 0.02
 
@@ -52,8 +55,13 @@ class VideoInfo:
     height_px: int
 
 
-def open_video(path: str | Path):
+def open_video(path: str | Path, decoder_threads: int | None = None):
     """Open a video for reading; return ``(capture, VideoInfo)``.
+
+    ``decoder_threads`` caps FFmpeg's decoding threads (default: OpenCV's, one per core). One
+    is the cheapest in CPU time (FFmpeg's frame threads cost 5-50 % more CPU time for mp4v and
+    MJPG on this 2-core machine, varying with its load), for a caller that already decodes in a
+    thread of its own beside its analysis.
 
     Raises
     ------
@@ -71,7 +79,15 @@ def open_video(path: str | Path):
     if p.is_dir():
         raise VideoError(f"{p}: is a folder, not a video")
     try:
-        cap = cv2.VideoCapture(str(p))
+        cap = None
+        if decoder_threads is not None:
+            cap = cv2.VideoCapture(str(p), cv2.CAP_FFMPEG,
+                                   [cv2.CAP_PROP_N_THREADS, int(decoder_threads)])
+            if not cap.isOpened():  # not FFmpeg's: whatever backend OpenCV picks
+                cap.release()
+                cap = None
+        if cap is None:
+            cap = cv2.VideoCapture(str(p))
     except cv2.error as err:
         raise VideoError(f"{p}: OpenCV cannot open it: {err}") from err
     if not cap.isOpened():
@@ -85,14 +101,25 @@ def open_video(path: str | Path):
     return cap, info
 
 
-def iter_frames(cap) -> Iterator[tuple[int, float, np.ndarray]]:
-    """Yield ``(index, timestamp [s] or NaN, BGR frame)`` until the video ends."""
+def iter_frames(cap, free: queue.Queue | None = None
+                ) -> Iterator[tuple[int, float, np.ndarray]]:
+    """Yield ``(index, timestamp [s] or NaN, BGR frame)`` until the video ends.
+
+    ``free``: frames the consumer is done with, decoded into again when they fit (no fresh
+    megabyte of memory per frame: its page faults and cache misses cost the decoding thread
+    about a tenth of decoding's time in measure-video's pipeline)."""
     import cv2
 
     index = 0
     while True:
+        buf = None
+        if free is not None:
+            try:
+                buf = free.get_nowait()
+            except queue.Empty:
+                pass
         try:
-            ok, frame = cap.read()
+            ok, frame = cap.read() if buf is None else cap.read(buf)
         except cv2.error as err:
             raise VideoError(f"decoding failed at frame {index}: {err}") from err
         if not ok or frame is None:
@@ -114,19 +141,33 @@ def _put_unless_stopped(out: queue.Queue, item, stop: threading.Event) -> bool:
     return False
 
 
-def decode_ahead(cap, out: queue.Queue, stop: threading.Event) -> None:
+def decode_ahead(cap, out: queue.Queue, stop: threading.Event, batch: int = 0,
+                 free: queue.Queue | None = None) -> None:
     """Decode every frame of ``cap`` into ``out`` (a helper thread's body).
 
-    Puts the :func:`iter_frames` items, then ``None`` at the end or the exception that stopped
-    decoding (the consumer re-raises it). Returns as soon as ``stop`` is set, also while the
-    queue is full (a consumer that gave up never leaves this thread blocked).
+    Puts the :func:`iter_frames` items (with ``batch`` > 0: lists of up to ``batch`` of them,
+    fewer hand-overs), then ``None`` at the end or the exception that stopped decoding (the
+    consumer re-raises it; the frames before it are handed over first). ``free``: see
+    :func:`iter_frames`. Returns as soon as
+    ``stop`` is set, also while the queue is full (a consumer that gave up never leaves this
+    thread blocked).
     """
+    run: list = []
     try:
-        for item in iter_frames(cap):
+        for item in iter_frames(cap, free):
+            if batch > 0:
+                run.append(item)
+                if len(run) < batch:
+                    continue
+                item, run = run, []
             if not _put_unless_stopped(out, item, stop):
                 return
+        if run and not _put_unless_stopped(out, run, stop):
+            return
         _put_unless_stopped(out, None, stop)
     except BaseException as err:  # handed to the consumer, which re-raises it
+        if run and not _put_unless_stopped(out, run, stop):
+            return
         _put_unless_stopped(out, err, stop)
 
 
@@ -158,7 +199,9 @@ def frame_times(stamps_s: np.ndarray, fps_nominal: float, fps_override: float | 
 
     Container timestamps are used when they are finite and strictly increasing; a video whose
     intervals vary is flagged ``variable`` (its timestamps are still used: the speed estimator
-    takes uneven spacing). ``fps_override`` replaces both.
+    takes uneven spacing). Timestamps that are the declared frame rate rounded to the
+    container's clock (within :data:`TIMESTAMP_RESOLUTION_S` / 2) give the exact times of that
+    rate. ``fps_override`` replaces both.
 
     Raises
     ------
@@ -173,6 +216,15 @@ def frame_times(stamps_s: np.ndarray, fps_nominal: float, fps_override: float | 
     st = np.asarray(stamps_s, dtype=float)
     if n >= 2 and np.isfinite(st).all() and (np.diff(st) > 0).all():
         t = st - st[0]
+        if math.isfinite(fps_nominal) and fps_nominal > 0:
+            grid = np.arange(n) / fps_nominal
+            off_grid = float(np.max(np.abs(t - grid)))
+            if 1e-6 < off_grid <= TIMESTAMP_RESOLUTION_S / 2 + 1e-9:
+                # The declared rate, rounded to the container's clock (WebM and Matroska count
+                # whole milliseconds: 33, 33, 34 ms at 30 fps): the exact times, not the rounded
+                # ones, which would put 3 % errors into the speed at the ends of runs. (Exact
+                # timestamps are kept as they are.)
+                return FrameTiming(grid, float(fps_nominal), "timestamps", False)
         d = np.diff(t)
         med = float(np.median(d))
         variable = bool(np.max(np.abs(d - med)) > VARIABLE_RATE_TOLERANCE * med)
