@@ -15,7 +15,10 @@ Issue 12's targets (``--issue12``): a single 2-s recording diagnoses in under 10
 data as the baseline: the 2-s recording is a 200 rpm step at 500 Hz from the simulated model with
 a hidden breakaway and per-wheel gains (and, when ``../shared/data/real/micromouse`` is there,
 each real recording alone); the campaign is the paper-like default (12 recordings) with a
-hidden ceiling.
+hidden ceiling. Wall and CPU time (``time.process_time``: this process, all threads) are printed
+side by side with the load average (the machine is shared), and the real recordings are also
+diagnosed as a user runs them, one fresh ``mecanum-hil diagnose`` process each (imports and
+loading the compiled kernels included).
 
 Run: ``python bench/bench_diagnose.py [--quick] [--issue12]`` (``--quick``: fewer recordings).
 """
@@ -55,6 +58,45 @@ def _timed(f):
     return out, time.perf_counter() - t0
 
 
+def _timed_cpu(f):
+    """Result, wall time [s] and CPU time of this process (all its threads) [s]."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = f()
+    return out, time.perf_counter() - t0, time.process_time() - c0
+
+
+def _load() -> str:
+    try:
+        with open("/proc/loadavg") as f:
+            return " ".join(f.read().split()[:3])
+    except OSError:
+        return "n/a"
+
+
+def _cli_diagnose(csv, robot_toml) -> tuple[float, float]:
+    """Wall and CPU time [s] of ``mecanum-hil fit`` + ``diagnose`` as a user runs them (a fresh
+    process each: imports and loading the compiled kernels included); the diagnose alone."""
+    import resource
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    exe = [str(Path(sys.executable).with_name("mecanum-hil"))]
+    with tempfile.TemporaryDirectory() as tmp:
+        fit_toml = str(Path(tmp) / "fit.toml")
+        subprocess.run([*exe, "fit", str(csv), "--robot", str(robot_toml), "-o", fit_toml,
+                        "--no-report"], check=True, capture_output=True)
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        subprocess.run([*exe, "diagnose", str(csv), "--robot", str(robot_toml), "-c", fit_toml,
+                        "-o", str(Path(tmp) / "diag.toml")], check=True, capture_output=True)
+        wall = time.perf_counter() - t0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu
+
+
 def issue12() -> None:
     """The two timing targets of issue 12, each with a fit of the same data as the baseline."""
     from pathlib import Path
@@ -82,16 +124,28 @@ def issue12() -> None:
     hidden = sim_effects_for(Effects(top_speed_rpm=110.0), wheel_rpm_std=0.25, seed=1)
     camp = paper_campaign(hidden, robot, seed=1)
     cases.append((f"campaign of {len(camp)} recordings (ceiling)", camp, robot))
+    print(f"load average before: {_load()}")
     for label, recs, rob in cases:
-        fitted, t_fit = _timed(lambda recs=recs, rob=rob: fit(recs, rob))
-        d, t_diag = _timed(lambda recs=recs, rob=rob, c=fitted.calibration: diagnose(recs, c,
-                                                                                      rob))
-        rows.append((label, sum(len(r) for r in recs), t_fit, t_diag, d))
-    print("| data | samples | fit [s] | diagnose [s] | ratio | named | wheel RMSE [rpm] |")
-    print("|---|---|---|---|---|---|---|")
-    for label, n, tf, td, d in rows:
-        print(f"| {label} | {n} | {tf:.2f} | {td:.1f} | {td / tf:.0f} x | "
-              f"{', '.join(d.effects) or 'none'} | {d.rmse_initial:.3g} -> {d.rmse_final:.3g} |")
+        fitted, t_fit, c_fit = _timed_cpu(lambda recs=recs, rob=rob: fit(recs, rob))
+        d, t_diag, c_diag = _timed_cpu(
+            lambda recs=recs, rob=rob, c=fitted.calibration: diagnose(recs, c, rob))
+        rows.append((label, sum(len(r) for r in recs), t_fit, c_fit, t_diag, c_diag, d,
+                     _load()))
+    print("In process (the first case also loads the compiled kernels):")
+    print("| data | samples | fit wall / CPU [s] | diagnose wall / CPU [s] | ratio (wall, CPU) | "
+          "named | wheel RMSE [rpm] | load after |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, n, tf, cf, td, cd, d, load in rows:
+        print(f"| {label} | {n} | {tf:.2f} / {cf:.2f} | {td:.1f} / {cd:.1f} | "
+              f"{td / tf:.0f} x, {cd / max(cf, 1e-9):.0f} x | {', '.join(d.effects) or 'none'} | "
+              f"{d.rmse_initial:.4g} -> {d.rmse_final:.4g} | {load} |")
+    if real.is_dir():
+        print("As a user runs it (a fresh `mecanum-hil diagnose` process per recording):")
+        print("| recording | diagnose wall / CPU [s] | load after |")
+        print("|---|---|---|")
+        for p in sorted(real.glob("*.csv")):
+            wall, cpu = _cli_diagnose(p, real / "robot.toml")
+            print(f"| {p.stem} | {wall:.1f} / {cpu:.1f} | {_load()} |")
 
 
 def main() -> None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import re
+import threading
 from collections.abc import Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -321,6 +322,72 @@ def few_threads(work: float):
         numba.set_num_threads(before)
 
 
+#: ``openblas_set_num_threads`` / ``..._get_...`` under the names OpenBLAS builds export.
+_BLAS_SYMBOLS = (("openblas_set_num_threads", "openblas_get_num_threads"),
+                 ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
+                 ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+                 ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"))
+_blas_lock = threading.Lock()
+_blas_depth = 0
+_blas_saved: list[tuple[Any, int]] = []
+
+
+def _openblas_controls() -> list[tuple[Any, Any]]:
+    """(set, get) thread-count functions of every OpenBLAS loaded in this process (numpy's and
+    scipy's are separate libraries); none where ``/proc/self/maps`` is not there."""
+    import ctypes
+
+    try:
+        with open("/proc/self/maps") as f:
+            paths = sorted({line.split()[-1] for line in f if ".so" in line
+                            and "openblas" in line.rsplit("/", 1)[-1].lower()})
+    except OSError:
+        return []
+    out = []
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for set_name, get_name in _BLAS_SYMBOLS:
+            if hasattr(lib, set_name) and hasattr(lib, get_name):
+                out.append((getattr(lib, set_name), getattr(lib, get_name)))
+                break
+    return out
+
+
+@contextmanager
+def one_blas_thread():
+    """Run OpenBLAS on one thread inside (re-entrant; the counts are restored after).
+
+    A fit's linear algebra is many small products of a tall Jacobian; OpenBLAS spreads each
+    over its threads, whose waiting spins take the cores the simulator needs: on the 2-core
+    machine of ``docs/diagnose.md`` (Timings) a campaign's diagnosis took 2.7 x the CPU time
+    with OpenBLAS's default threads. One thread also makes the sums' order, and so the fitted
+    values, the same on every machine.
+    """
+    global _blas_depth
+    with _blas_lock:
+        if _blas_depth == 0:
+            _blas_saved.clear()
+            for set_threads, get_threads in _openblas_controls():
+                try:
+                    _blas_saved.append((set_threads, int(get_threads())))
+                    set_threads(1)
+                except (OSError, ValueError, TypeError):  # pragma: no cover - odd builds
+                    continue
+        _blas_depth += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_depth -= 1
+            if _blas_depth == 0:
+                for set_threads, count in _blas_saved:
+                    set_threads(count)
+                _blas_saved.clear()
+
+
 def _simulate(p: _Prepared, calibs: Sequence[Calibration], robot: RobotProfile):
     state = p.initial_states(calibs)
     with few_threads(len(calibs) * p.t_s.size * 4):
@@ -330,12 +397,51 @@ def _simulate(p: _Prepared, calibs: Sequence[Calibration], robot: RobotProfile):
     return traj.wheel_rpm, traj.pose
 
 
+def _simulate_all(data: Sequence[_Prepared], calibs: Sequence[Calibration],
+                  robot: RobotProfile) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Wheel speeds and poses, shape (len(calibs), T, .), of every recording: recordings on the
+    same time grid run as one batch (a campaign's steps: one call instead of one per
+    recording; each robot's result does not depend on its batch)."""
+    groups: dict[bytes, list[int]] = {}
+    for i, p in enumerate(data):
+        groups.setdefault(p.t_s.tobytes(), []).append(i)
+    out: list[tuple[np.ndarray, np.ndarray]] = [None] * len(data)  # type: ignore[list-item]
+    k = len(calibs)
+    for idx in groups.values():
+        if len(idx) == 1:
+            out[idx[0]] = _simulate(data[idx[0]], calibs, robot)
+            continue
+        m = len(idx)
+        members = [data[i] for i in idx]
+        # robot k * m + j: calibration k on recording j of the group
+        cmds = np.tile(np.stack([p.commands for p in members]), (k, 1, 1))
+        pose0 = np.tile(np.array([p.pose0 for p in members], dtype=float), (k, 1))
+        states = [p.initial_states(calibs) for p in members]
+        state = None
+        if any(s is not None for s in states):
+            width = next(s for s in states if s is not None).shape[1]
+            per = [s if s is not None else np.zeros((k, width)) for s in states]
+            state = np.stack(per, axis=1).reshape(k * m, width)
+        cmd0 = None
+        if any(p.start_rpm.any() for p in members):
+            cmd0 = np.tile(np.array([p.commands[0] if p.start_rpm.any() else np.zeros(3)
+                                     for p in members]), (k, 1))
+        per_robot = [c for c in calibs for _ in range(m)]
+        with few_threads(k * m * members[0].t_s.size * 4):
+            traj = simulate_batch(cmds, members[0].t_s, per_robot, robot, initial_pose=pose0,
+                                  initial_state=state, initial_command=cmd0)
+        wheels = traj.wheel_rpm.reshape(k, m, *traj.wheel_rpm.shape[1:])
+        pose = traj.pose.reshape(k, m, *traj.pose.shape[1:])
+        for j, i in enumerate(idx):
+            out[i] = (wheels[:, j], pose[:, j])
+    return out
+
+
 def _residual_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration], robot: RobotProfile,
                    pose_weight: float) -> np.ndarray:
     """Residual vectors ``measured - model``, one row per calibration (wheels, then poses)."""
     parts = []
-    for p in data:
-        wheels, pose = _simulate(p, calibs, robot)
+    for p, (wheels, pose) in zip(data, _simulate_all(data, calibs, robot), strict=True):
         parts.append((p.wheel_rpm[None] - wheels)[:, p.wheel_mask])
         if pose_weight > 0 and p.pose_mask.any():
             d = p.pose[None] - pose
@@ -462,6 +568,29 @@ def _local_minima(sse: np.ndarray, count: int) -> np.ndarray:
     return idx[np.argsort(sse.ravel()[idx], kind="stable")][:count]
 
 
+def _median_period_s(data: Sequence[_Prepared]) -> float:
+    steps = np.concatenate([np.diff(p.t_s) for p in data])
+    return float(np.median(steps)) if steps.size else 0.0
+
+
+def _grid_axis(name: str, axis, period_s: float) -> np.ndarray:
+    """A start grid axis extended, at its own log spacing, up to the fastest time scale the
+    samples resolve: ``A`` and ``B`` up to ``2 / period_s`` [1/s], ``C`` up to its square.
+    (The default axes already reach 1000 1/s; a 1 kHz log of a fast motor needs more.)"""
+    axis = np.asarray(axis, dtype=float)
+    if not period_s > 0 or axis.size < 2 or axis[-2] <= 0:
+        return axis
+    fastest = 2.0 / period_s
+    top = fastest ** 2 if name == "C" else fastest
+    ratio = axis[-1] / axis[-2]
+    extra = []
+    v = axis[-1]
+    while v < top and ratio > 1.0 and len(extra) < 20:
+        v *= ratio
+        extra.append(v)
+    return np.concatenate([axis, extra]) if extra else axis
+
+
 def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, float]]:
     """Starting points: given values, else the best local minima of a logarithmic grid over the
     free coefficients (the compiled grid kernel for a linear model), a scan for dead time, and
@@ -478,8 +607,9 @@ def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, 
     if grid_names:
         linear = not base.effects.nonlinear
         spec = FINE_START_GRID if linear else START_GRID
-        axes = [np.asarray(spec[n] if n in grid_names else (getattr(base, n),), dtype=float)
-                for n in _COEFFICIENTS]
+        period = _median_period_s(data)
+        axes = [_grid_axis(n, spec[n], period) if n in grid_names else
+                np.asarray((getattr(base, n),), dtype=float) for n in _COEFFICIENTS]
         pts = np.array(np.meshgrid(*axes, indexing="ij")).reshape(3, -1).T
         ok = (pts[:, 0] + pts[:, 1] > 0) & (pts[:, 2] > 0)
         sse = np.full(pts.shape[0], np.inf)
@@ -504,7 +634,11 @@ def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, 
     if "dead_time_s" in free and "dead_time_s" not in given:
         base = with_parameters(base, {n: starts[0][n] for n in _COEFFICIENTS if n in free})
         span = min(float(np.median([p.t_s[-1] - p.t_s[0] for p in data])) / 4.0, 0.5)
-        cands = np.unique(np.concatenate([[start["dead_time_s"]], np.linspace(0.0, span, 26)]))
+        # a coarse scan of the span, and every sample period up to 20 samples (a fast drive's
+        # dead time is a few samples, finer than the coarse scan)
+        period = _median_period_s(data)
+        cands = np.unique(np.concatenate([[start["dead_time_s"]], np.linspace(0.0, span, 26),
+                                          np.arange(0.0, min(span, 20.0 * period), period)]))
         calibs = [with_parameters(base, {"dead_time_s": c}) for c in cands]
         best = float(cands[int(np.argmin(_sse_of(data, calibs, robot)))])
         for s in starts:
@@ -552,8 +686,10 @@ def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free:
     return half, warnings
 
 
-def _metrics(data, calibration, robot) -> tuple[float, float, float, int, list[float]]:
-    rows = _residual_rows(data, [calibration], robot, 0.0)[0]
+def _metrics(data, calibration, robot, rows=None) -> tuple[float, float, float, int, list[float]]:
+    # rows: the wheel residuals of ``calibration`` when the caller has them
+    if rows is None:
+        rows = _residual_rows(data, [calibration], robot, 0.0)[0]
     measured = np.concatenate([p.wheel_rpm[p.wheel_mask] for p in data])
     sse = float(rows @ rows)
     n = measured.size
@@ -594,7 +730,10 @@ def finish(data, calibration, robot, free, x, method, *, J=None, r=None, pose_we
                             "interior optimum) is only indicative")
     params = {n: float(v) for n, v in zip(free, x, strict=True)}
     cal = with_parameters(calibration, params)
-    sse, rmse, fit_pct, n, per = _metrics(data, cal, robot)
+    # without pose channels the search's last residual is the wheels' at x: no new simulation
+    # (contiguous, as a fresh simulation's: the sums then run in the same order)
+    sse, rmse, fit_pct, n, per = _metrics(data, cal, robot,
+                                          np.ascontiguousarray(r) if pose_weight == 0 else None)
     ci = {n: (float(x[i] - half[i]), float(x[i] + half[i])) for i, n in enumerate(free)}
     info: dict[str, Any] = {
         "method": method,
@@ -679,6 +818,13 @@ def fit_parameters(
     FitError
         Bad input (see :func:`prepare`), an unknown parameter, or no convergence.
     """
+    with one_blas_thread():
+        return _fit_parameters(recordings, calibration, robot, free, x0, bounds, pose_weight,
+                               sources, max_evaluations)
+
+
+def _fit_parameters(recordings, calibration, robot, free, x0, bounds, pose_weight, sources,
+                    max_evaluations) -> FitResult:
     from scipy.optimize import least_squares
 
     free = list(dict.fromkeys(free))
@@ -690,14 +836,22 @@ def fit_parameters(
         raise FitError(f"pose_weight must be a finite number >= 0, got {pose_weight!r}")
     data = prepare(recordings, robot, sources)
     lo, hi = _bounds(free, bounds)
-    problem = _Problem(data, calibration, robot, free, lo, hi, pose_weight)
+    # parameters the fitted channels cannot depend on (the gain of a wheel never measured, on
+    # wheel speeds alone) stay where they start: searching them only costs evaluations
+    held = _unseen(data, free, pose_weight)
+    fixed = {n: float(np.clip((x0 or {}).get(n, parameter_value(calibration, n)),
+                              lo[free.index(n)], hi[free.index(n)])) for n in held}
+    live = [n for n in free if n not in fixed]
+    idx = [free.index(n) for n in live]
+    base = with_parameters(calibration, fixed)
+    problem = _Problem(data, base, robot, live, lo[idx], hi[idx], pose_weight)
     best = None
     failures = []
-    for start in _starts(data, calibration, robot, free, x0, lo, hi):
-        x_start = np.array([start[n] for n in free])
+    for start in _starts(data, base, robot, live, x0, lo[idx], hi[idx]):
+        x_start = np.array([start[n] for n in live])
         budget = max_evaluations or 200 * len(free)
         try:
-            sol = least_squares(problem.fun, x_start, jac=problem.jac, bounds=(lo, hi),
+            sol = least_squares(problem.fun, x_start, jac=problem.jac, bounds=(lo[idx], hi[idx]),
                                 x_scale="jac", method="trf", max_nfev=budget)
         except (ValueError, np.linalg.LinAlgError) as err:
             failures.append(f"least squares failed: {err}")
@@ -707,15 +861,37 @@ def fit_parameters(
             failures.append(f"least squares did not converge: {sol.message}")
             continue
         if max_evaluations is None:
-            sol = _restarted(problem, sol, lo, hi, budget)
+            sol = _restarted(problem, sol, lo[idx], hi[idx], budget)
         if best is None or sol.cost < best.cost:
             best = sol
     if best is None:
         raise FitError(failures[0] if failures else "least squares did not converge")
-    x = best.x
-    r, J = problem.fun(x), problem.jac(x)
+    r, J_live = problem.fun(best.x), problem.jac(best.x)
+    # the held parameters' Jacobian columns are zero: finish reports them not identifiable
+    x = np.array([fixed[n] if n in fixed else 0.0 for n in free])
+    x[idx] = best.x
+    J = np.zeros((J_live.shape[0], len(free)))
+    J[:, idx] = J_live
     return finish(data, calibration, robot, free, x, "lsq", J=J, r=r, pose_weight=pose_weight,
                   lower=lo, upper=hi, info_extra={"evaluations": problem.nfev})
+
+
+def _unseen(data: Sequence[_Prepared], free: Sequence[str], pose_weight: float) -> list[str]:
+    """Free parameters no fitted residual depends on: with the pose channels unused (no weight
+    or no pose measured), a wheel gain of a wheel measured in no recording, and the slip
+    efficiencies. Empty when every free parameter would be held (nothing left to fit)."""
+    pose = pose_weight > 0 and any(p.pose_mask.any() for p in data)
+    if pose:
+        return []
+    seen = np.zeros(4, bool)
+    for p in data:
+        seen |= p.wheel_mask.any(axis=0)
+    out = []
+    for n in free:
+        m = _INDEXED.match(n)
+        if m and (m.group(1) == "efficiency" or not seen[int(m.group(2))]):
+            out.append(n)
+    return out if len(out) < len(free) else []
 
 
 def _restarted(problem, sol, lo, hi, max_nfev: int):

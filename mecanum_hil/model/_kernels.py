@@ -44,17 +44,24 @@ def _exp_se2(a):
 
 
 @njit(cache=True, inline="always")
-def _lag_pair(y, dl, c, B, a, ts):
+def _lag_factors(B, a, ts):
+    """``exp(-B ts)``, the integral of ``exp(-B s)`` over ``ts`` and ``exp(-a ts)`` (0 without a
+    lag): the same for the four wheels, so computed once per piece."""
+    eb = math.exp(-B * ts)
+    g = ts if B * ts < 1e-9 else (1.0 - eb) / B  # integral of exp(-B s) over the piece
+    ea = math.exp(-a * ts) if a < np.inf else 0.0
+    return eb, g, ea
+
+
+@njit(cache=True, inline="always")
+def _lag_pair(y, dl, c, B, a, ts, eb, g, ea):
     """Wheel speed and lagged drive after ``ts`` seconds of held controller output ``c``.
 
     ``dl' = a (c - dl)`` (``a = 1 / drive_lag_s``; ``a = inf``: no lag, ``dl = c``) and
-    ``y' = dl - B y``, solved exactly.
+    ``y' = dl - B y``, solved exactly; ``eb, g, ea`` from :func:`_lag_factors` of ``ts``.
     """
-    eb = math.exp(-B * ts)
-    g = ts if B * ts < 1e-9 else (1.0 - eb) / B  # integral of exp(-B s) over the piece
     if not a < np.inf:
         return y * eb + c * g, c
-    ea = math.exp(-a * ts)
     dl_new = c + (dl - c) * ea
     # integral of exp(-B (ts - s)) (dl - c) exp(-a s) ds
     if abs(a - B) * ts < 1e-7:
@@ -75,7 +82,7 @@ def _drive_at_rest(per, a, A, C, u, z, h, dl):
 
 
 @njit(cache=True, inline="always")
-def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q):
+def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q, eb, g, ea):
     """Advance wheel ``i`` over ``ts`` seconds on the path of the drive's own dynamics.
 
     Between controller ticks (``per > 0``) the held output drives the motor exactly; a
@@ -84,7 +91,8 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q):
     continuous PI with a lag holds its output over the piece (first order in the piece). A
     wheel at rest with ``brk > 0`` stays at rest until the drive's magnitude exceeds ``brk``,
     at the instant it does (found in closed form, so the model is smooth in ``brk``).
-    Accumulates the integral of the speed over the piece into ``q[i]``.
+    Accumulates the integral of the speed over the piece into ``q[i]``. ``eb, g, ea``:
+    :func:`_lag_factors` of ``ts`` (when the path needs them).
     """
     yi = y[i]
     rem = ts
@@ -130,12 +138,14 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q):
             if rem <= 1e-12:
                 return
     # moving
+    if rem != ts:
+        eb, g, ea = _lag_factors(B, a, rem)
     zi = z[i]
     if per <= 0 and not a < np.inf:
         c = A * (u - yi) + C * zi
         if c > dmax or c < -dmax:
             sg = 1.0 if c > 0 else -1.0
-            y_new, _ = _lag_pair(yi, 0.0, sg * dmax, B, np.inf, rem)
+            y_new, _ = _lag_pair(yi, 0.0, sg * dmax, B, np.inf, rem, eb, g, ea)
             if sg * (u - yi) < 0:
                 zi += (u - yi) * rem
         else:
@@ -154,7 +164,7 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q):
             c = A * (u - yi) + C * zi
             clipped = c > dmax or c < -dmax
             c = min(max(c, -dmax), dmax)
-        y_new, dl[i] = _lag_pair(yi, dl[i], c, B, a, rem)
+        y_new, dl[i] = _lag_pair(yi, dl[i], c, B, a, rem, eb, g, ea)
         if per <= 0 and (not clipped or (c > 0) != (u - yi > 0)):
             zi += (u - 0.5 * (yi + y_new)) * rem
     q[i] += 0.5 * (yi + y_new) * rem
@@ -342,9 +352,13 @@ def simulate_kernel(
                             _controller_tick(ub, per, A, C, dmax, y, z, hold)
                             until_tick = per
                         piece = min(rem, until_tick) if per > 0 else rem
+                        if per > 0 or a_lag < np.inf or saturating:
+                            eb_p, g_p, ea_p = _lag_factors(B, a_lag, piece)
+                        else:  # the closed-form PI path (tab) needs none
+                            eb_p = g_p = ea_p = 0.0
                         for i in range(4):
                             _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, dmax,
-                                         y, z, hold, dl, tab, q)
+                                         y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
                         rem -= piece
                         if per > 0:
                             until_tick -= piece

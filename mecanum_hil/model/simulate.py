@@ -20,6 +20,8 @@ start of each sub-step; within a sub-step each mode is again solved exactly.
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -111,8 +113,43 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
     return state
 
 
+#: Plans (time grids, step-length tables) of recent calls, by their inputs' bytes: a fit
+#: simulates the same recording hundreds of times, and these cost as much as a short kernel.
+_PLANS: OrderedDict = OrderedDict()
+_PLANS_MAX = 64
+_PLANS_LOCK = threading.Lock()
+
+
+def _memo(key, make):
+    """``make()`` for ``key`` (hashable, the full input), remembered for the last calls."""
+    with _PLANS_LOCK:
+        hit = _PLANS.get(key)
+        if hit is not None:
+            _PLANS.move_to_end(key)
+            return hit
+    value = make()
+    for v in value:
+        if isinstance(v, np.ndarray):
+            v.flags.writeable = False
+    with _PLANS_LOCK:
+        _PLANS[key] = value
+        while len(_PLANS) > _PLANS_MAX:
+            _PLANS.popitem(last=False)
+    return value
+
+
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
     """Refine the time grid so a dead time is exact; return grid, delayed commands, sample index."""
+    grid, src, sample_idx = _memo(("delay", t.tobytes(), float(delay_s)),
+                                  lambda: _delay_plan(t, float(delay_s)))
+    delayed = np.where((src >= 0)[None, :, None], cmd[:, np.clip(src, 0, None), :],
+                       initial_command[:, None, :])
+    return grid, delayed, sample_idx
+
+
+def _delay_plan(t: np.ndarray, delay_s: float):
+    """The refined grid, each grid point's source sample (-1: before the first) and the
+    samples' places on the grid."""
     eps = 1e-9 * max(1.0, abs(t[-1]))
     shifted = t + delay_s
     shifted = shifted[shifted < t[-1]]
@@ -124,10 +161,8 @@ def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command:
     grid = np.union1d(t, shifted[~near])
     grid = grid[np.concatenate([[True], np.diff(grid) > eps])]
     src = np.searchsorted(t, grid - delay_s + 2 * eps, side="right") - 1
-    delayed = np.where((src >= 0)[None, :, None], cmd[:, np.clip(src, 0, None), :],
-                       initial_command[:, None, :])
     sample_idx = np.searchsorted(grid, t - eps)
-    return grid, delayed, sample_idx
+    return grid, src, sample_idx
 
 
 def _step_tables(calibs: Sequence[Calibration], dt: np.ndarray, max_substep_s: float | None):
@@ -139,6 +174,20 @@ def _step_tables(calibs: Sequence[Calibration], dt: np.ndarray, max_substep_s: f
     per matrix against ~1 us compiled.
     """
     from .discretise import discretise_many
+
+    didx, nsub, h_uniq = _memo(("steps", dt.tobytes(), max_substep_s),
+                               lambda: _step_lengths(dt, max_substep_s))
+    # each distinct coefficient set once (a Jacobian's perturbations share most)
+    rows: dict[tuple[float, float, float], int] = {}
+    which = np.array([rows.setdefault(tuple(c.coefficients), len(rows)) for c in calibs],
+                     dtype=np.int64)
+    table = discretise_many(np.array(list(rows), dtype=float), h_uniq)
+    return np.ascontiguousarray(table[which]), didx, nsub
+
+
+def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
+    """Per step: its row among the distinct (sub-)step lengths and its sub-step count; and
+    those lengths."""
     from .stepper import substeps
 
     nsub = substeps(dt, max_substep_s)
@@ -146,11 +195,7 @@ def _step_tables(calibs: Sequence[Calibration], dt: np.ndarray, max_substep_s: f
     # step lengths equal to rounding share one table row
     key = np.round(h * 1e12).astype(np.int64)
     _, first, didx = np.unique(key, return_index=True, return_inverse=True)
-    h_uniq = h[first]
-    coeffs = np.array([c.coefficients for c in calibs], dtype=float)
-    distinct, which = np.unique(coeffs, axis=0, return_inverse=True)
-    table = discretise_many(distinct, h_uniq)
-    return np.ascontiguousarray(table[which.reshape(-1)]), didx.astype(np.int64), nsub
+    return didx.astype(np.int64).reshape(-1), nsub, h[first]
 
 
 def simulate_batch(
@@ -211,6 +256,7 @@ def simulate_batch(
         raise ConfigError("commands contain NaN or infinite values")
     calibs = [calibration] if isinstance(calibration, Calibration) else list(calibration)
     n_rob = max(cmd.shape[0], len(calibs))
+    shared = cmd.shape[0] == 1  # one command stream for all robots (a fit's Jacobian)
     if cmd.shape[0] == 1 and n_rob > 1:
         cmd = np.broadcast_to(cmd, (n_rob, t.size, 3))
     if len(calibs) == 1:
@@ -254,8 +300,16 @@ def simulate_batch(
         members = np.flatnonzero([k == key for k in keys])
         whole = members.size == n_rob
         group = calibs if whole else [calibs[i] for i in members]
-        gcmd = cmd if whole else cmd[members]
-        if delay > 0:
+        one = shared and members.size > 1 and bool(np.all(cmd0[members] == cmd0[members[0]]))
+        if one:  # the robots' (delayed) commands are one stream: computed once, not copied
+            gcmd = np.broadcast_to(cmd[0], (members.size, t.size, 3))
+        else:
+            gcmd = cmd if whole else cmd[members]
+        if delay > 0 and one:
+            grid, first, sample_idx = _delay_grid(t, gcmd[:1], float(delay),
+                                                  cmd0[members[:1]])
+            gcmd = np.broadcast_to(first[0], (members.size, grid.size, 3))
+        elif delay > 0:
             grid, gcmd, sample_idx = _delay_grid(t, gcmd, float(delay), cmd0[members])
         else:
             grid, sample_idx = t, None

@@ -281,13 +281,16 @@ def _fit_deadband(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
         r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)).ravel()
         for r in ev.recs])
     targets = targets[targets > 1e-9]
-    top = float(min(0.3 * targets.max(), 30.0)) if targets.size else 0.0
+    reach = float(0.3 * targets.max()) if targets.size else 0.0
+    top = min(reach, 30.0)
     if top <= 0.5:
         raise FitError("no small wheel targets in the data: a deadband cannot be seen")
     cal = base
+    # 1 rpm steps up to 30 rpm; a fast robot's larger targets extend the scan (30 steps more)
+    wide = np.linspace(30.0, reach, 31)[1:] if reach > 60.0 else np.empty(0)
 
     def scan(cal: Calibration, center: float | None) -> tuple[float, tuple[float, float]]:
-        coarse = np.arange(0.0, top + 1e-9, 1.0) if center is None else \
+        coarse = np.concatenate([np.arange(0.0, top + 1e-9, 1.0), wide]) if center is None else \
             np.arange(max(center - 1.5, 0.0), center + 1.5 + 1e-9, 0.1)
         sse, n = _deadband_grid(ev, cal, coarse)
         best = float(coarse[int(np.argmin(sse))])

@@ -104,6 +104,14 @@ def _heldout_folds(ev: _Evaluator, cal: Calibration, free: list[str],
     return HeldOut(fit_ms, sum(sq.values()) / n_all, per)
 
 
+def in_sample_ms(ev: _Evaluator, cal: Calibration, channel: str = "wheel") -> float:
+    """In-sample mean square residual of ``cal`` on ``channel`` (:attr:`HeldOut.fit_ms`)."""
+    base = ev.channel(ev.predict([cal])[0], channel)
+    recs = [i for i in sorted(base) if base[i].size]
+    n_all = sum(base[i].size for i in recs)
+    return sum(float(base[i] @ base[i]) for i in recs) / n_all if n_all else float("nan")
+
+
 def heldout_score(ev: _Evaluator, cal: Calibration, free: Sequence[str],
                   channel: str = "wheel") -> HeldOut:
     """Approximate held-out residual of a fitted model (package docstring, step 3).

@@ -356,3 +356,76 @@ def residual_shape(recordings: Sequence[Recording], residuals: Sequence[np.ndarr
                 b += 1
             zeta = float((freqs[b] - freqs[a]) / (2.0 * fdom))
     return ResidualShape(shares, fdom, zeta)
+
+
+# --------------------------------------------------------------------------- findings
+
+#: A loop lacks integral action when its proportional part leaves more than this share of the
+#: target ...
+P_ONLY_GAP = 0.03
+#: ... and its integral closes less than this share of that gap within a typical step ...
+P_ONLY_INTEGRAL = 0.1
+#: ... while its proportional part settles within it (the fast pole's time constants per step).
+P_ONLY_SETTLED = 5.0
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A named property of the fitted model that is not an effect of the signal path.
+
+    Attributes
+    ----------
+    effect : str
+        Its name (``proportional_only``).
+    parameters : dict of str to float
+        Its figures, with units in the names.
+    description : str
+        One sentence for the report.
+    """
+
+    effect: str
+    parameters: dict[str, float]
+    description: str
+
+
+def typical_step_s(recordings: Sequence[Recording], robot: RobotProfile) -> float:
+    """Median duration of the steps of the wheel targets over all recordings [s] (NaN without
+    steps); see :mod:`mecanum_hil.identify.steps`."""
+    from ..regimes import wheel_targets
+    from ..steps import split_steps
+
+    durations = []
+    for rec in recordings:
+        wheels = [w for w in range(4) if np.isfinite(rec.wheel_rpm[:, w]).any()]
+        for s in split_steps(rec.t_s, wheel_targets(rec, robot), wheels):
+            end = rec.t_s[s.stop] if s.stop < len(rec) else rec.t_s[-1]
+            durations.append(float(end - s.t_start_s))
+    return float(np.median(durations)) if durations else math.nan
+
+
+def proportional_only(calibration: Calibration, step_s: float) -> Finding | None:
+    """The missing integral action, when the model shows it: a proportional-only speed loop.
+
+    With ``A`` the loop's proportional and ``C`` its integral gain (times the motor's), the
+    proportional part alone settles at ``A / (A + B)`` of the target with the time constant
+    ``1 / (A + B)``, and the integral then closes the rest with the slow time constant about
+    ``(A + B) / C``. Named when, over a typical step of ``step_s``, the proportional part
+    settles (``(A + B) step_s >= P_ONLY_SETTLED``), leaves more than ``P_ONLY_GAP`` of the
+    target (``B / (A + B)``) and the integral closes less than ``P_ONLY_INTEGRAL`` of that gap
+    (``C step_s / (A + B)`` below it): every level then sits at a fixed fraction of its target.
+    The model already reproduces it (``C`` near 0): nothing is added to the calibration.
+    """
+    A, B, C = calibration.A, calibration.B, calibration.C
+    if not (math.isfinite(step_s) and step_s > 0 and A + B > 0):
+        return None
+    gap = B / (A + B)
+    if (A + B) * step_s < P_ONLY_SETTLED or gap <= P_ONLY_GAP \
+            or C * step_s / (A + B) >= P_ONLY_INTEGRAL:
+        return None
+    ratio = A / (A + B)
+    slow = (A + B) / C if C > 0 else math.inf
+    return Finding("proportional_only",
+                   {"level_ratio": ratio, "integral_time_s": slow},
+                   f"no integral action: every level settles at {100 * ratio:.1f} % of its "
+                   f"target (A / (A + B)); the integral would take about {slow:.3g} s to close "
+                   "the rest, far longer than a step (C near 0)")

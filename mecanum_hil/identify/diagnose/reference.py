@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..._jit import Kernel, njit
 from ...io.recording import Recording
 from ...model.kinematics import command_to_wheels
 from ...model.robot import RobotProfile
@@ -89,22 +90,77 @@ def _series(recordings: Sequence[Recording], robot: RobotProfile, dt: float):
     return out
 
 
-def _simulate(theta: np.ndarray, d: int, series, wheel_of: dict[int, int]) -> list[np.ndarray]:
-    from scipy.signal import lfilter, lfilter_zi
+@njit(cache=True)
+def _oe_kernel(a, b, dc, d, u, y0, gain, start, out):  # pragma: no cover - compiled
+    """Simulate ``y[k] = sum_i a_i y[k-i] + sum_j b_j g u[k-d-j]`` for every series.
 
-    a = np.concatenate([[1.0], -theta[:NA]])
-    b = theta[NA:NA + NB]
-    gains = theta[NA + NB:]
-    dc = float(np.sum(b) / np.sum(a)) if abs(np.sum(a)) > 1e-12 else 0.0
-    zi_unit = lfilter_zi(b, a) if abs(dc) > 1e-12 else np.zeros(max(NA, NB - 1))
-    sims = []
-    for k, (_, _, _, u, y, _) in enumerate(series):
-        g = gains[wheel_of[k]]
-        ud = np.concatenate([np.full(d, u[0]), u[:u.size - d]]) * g if d else u * g
-        # start at rest, or in steady state at the first measured speed
-        zi = zi_unit * (y[0] / dc) if abs(y[0]) > 1e-9 and abs(dc) > 1e-12 else zi_unit * 0.0
-        sims.append(lfilter(b, a, ud, zi=zi)[0])
-    return sims
+    Series ``s`` occupies ``start[s]:start[s + 1]`` of ``u`` and ``out``; the delayed input
+    before its start is its first target; the past (``k < 0``) is at rest, or in steady state
+    at ``y0[s]`` (past outputs ``y0``, past inputs ``y0 / dc``) when ``y0[s]`` and ``dc`` are
+    not zero (``scipy.signal.lfilter`` from ``lfilter_zi`` scaled so, the same recursion).
+    """
+    na = a.size
+    nb = b.size
+    for s in range(start.size - 1):
+        lo = start[s]
+        n = start[s + 1] - lo
+        g = gain[s]
+        steady = abs(y0[s]) > 1e-9 and abs(dc) > 1e-12
+        yp = y0[s] if steady else 0.0
+        up = y0[s] / dc if steady else 0.0
+        for k in range(n):
+            acc = 0.0
+            for i in range(na):
+                j = k - 1 - i
+                acc += a[i] * (out[lo + j] if j >= 0 else yp)
+            for i in range(nb):
+                j = k - i
+                if j < 0:
+                    acc += b[i] * up
+                else:
+                    m = j - d
+                    acc += b[i] * g * u[lo + (m if m > 0 else 0)]
+            out[lo + k] = acc
+
+
+def _simulate(theta: np.ndarray, d: int, series, wheel_of: dict[int, int]) -> list[np.ndarray]:
+    flat = _flat(series, wheel_of)
+    sim = _simulate_flat(theta, d, flat)
+    return [sim[flat.start[k]:flat.start[k + 1]] for k in range(len(series))]
+
+
+@dataclass(frozen=True)
+class _Flat:
+    """The series end to end, for the compiled simulation."""
+
+    u: np.ndarray       # targets [rpm]
+    y: np.ndarray       # measured speeds on the grid [rpm]
+    y0: np.ndarray      # first measured speed per series [rpm]
+    wheel: np.ndarray   # per series: index of its wheel gain
+    start: np.ndarray   # series s is start[s]:start[s + 1]
+
+
+def _flat(series, wheel_of: dict[int, int]) -> _Flat:
+    sizes = [s[3].size for s in series]
+    return _Flat(np.concatenate([s[3] for s in series]).astype(float),
+                 np.concatenate([s[4] for s in series]).astype(float),
+                 np.array([float(s[4][0]) for s in series]),
+                 np.array([wheel_of[k] for k in range(len(series))], dtype=np.int64),
+                 np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64))
+
+
+def _simulate_flat(theta: np.ndarray, d: int, flat: _Flat) -> np.ndarray:
+    a = np.ascontiguousarray(theta[:NA], dtype=float)
+    b = np.ascontiguousarray(theta[NA:NA + NB], dtype=float)
+    den = 1.0 - float(np.sum(a))
+    dc = float(np.sum(b) / den) if abs(den) > 1e-12 else 0.0
+    out = np.empty(flat.u.size)
+    # compiled always: the search calls it thousands of times
+    run = _oe_kernel.compiled() if isinstance(_oe_kernel, Kernel) else _oe_kernel
+    run(a, b, dc, int(d), flat.u, flat.y0,
+                          np.ascontiguousarray(theta[NA + NB:], dtype=float)[flat.wheel],
+                          flat.start, out)
+    return out
 
 
 def _arx(series, d: int, n_wheels: int) -> np.ndarray | None:
@@ -155,10 +211,10 @@ def fit_reference(recordings: Sequence[Recording], robot: RobotProfile) -> Refer
 def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
     from scipy.optimize import least_squares
 
+    flat = _flat(series, wheel_of)
+
     def resid(theta, d):
-        sims = _simulate(theta, d, series, wheel_of)
-        return np.concatenate([y - s for (_, _, _, _, y, _), s in zip(series, sims,
-                                                                       strict=True)])
+        return flat.y - _simulate_flat(theta, d, flat)
 
     # the delay by the ARX estimates' simulation error (cheap), then output-error refinement
     # from the best few

@@ -80,6 +80,103 @@ def plot_comparison(measured: Recording, curves: dict[str, Recording], path: str
     return save_figure(fig, path, dpi=100)
 
 
+#: Most steps drawn in one per-step figure (one small panel each); the table lists them all.
+MAX_STEP_PANELS = 24
+
+
+def step_rows(recording: Recording, curves: dict[str, Recording], robot: RobotProfile,
+              noise_rpm: float = 0.0):
+    """Per step and per measured wheel: time to 50 % and level of the measured speeds and of
+    each model's prediction (:func:`mecanum_hil.identify.steps.step_table`)."""
+    from ..regimes import wheel_targets
+    from ..steps import step_table
+
+    series = {"measured": recording.wheel_rpm, **{k: c.wheel_rpm for k, c in curves.items()}}
+    return step_table(recording.t_s, wheel_targets(recording, robot), series, noise_rpm)
+
+
+def step_table_lines(rows, labels: Sequence[str], period_s: float, noise_rpm: float
+                     ) -> list[str]:
+    """The per-step markdown table and one line on the worst step of the last model."""
+    head = " / ".join(["measured", *labels])
+    md = [f"| wheel | step | t [s] | target [rpm] | time to 50 % [ms] {head} | "
+          f"level [rpm] {head} |", "|---|---|---|---|---|---|"]
+
+    def ms(v: float) -> str:
+        return "-" if not np.isfinite(v) else f"{1000 * v:.1f}"
+
+    def rpm(v: float) -> str:
+        return "-" if not np.isfinite(v) else f"{v:.4g}"
+
+    for r in rows:
+        s = r.step
+        keys = ["measured", *labels]
+        md.append(f"| {s.wheel + 1} | {s.index + 1} | {s.t_start_s:.3f} | {s.target_rpm:.4g} | "
+                  + " / ".join(ms(r.figures[k].t50_s) for k in keys) + " | "
+                  + " / ".join(rpm(r.figures[k].level_rpm) for k in keys) + " |")
+    if labels and rows:
+        last = labels[-1]
+        worst_t = worst_l = 0.0
+        for r in rows:
+            me, mo = r.figures["measured"], r.figures[last]
+            if np.isfinite(me.t50_s) and np.isfinite(mo.t50_s):
+                worst_t = max(worst_t, abs(mo.t50_s - me.t50_s)
+                              / max(0.2 * me.t50_s, 2.0 * period_s))
+            if np.isfinite(me.level_rpm) and np.isfinite(mo.level_rpm):
+                worst_l = max(worst_l, abs(mo.level_rpm - me.level_rpm)
+                              / max(0.03 * abs(r.step.target_rpm), 1.5 * noise_rpm, 1e-12))
+        md += ["", f"Worst step of `{last}`: time-to-50 % error {worst_t:.2f} x its tolerance "
+               "(max(20 % of the measured time, 2 samples)), level error "
+               f"{worst_l:.2f} x its tolerance (max(3 % of the target, 1.5 noise levels)); "
+               "1 or less: every step within both."]
+    return md
+
+
+def plot_steps(recording: Recording, curves: dict[str, Recording], rows, path: str | Path,
+               title: str = "") -> Path:
+    """Measured speeds (dots) and model curves step by step: one small panel per step of the
+    first measured wheel (at most :data:`MAX_STEP_PANELS`), each from just before the step to
+    where it has settled (the whole step, or ten measured times to 50 % when that is shorter,
+    at least a quarter of the step), with the target dotted and the step's level marked."""
+    from ...plots import _pyplot, save_figure
+
+    plt = _pyplot()
+    wheel = rows[0].step.wheel if rows else 0
+    mine = [r for r in rows if r.step.wheel == wheel][:MAX_STEP_PANELS]
+    n = max(len(mine), 1)
+    cols = min(5, n)
+    nrows = math.ceil(n / cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(2.6 * cols, 2.2 * nrows), squeeze=False)
+    t = recording.t_s
+    y = recording.wheel_rpm[:, wheel]
+    styles = ["--", "-", ":", "-."]
+    for ax, r in zip(axes.flat, mine, strict=False):
+        s = r.step
+        dur = s.t_end_s - s.t_start_s
+        t50 = r.figures["measured"].t50_s
+        span = dur if not np.isfinite(t50) else min(dur, max(10.0 * t50, 0.25 * dur))
+        lo, hi = s.t_start_s - 0.1 * span, s.t_start_s + span
+        sel = (t >= lo) & (t <= hi)
+        ax.plot(1000 * (t[sel] - s.t_start_s), y[sel], ".", ms=2, color="0.45")
+        for j, c in enumerate(curves.values()):
+            ax.plot(1000 * (c.t_s[sel] - s.t_start_s), c.wheel_rpm[sel, wheel],
+                    styles[j % 4], lw=1.1)
+        ax.axhline(s.target_rpm, color="k", lw=0.6, ls=":")
+        ax.axvline(0.0, color="k", lw=0.5)
+        ax.set_title(f"step {s.index + 1}: {s.before_rpm:.4g} -> {s.target_rpm:.4g} rpm",
+                     fontsize=7)
+        ax.tick_params(labelsize=6)
+        ax.grid(True, alpha=0.3)
+    for ax in list(axes.flat)[len(mine):]:
+        ax.set_visible(False)
+    axes.flat[0].legend(["measured", *curves], fontsize=6)
+    fig.supxlabel("time since the step [ms]", fontsize=8)
+    fig.supylabel(f"wheel {wheel + 1} speed [rpm]", fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return save_figure(fig, path, dpi=100)
+
+
 def _fmt(v: float, digits: int = 4) -> str:
     return "n/a" if not np.isfinite(v) else f"{v:.{digits}g}"
 
@@ -171,6 +268,11 @@ def write_report(diagnosis: Diagnosis, recordings: Sequence[Recording], out_dir:
                               out / f"step{k}-{step.effect}.png",
                               f"step {k}: {step.effect} on {names[i]}")
         md += ["", f"Where the gap shrank most ({names[i]}):", "", f"![step {k}]({png.name})", ""]
+    for f in d.findings:
+        md += [f"## Named: {f.effect}", "", f"{f.description[0].upper()}{f.description[1:]} "
+               "(`docs/diagnose.md`: carried by A, B, C; nothing is added to the "
+               "calibration).", "", "| figure | value |", "|---|---|",
+               *[f"| `{k}` | {_fmt(v, 5)} |" for k, v in f.parameters.items()], ""]
     c = d.check
     md += ["## What remains", "", "```", *d.localisation_final.lines(), "```", ""]
     if d.shape is not None:
@@ -198,12 +300,40 @@ def write_report(diagnosis: Diagnosis, recordings: Sequence[Recording], out_dir:
                "explains; it is largest in: "
                + (", ".join(d.localisation_final.worst_regimes()) or "no single regime")
                + ".", "", f"![unexplained]({png.name})"]
+    md += _step_section(d, recordings, names, rob, out)
     path = out / "report.md"
     try:
         path.write_text("\n".join(md) + "\n")
     except OSError as err:
         raise MecanumHILError(f"{path}: cannot write report: {err.strerror or err}") from err
     return path
+
+
+def _step_section(d: Diagnosis, recordings: Sequence[Recording], names: Sequence[str],
+                  robot: RobotProfile, out: Path) -> list[str]:
+    """The "step by step" section: per recording, the per-step table of measured, fit alone (A, B, C
+    refitted alone) and diagnosed, and ``steps-<n>.png``."""
+    from ..steps import LEVEL_SHARE
+
+    md = ["", "## Step by step", "",
+          "Each recording cut at the jumps of each wheel's target "
+          "(`mecanum_hil/identify/steps.py`). Time to 50 %: from the step to the crossing of "
+          "half the way from the level before to the level reached, each series against its "
+          "own levels, linearly interpolated (`-`: the step does not move the wheel); level: "
+          f"the mean over the last {100 * LEVEL_SHARE:.0f} % of the step. `fit alone` is A, B, "
+          "C refitted alone (the baseline), `diagnosed` the final model.", ""]
+    for k, (rec, name) in enumerate(zip(recordings, names, strict=True), start=1):
+        curves = {"fit alone": predict(rec, d.baseline, robot),
+                  "diagnosed": predict(rec, d.calibration, robot)}
+        rows = step_rows(rec, curves, robot, d.noise_rpm)
+        if not rows:
+            continue
+        period = float(np.median(np.diff(rec.t_s))) if len(rec) > 1 else 0.0
+        png = plot_steps(rec, curves, rows, out / f"steps-{k}.png",
+                         f"{name}: measured, fit alone, diagnosed, step by step")
+        md += [f"### {name}", "", *step_table_lines(rows, list(curves), period, d.noise_rpm),
+               "", f"![steps of {name}]({png.name})", ""]
+    return md
 
 
 #: The demo's hidden effect: the drive's ceiling the paper's data show near the top speed.

@@ -16,6 +16,7 @@ from ...model.robot import RobotProfile
 from ...prediction import require_commands
 from ..fit import (
     fit_parameters,
+    one_blas_thread,
     parameter_value,
     toml_key,
     with_parameters,
@@ -29,16 +30,19 @@ from .candidates import (
     effect_parameters,
     fit_candidate,
 )
-from .heldout import HeldOut, heldout_score
+from .heldout import HeldOut, heldout_score, in_sample_ms
 from .localise import (
+    Finding,
     ResidualCheck,
     ResidualShape,
     _Evaluator,
     _predictions,
     _rmse_per_recording,
     initial_pose_at_rest,
+    proportional_only,
     residual_check,
     residual_shape,
+    typical_step_s,
 )
 from .reference import explained_share, fit_reference
 
@@ -149,6 +153,8 @@ class Diagnosis:
     shape: ResidualShape | None = None
     pose_rmse_initial: tuple[float, float] = (math.nan, math.nan)
     pose_rmse_final: tuple[float, float] = (math.nan, math.nan)
+    #: Named properties of the final model that add nothing to it (``proportional_only``).
+    findings: tuple[Finding, ...] = ()
 
     @property
     def explained_share(self) -> float:
@@ -164,8 +170,8 @@ class Diagnosis:
 
     @property
     def effects(self) -> list[str]:
-        """Names of the effects added."""
-        return [s.effect for s in self.steps]
+        """Names of the effects added, then of the findings (``proportional_only``)."""
+        return [s.effect for s in self.steps] + [f.effect for f in self.findings]
 
     def to_json(self) -> dict[str, Any]:
         """The ``--json`` document (keys of issues 7 and 12; ``docs/diagnose.md``)."""
@@ -181,7 +187,11 @@ class Diagnosis:
                          "share": num(self.share(s)),
                          "pose_rmse_before": pose(_pose_pair(s.pose_rmse_before)),
                          "pose_rmse_after": pose(_pose_pair(s.pose_rmse_after))}
-                        for s in self.steps],
+                        for s in self.steps] + [
+                {"effect": f.effect, "parameters": {k: num(v) for k, v in f.parameters.items()},
+                 "rmse_before": self.rmse_final, "rmse_after": self.rmse_final, "share": None,
+                 "pose_rmse_before": pose(self.pose_rmse_final),
+                 "pose_rmse_after": pose(self.pose_rmse_final)} for f in self.findings],
             "unexplained": bool(self.unexplained),
             "rmse_initial": self.rmse_initial,
             "rmse_final": self.rmse_final,
@@ -246,7 +256,8 @@ def diagnose(
     DiagnoseError
         Fewer than two recordings, no measured wheel speeds, or an unknown candidate.
     """
-    return _diagnose(recordings, calibration, robot, names, candidates, max_rounds, echo)
+    with one_blas_thread():  # many small products of tall matrices (identify/fit.py)
+        return _diagnose(recordings, calibration, robot, names, candidates, max_rounds, echo)
 
 
 def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, echo) -> Diagnosis:
@@ -297,6 +308,7 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
 
     steps: list[DiagnoseStep] = []
     rejected: tuple[CandidateScore, ...] = ()
+    carried: tuple[Calibration, tuple, HeldOut] | None = None
     wheel_cands = [c for c in candidates if c != "slip" and c not in accepted]
     pose_cands = [c for c in candidates if c == "slip" and c not in accepted]
     for channel, pool in (("wheel", wheel_cands), ("pose", pose_cands)):
@@ -310,9 +322,12 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
             # the wheels pin A, B, C; on the pose channels only slip's parameters move
             moving = cur_free if channel == "wheel" else [
                 n for n in cur_free if n.startswith("efficiency")]
-            h0 = heldout_score(ev, current, moving, channel)
+            # the last winner's own score is this model's (same calibration, parameters, channel)
+            h0 = carried[2] if carried and carried[0] is current and carried[1] == (
+                channel, tuple(moving)) else heldout_score(ev, current, moving, channel)
             s0 = _score(h0, scale2)
             if steps and channel == "wheel" and s0 > NOISE_FLOOR_SCORE:
+                refitted = current
                 # refit the model just extended from where its fit stopped, so a candidate of
                 # this round gets no credit for a search that merely went on further
                 # (the cost is not smooth where a drive limit switches on, so a search may
@@ -333,34 +348,55 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
                     last_ci = {**last_ci, **more.ci95}
                     if more.sse > 0.99 * sse_now:
                         break
-                h0 = heldout_score(ev, current, moving, channel)
-                s0 = _score(h0, scale2)
+                if current is not refitted:
+                    h0 = heldout_score(ev, current, moving, channel)
+                    s0 = _score(h0, scale2)
             say(f"round {len(steps) + 1} ({channel}): held-out score {s0:.3f} "
                 "(mean square / noise^2; 1 = noise floor)")
             if s0 <= NOISE_FLOOR_SCORE:
                 say("  the residual is at the noise floor: nothing significant is left")
                 rejected = ()
                 break
+            f0 = h0.fit_ms / scale2
+            if not f0 - 1.0 > MIN_EXCESS * f0:
+                # a candidate must remove MIN_EXPLAINED of the in-sample excess, and there is
+                # none: no candidate can qualify, so none is fitted
+                say(f"  in sample the residual is at the noise floor (score {f0:.3f}): no "
+                    "candidate can explain a significant part")
+                rejected = ()
+                break
             scores: list[CandidateScore] = []
             fits: dict[str, _Fitted] = {}
+            held: dict[str, HeldOut] = {}
             for effect in pool:
                 try:
                     f = fit_candidate(ev, effect, current, cur_free, names, noise)
+                    f1 = in_sample_ms(ev, f.calibration, channel) / scale2
+                    in_sample = (f0 - f1) / (f0 - 1.0)
+                    # held out only what can qualify: one that removes too little of the
+                    # in-sample excess is rejected whatever its held-out score
                     h1 = heldout_score(ev, f.calibration, f.free if channel == "wheel" else [
-                        n for n in f.free if n.startswith("efficiency")], channel)
+                        n for n in f.free if n.startswith("efficiency")], channel) \
+                        if in_sample >= MIN_EXPLAINED else None
                 except (FitError, ConfigError) as err:
                     scores.append(CandidateScore(effect, {}, {}, math.nan, math.nan, -math.inf,
                                                  -math.inf, note=str(err), in_sample=-math.inf))
                     say(f"  {effect:11s} failed: {err}")
                     continue
+                fits[effect] = f
+                ci = {n: f.ci95[n] for n in (*effect_parameters(effect),) if n in f.ci95}
+                if h1 is None:
+                    scores.append(CandidateScore(effect, _effect_values(f.calibration, effect),
+                                                 ci, math.sqrt(f1 * scale2), math.nan, math.nan,
+                                                 math.nan, in_sample=in_sample))
+                    say(f"  {effect:11s} explains {100 * in_sample:6.1f} % of the excess in "
+                        f"sample (< {100 * MIN_EXPLAINED:.0f} %: not scored held out)  "
+                        f"{_effect_values(f.calibration, effect)}")
+                    continue
+                held[effect] = h1
                 s1 = _score(h1, scale2)
                 explained = (s0 - s1) / max(s0 - 1.0, 1e-12)
                 relative = (s0 - s1) / s0
-                f0, f1 = h0.fit_ms / scale2, h1.fit_ms / scale2
-                # no in-sample excess over the noise floor: nothing for a candidate to explain
-                in_sample = (f0 - f1) / (f0 - 1.0) if f0 - 1.0 > MIN_EXCESS * f0 else 0.0
-                fits[effect] = f
-                ci = {n: f.ci95[n] for n in (*effect_parameters(effect),) if n in f.ci95}
                 scores.append(CandidateScore(effect, _effect_values(f.calibration, effect), ci,
                                              math.sqrt(h1.fit_ms), math.sqrt(h1.heldout_ms),
                                              explained, relative, in_sample=in_sample))
@@ -392,6 +428,8 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
             say(f"  -> {win.effect} added: wheel RMSE {before[0]:.3f} -> {after[0]:.3f} rpm")
             current = f.calibration
             cur_free = list(f.free)
+            carried = (current, (channel, tuple(cur_free if channel == "wheel" else [
+                n for n in cur_free if n.startswith("efficiency")])), held[win.effect])
             last_ci = {**last_ci, **f.ci95}
             pool = [c for c in pool if c != win.effect]
             rejected = ()
@@ -423,5 +461,16 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
         if all(map(math.isfinite, v))}, source="<diagnose>")
     return Diagnosis(tuple(steps), unexplained, rmse_initial, rmse_base, final[0], noise,
                      initial, baseline, final_cal, loc0, loc1, check, rejected, names,
-                     rmse_ref, shape, _pose_pair(base_rm[2]), _pose_pair(final[2]))
+                     rmse_ref, shape, _pose_pair(base_rm[2]), _pose_pair(final[2]),
+                     _findings(final_cal, recs, rob, say))
+
+
+def _findings(cal: Calibration, recs: Sequence[Recording], robot: RobotProfile,
+              say: Callable[[str], None]) -> tuple[Finding, ...]:
+    """Named properties of the final model (:func:`.localise.proportional_only`)."""
+    found = proportional_only(cal, typical_step_s(recs, robot))
+    if found is None:
+        return ()
+    say(f"named: proportional_only: {found.description}")
+    return (found,)
 
