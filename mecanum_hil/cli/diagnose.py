@@ -66,6 +66,12 @@ def command(
     named = ", ".join(f"{s.effect} {s.parameters} ({100 * diag.share(s):.0f} % of the gap)"
                       for s in diag.steps) or "nothing missing"
     typer.echo(f"named: {named}")
+    for s in diag.steps:
+        if s.equivalent is not None:
+            q = s.equivalent
+            typer.echo(f"drive_lag: equally, a lag of {q['drive_lag_s']:.4g} s with A = "
+                       f"{q['A']:.4g}, B = {q['B']:.4g}, C = {q['C']:.4g} (the same wheel "
+                       "speeds: they cannot tell the drive's lag from the motor's time constant)")
     for entry in diag.to_json()["effects"]:
         if entry["effect"] == "slip" and entry["pose_rmse_before"]["position_m"] is not None:
             b, a = entry["pose_rmse_before"], entry["pose_rmse_after"]

@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from .._jit import njit
-from ..model._kernels import _exp_se2
+from ..model._kernels import _controller_tick, _drive_piece, _exp_se2, _lag_factors
 from ..model.discretise import discretise_step
 
 _RPM_S_TO_RAD = 2.0 * math.pi / 60.0
@@ -47,7 +47,8 @@ P_FLOOR = 31  # 7 noise floors
 P_CMD0 = 38  # 3 values: command in force before the first sample (start from rest)
 P_TOL = 41  # timing tolerance [s]
 P_SAFETY = 42  # noise estimate margin [standard errors]
-P_WIDTH = 43
+P_PER, P_LAG, P_BRK = 43, 44, 45  # the drive's own dynamics (0 when absent)
+P_WIDTH = 46
 
 # --- float state ``fs`` ------------------------------------------------------------------------
 S_Y, S_Z, S_UE, S_TGT = 0, 4, 8, 12  # 4 values each
@@ -57,7 +58,9 @@ S_PX, S_PY, S_PPHI = 24, 25, 26  # model pose, phi in rad
 S_TANCH, S_HAVE_ANCH = 27, 28
 S_PRED = 29  # predicted value of each channel at the last sample (7)
 S_MEAS = 36  # measured value (7)
-S_WIDTH = 43
+S_HOLD, S_DL = 43, 47  # held controller outputs, lagged drive outputs (4 each) [rpm/s]
+S_UNTIL = 51  # time to the controller's next tick [s] (0: due)
+S_WIDTH = 52
 
 # --- per-channel state ``ch`` (N_CH, C_WIDTH) --------------------------------------------------
 C_SPOS, C_SNEG, C_SIGMA = 0, 1, 2
@@ -104,51 +107,57 @@ def _advance_piece(pp, fs, h, tab, q):
     rl = pp[P_RL]
     saturating = top < np.inf
     ramping = rl < np.inf
+    per = pp[P_PER]
+    dynamics = per > 0 or pp[P_LAG] > 0 or pp[P_BRK] > 0
     nsub = 1
-    if saturating or ramping:
+    if saturating or ramping or dynamics:
         nsub = max(1, math.ceil(h / pp[P_SUB] - 1e-9))
     hs = h / nsub
     A = pp[P_A]
     B = pp[P_B]
     C = pp[P_C]
     discretise_step(A, B, C, hs, tab)
+    tab[10] = hs
     drive_max = B * top
     k = pp[P_K]
     lin = _RPM_S_TO_RAD * pp[P_R]
     for _ in range(nsub):
-        for i in range(4):
-            u = fs[S_TGT + i]
-            if ramping:
-                d = u - fs[S_UE + i]
-                lim = rl * hs
-                if d > lim:
-                    d = lim
-                elif d < -lim:
-                    d = -lim
-                # the ramp's mean over the sub-step, as the simulator holds it
-                u = fs[S_UE + i] + 0.5 * d
-                fs[S_UE + i] += d
-            else:
-                fs[S_UE + i] = u
-            yi = fs[S_Y + i]
-            zi = fs[S_Z + i]
-            if saturating:
-                drive = A * (u - yi) + C * zi
-                if drive > drive_max or drive < -drive_max:
-                    sg = 1.0 if drive > 0 else -1.0
-                    ys = sg * top
-                    if B > 0:
-                        fs[S_Y + i] = ys + (yi - ys) * tab[9]
-                        q[i] = ys * hs + (yi - ys) * (1.0 - tab[9]) / B
-                    else:
-                        q[i] = yi * hs
-                    # anti-windup, as in the simulator
-                    if sg * (u - yi) < 0:
-                        fs[S_Z + i] = zi + (u - yi) * hs
-                    continue
-            q[i] = tab[6] * yi + tab[7] * zi + tab[8] * u
-            fs[S_Y + i] = tab[0] * yi + tab[1] * zi + tab[4] * u
-            fs[S_Z + i] = tab[2] * yi + tab[3] * zi + tab[5] * u
+        if dynamics:
+            _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max)
+        else:
+            for i in range(4):
+                u = fs[S_TGT + i]
+                if ramping:
+                    d = u - fs[S_UE + i]
+                    lim = rl * hs
+                    if d > lim:
+                        d = lim
+                    elif d < -lim:
+                        d = -lim
+                    # the ramp's mean over the sub-step, as the simulator holds it
+                    u = fs[S_UE + i] + 0.5 * d
+                    fs[S_UE + i] += d
+                else:
+                    fs[S_UE + i] = u
+                yi = fs[S_Y + i]
+                zi = fs[S_Z + i]
+                if saturating:
+                    drive = A * (u - yi) + C * zi
+                    if drive > drive_max or drive < -drive_max:
+                        sg = 1.0 if drive > 0 else -1.0
+                        ys = sg * top
+                        if B > 0:
+                            fs[S_Y + i] = ys + (yi - ys) * tab[9]
+                            q[i] = ys * hs + (yi - ys) * (1.0 - tab[9]) / B
+                        else:
+                            q[i] = yi * hs
+                        # anti-windup, as in the simulator
+                        if sg * (u - yi) < 0:
+                            fs[S_Z + i] = zi + (u - yi) * hs
+                        continue
+                q[i] = tab[6] * yi + tab[7] * zi + tab[8] * u
+                fs[S_Y + i] = tab[0] * yi + tab[1] * zi + tab[4] * u
+                fs[S_Z + i] = tab[2] * yi + tab[3] * zi + tab[5] * u
         bvx = 0.25 * (q[0] + q[1] + q[2] + q[3]) * pp[P_EFF]
         bvy = 0.25 * (-q[0] + q[1] + q[2] - q[3]) * pp[P_EFF + 1]
         bwz = 0.25 * (-q[0] + q[1] - q[2] + q[3]) / k * pp[P_EFF + 2]
@@ -161,6 +170,53 @@ def _advance_piece(pp, fs, h, tab, q):
         fs[S_PX] += cph * dxl - sph * dyl
         fs[S_PY] += sph * dxl + cph * dyl
         fs[S_PPHI] += a
+
+
+@njit(cache=True)
+def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
+    """One sub-step of the wheels with the drive's own dynamics (controller period, drive
+    lag, breakaway), exactly as the simulator's kernel advances it (pieces end at ticks)."""
+    A = pp[P_A]
+    B = pp[P_B]
+    C = pp[P_C]
+    per = pp[P_PER]
+    a_lag = 1.0 / pp[P_LAG] if pp[P_LAG] > 0 else np.inf
+    brk = pp[P_BRK]
+    dmax = drive_max if saturating else np.inf
+    rl = pp[P_RL]
+    ub = np.empty(4)
+    for i in range(4):
+        u = fs[S_TGT + i]
+        if ramping:
+            d = u - fs[S_UE + i]
+            lim = rl * hs
+            d = min(max(d, -lim), lim)
+            u = fs[S_UE + i] + 0.5 * d
+            fs[S_UE + i] += d
+        else:
+            fs[S_UE + i] = u
+        ub[i] = u
+        q[i] = 0.0
+    y = fs[S_Y:S_Y + 4]
+    z = fs[S_Z:S_Z + 4]
+    hold = fs[S_HOLD:S_HOLD + 4]
+    dl = fs[S_DL:S_DL + 4]
+    rem = hs
+    while rem > 1e-12:
+        if per > 0 and fs[S_UNTIL] <= 1e-12:
+            _controller_tick(ub, per, A, C, dmax, y, z, hold)
+            fs[S_UNTIL] = per
+        piece = min(rem, fs[S_UNTIL]) if per > 0 else rem
+        if per > 0 or a_lag < np.inf or saturating:
+            eb_p, g_p, ea_p = _lag_factors(B, a_lag, piece)
+        else:
+            eb_p = g_p = ea_p = 0.0
+        for i in range(4):
+            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, dmax, y, z, hold, dl, tab,
+                         q, eb_p, g_p, ea_p)
+        rem -= piece
+        if per > 0:
+            fs[S_UNTIL] -= piece
 
 
 @njit(cache=True)
@@ -271,12 +327,19 @@ def _residual(pp, fs, ch, buf, c, raw, r, t, ev, nev):
 def _slope(pp, fs, i):
     """Rate of change of the model's wheel ``i`` now [rpm/s] (drive output minus the pole)."""
     y = fs[S_Y + i]
-    drive = pp[P_A] * (fs[S_UE + i] - y) + pp[P_C] * fs[S_Z + i]
-    lim = pp[P_B] * pp[P_TOP]
-    if drive > lim:
-        drive = lim
-    elif drive < -lim:
-        drive = -lim
+    if pp[P_LAG] > 0:
+        drive = fs[S_DL + i]
+    elif pp[P_PER] > 0:
+        drive = fs[S_HOLD + i]
+    else:
+        drive = pp[P_A] * (fs[S_UE + i] - y) + pp[P_C] * fs[S_Z + i]
+        lim = pp[P_B] * pp[P_TOP]
+        if drive > lim:
+            drive = lim
+        elif drive < -lim:
+            drive = -lim
+    if y == 0.0 and abs(drive) <= pp[P_BRK]:
+        return 0.0  # held by static friction
     return drive - pp[P_B] * y
 
 
@@ -306,6 +369,10 @@ def _start(row, pp, fs):
             fs[S_Y + i] = 0.0
             fs[S_Z + i] = 0.0
             fs[S_UE + i] = 0.0
+        # the drive holding that speed (as the simulator's steady state): B y
+        fs[S_HOLD + i] = pp[P_B] * fs[S_Y + i]
+        fs[S_DL + i] = pp[P_B] * fs[S_Y + i]
+    fs[S_UNTIL] = 0.0
     if not (math.isnan(row[8]) or math.isnan(row[9]) or math.isnan(row[10])):
         fs[S_PX] = row[8]
         fs[S_PY] = row[9]

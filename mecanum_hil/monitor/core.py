@@ -176,6 +176,8 @@ def _params(cal: Calibration, robot: RobotProfile, cfg: ShadowConfig) -> np.ndar
     pp[kn.P_TOP], pp[kn.P_RL] = e.top_speed_rpm, e.rate_limit_rpm_per_s
     pp[kn.P_EFF:kn.P_EFF + 3] = e.efficiency
     pp[kn.P_DELAY], pp[kn.P_SUB] = e.dead_time_s, cfg.max_substep_s
+    pp[kn.P_PER], pp[kn.P_LAG], pp[kn.P_BRK] = (e.controller_period_s, e.drive_lag_s,
+                                               e.breakaway_rpm_per_s)
     pp[kn.P_DRIFT], pp[kn.P_THRESH] = cfg.drift_k, cfg.threshold_h
     pp[kn.P_WARM], pp[kn.P_MINN], pp[kn.P_CLEAR] = cfg.warmup_s, cfg.min_warmup_samples, cfg.clear_s
     pp[kn.P_PWIN] = cfg.pose_window_s
@@ -252,7 +254,7 @@ class ShadowMonitor:
         self._queue = np.zeros((64, 4))
         self._qi = np.zeros(2, dtype=np.int64)
         self._ev = np.zeros((kn.MAX_EVENTS, kn.E_WIDTH))
-        self._tab = np.zeros(10)
+        self._tab = np.zeros(11)  # a discretisation row and its step length (model/motor.py)
         self._q = np.zeros(4)
         self._row = np.full(11, np.nan)
         self._schedule: np.ndarray | None = None

@@ -74,20 +74,15 @@ HIDDEN = {
 HIDDEN_DRIVE = {
     "controller_period": (Effects(controller_period_s=0.05),
                           {"controller_period_s": (0.05, 0.001)}),
-    "drive_lag": (Effects(drive_lag_s=0.05), {"drive_lag_s": (0.05, 0.01)}),
+    # a lag the campaign shows (fit alone is 2x the noise); 50 ms on this slow loop changes
+    # nothing A, B, C cannot absorb. Named up to its exact twin (lag <-> motor pole, below).
+    "drive_lag": (Effects(drive_lag_s=0.12), {"drive_lag_s": (0.12, 0.024)}),
     "breakaway": (Effects(breakaway_rpm_per_s=1500.0), {"breakaway_rpm_per_s": (1500.0, 300.0)}),
 }
 
 
-_LAG_XFAIL = pytest.mark.xfail(
-    strict=False, reason="a 50 ms drive lag is named, but refitted A, B, C with a 7 ms lag "
-    "reproduce it nearly to the noise floor on this campaign: the lag is not pinned "
-    "(docs/diagnose.md, Honest limits)")
-
-
 @pytest.mark.parametrize("effect", [*HIDDEN, *(
-    pytest.param(e, marks=[pytest.mark.slow, *([_LAG_XFAIL] if e == "drive_lag" else [])])
-    for e in HIDDEN_DRIVE)])
+    pytest.param(e, marks=pytest.mark.slow) for e in HIDDEN_DRIVE)])
 def test_names_and_recovers_each_hidden_effect(effect, tmp_path):
     hidden, expect = {**HIDDEN, **HIDDEN_DRIVE}[effect]
     recs = _campaign(tmp_path, hidden)
@@ -96,6 +91,13 @@ def test_names_and_recovers_each_hidden_effect(effect, tmp_path):
     assert not d.unexplained
     step = d.steps[0]
     for name, (value, atol) in expect.items():
+        if effect == "drive_lag":
+            # wheel speeds cannot tell the drive's lag from the motor's time constant: the
+            # lag named or its twin (exchange_drive_lag, reported as "equivalent") is the truth
+            found = (step.parameters[name], step.equivalent[name])
+            assert min(abs(f - value) for f in found) <= atol, (found, d.to_json())
+            assert d.to_json()["effects"][0]["equivalent"][name] in found
+            continue
         np.testing.assert_allclose(step.parameters[name], value, atol=atol)
     if effect == "slip":
         # slip changes no wheel speed: its gap is in the pose, which must shrink by half

@@ -181,6 +181,18 @@ def _fmt(v: float, digits: int = 4) -> str:
     return "n/a" if not np.isfinite(v) else f"{v:.{digits}g}"
 
 
+def _equivalent_lines(step) -> list[str]:
+    """The drive lag's twin, which wheel speeds cannot tell from it."""
+    q = step.equivalent
+    if q is None:
+        return []
+    return [f"Equally: a lag of {q['drive_lag_s']:.4g} s with A = {q['A']:.5g} 1/s, "
+            f"B = {q['B']:.5g} 1/s, C = {q['C']:.5g} 1/s^2 gives exactly the same wheel speeds "
+            "(the lag and the motor's time constant exchanged, the PI gains rescaled): wheel "
+            "speeds cannot tell which is the drive's and which the motor's. A current or "
+            "voltage measurement, or breakaway, can.", ""]
+
+
 def _param_lines(step) -> list[str]:
     out = []
     for name in effect_parameters(step.effect):
@@ -233,6 +245,7 @@ def write_report(diagnosis: Diagnosis, recordings: Sequence[Recording], out_dir:
         spec = EFFECTS[step.effect]
         md += [f"## Step {k}: {step.effect}", "", f"*{spec.description}*", "",
                "| parameter | value | 95 % interval |", "|---|---|---|", *_param_lines(step), "",
+               *_equivalent_lines(step),
                "| candidate | held-out RMS | explains of excess (held out / in sample) | "
                "of score | parameters |",
                "|---|---|---|---|---|"]

@@ -11,7 +11,7 @@ import numpy as np
 
 from ...errors import ConfigError, DiagnoseError, FitError
 from ...io.recording import Recording
-from ...model.calibration import EFFECTS, Calibration
+from ...model.calibration import EFFECTS, Calibration, exchange_drive_lag
 from ...model.robot import RobotProfile
 from ...prediction import require_commands
 from ..fit import (
@@ -101,6 +101,19 @@ class DiagnoseStep:
     warnings: tuple[str, ...] = ()
     explained: float = math.nan
 
+    @property
+    def equivalent(self) -> dict[str, float] | None:
+        """For ``drive_lag``: the other model that gives exactly the same wheel speeds, the lag
+        and the motor's time constant exchanged (:func:`~mecanum_hil.model.calibration.
+        exchange_drive_lag`): ``drive_lag_s`` [s], ``A``, ``B`` [1/s], ``C`` [1/s^2]. Wheel
+        speeds cannot tell the two apart; ``None`` for other effects or without a twin."""
+        if self.effect != "drive_lag":
+            return None
+        twin = exchange_drive_lag(self.calibration_after)
+        if twin is None:
+            return None
+        return {"drive_lag_s": twin.effects.drive_lag_s, "A": twin.A, "B": twin.B, "C": twin.C}
+
 
 @dataclass(frozen=True)
 class Diagnosis:
@@ -181,13 +194,18 @@ class Diagnosis:
         def pose(v) -> dict[str, Any]:
             return {"position_m": num(v[0]), "heading_deg": num(v[1])}
 
+        def step(s: DiagnoseStep) -> dict[str, Any]:
+            out = {"effect": s.effect, "parameters": s.parameters,
+                   "rmse_before": s.rmse_before, "rmse_after": s.rmse_after,
+                   "share": num(self.share(s)),
+                   "pose_rmse_before": pose(_pose_pair(s.pose_rmse_before)),
+                   "pose_rmse_after": pose(_pose_pair(s.pose_rmse_after))}
+            if s.equivalent is not None:
+                out["equivalent"] = s.equivalent
+            return out
+
         return {
-            "effects": [{"effect": s.effect, "parameters": s.parameters,
-                         "rmse_before": s.rmse_before, "rmse_after": s.rmse_after,
-                         "share": num(self.share(s)),
-                         "pose_rmse_before": pose(_pose_pair(s.pose_rmse_before)),
-                         "pose_rmse_after": pose(_pose_pair(s.pose_rmse_after))}
-                        for s in self.steps] + [
+            "effects": [step(s) for s in self.steps] + [
                 {"effect": f.effect, "parameters": {k: num(v) for k, v in f.parameters.items()},
                  "rmse_before": self.rmse_final, "rmse_after": self.rmse_final, "share": None,
                  "pose_rmse_before": pose(self.pose_rmse_final),
