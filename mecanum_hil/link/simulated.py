@@ -167,6 +167,17 @@ class ControllerModel:
         self._pose = np.array(DEFAULT_POSE, dtype=float)
         self._anchor_cmd = _ZERO
         self.restart()
+        # a robot serves for as long as it runs: compile its simulator now, before the first
+        # HELLO, not when the interpreter's budget runs out in the middle of a session (a
+        # multi-second pause the host sees as a silent controller)
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        from .._jit import compiled
+        from ..model._kernels import simulate_kernel
+
+        compiled(simulate_kernel)
+        simulate(np.zeros((2, 3)), np.array([0.0, self.dt_s]), self._calibration(), self.robot)
 
     # -- timeline ----------------------------------------------------------------------------
     def restart(self) -> None:
