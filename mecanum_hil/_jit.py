@@ -132,23 +132,35 @@ def _interpreted(kernel: Kernel) -> Callable:
     return run
 
 
+def interpret(units: int) -> bool:
+    """Whether a job costing ``units`` of :data:`INTERPRETED_BUDGET` runs without numba.
+
+    True (and the budget charged) while the process's interpreted work stays within the budget
+    and no kernel module is compiled yet; False once numba is loaded or the budget would be
+    exceeded (or as ``MECANUM_HIL_JIT`` says). :func:`pick` decides with it, and so do numpy
+    paths that stand in for a kernel on small jobs (``mecanum_hil.model.linear``).
+    """
+    global _spent
+    mode = _mode()
+    # once numba is loaded for any kernel, another costs only its cache (tens of milliseconds)
+    if mode == "always" or (_compiled_modules and mode != "never"):
+        return False
+    with _lock:
+        if mode == "never" or _spent + units <= INTERPRETED_BUDGET:
+            _spent += units
+            return True
+    return False
+
+
 def pick(kernel: Kernel, robot_steps: int) -> Callable:
     """The kernel to run a job of ``robot_steps`` (robots x samples x sub-steps) with.
 
     The interpreter while the process's interpreted work stays within
     :data:`INTERPRETED_BUDGET` and no kernel module is compiled yet; numba's compiled code
-    otherwise (or as ``MECANUM_HIL_JIT`` says).
+    otherwise (or as ``MECANUM_HIL_JIT`` says): see :func:`interpret`.
     """
-    global _spent
     if not isinstance(kernel, Kernel):  # a module global already replaced by numba's dispatcher
         return kernel
-    mode = _mode()
-    # once numba is loaded for any kernel, another costs only its cache (tens of milliseconds)
-    if kernel._dispatcher is not None or mode == "always" or (_compiled_modules and
-                                                              mode != "never"):
-        return kernel.compiled()
-    with _lock:
-        if mode == "never" or _spent + robot_steps <= INTERPRETED_BUDGET:
-            _spent += robot_steps
-            return _interpreted(kernel)
+    if kernel._dispatcher is None and interpret(robot_steps):
+        return _interpreted(kernel)
     return kernel.compiled()

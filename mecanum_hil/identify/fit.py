@@ -10,7 +10,11 @@ base point and all finite-difference perturbations of a Jacobian together.
 Methods (see ``docs/fit.md``):
 
 * ``lsq`` -- :func:`scipy.optimize.least_squares` (trust-region reflective, bounds that keep the
-  model stable) from the best point of a coarse logarithmic grid, then 95 % Wald intervals
+  model stable) from the best points of a logarithmic grid (for the paper's model alone, whose
+  cost is smooth: the same bounded least squares by Levenberg-Marquardt without SciPy,
+  :mod:`mecanum_hil.identify.lsq`, and on a short recording the model in numpy,
+  :mod:`mecanum_hil.model.linear`: numba and SciPy cost more to load than such a fit takes),
+  then 95 % Wald intervals
   ``x +- t_{0.975, n-p} sqrt(diag(s^2 (J^T J)^-1))`` with ``s^2 = SSE / (n - p)``.
 * ``paper-grid`` -- the paper's three-pass grid search (:mod:`mecanum_hil.identify.grid`).
 """
@@ -30,7 +34,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ConfigError, FitError
 from ..io.recording import Recording
-from ..model.calibration import Calibration
+from ..model.calibration import Calibration, Effects
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
 from ..model.simulate import simulate_batch, steady_state
@@ -55,6 +59,8 @@ PARAMETER_NAMES: tuple[str, ...] = (
 
 _INDEXED = re.compile(r"^(gains|efficiency)\[(\d)\]$")
 _COEFFICIENTS = ("A", "B", "C")
+#: The paper's model: no effect present.
+_NO_EFFECTS = Effects()
 
 #: Default bounds: the model stays stable (A, B >= 0, C > 0) and effects physical.
 DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
@@ -309,9 +315,12 @@ def few_threads(work: float):
     than a few thousand steps take, and on a loaded machine a parallel launch waits for the
     busiest core, so small batches (a Jacobian) run faster serially.
     """
-    import numba
+    import sys
 
-    if work >= 200_000:
+    numba = sys.modules.get("numba")
+    if numba is None or work >= 200_000:
+        # numba not loaded: the job runs interpreted (mecanum_hil._jit), or compiles now and
+        # pays far more for loading numba than its threads could cost
         yield
         return
     before = numba.get_num_threads()
@@ -437,9 +446,41 @@ def _simulate_all(data: Sequence[_Prepared], calibs: Sequence[Calibration],
     return out
 
 
+def _paper_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration],
+                robot: RobotProfile) -> np.ndarray | None:
+    """Wheel residual rows of the paper's model (every calibration without effects) through
+    :mod:`mecanum_hil.model.linear`, when that costs less than loading numba; else None."""
+    from .._jit import interpret
+    from ..model.linear import wheel_speeds, work_units
+
+    if any(c.effects != _NO_EFFECTS for c in calibs):
+        return None
+    if not interpret(work_units(sum(p.t_s.size for p in data), 4 * len(calibs))):
+        return None
+    co = np.array([c.coefficients for c in calibs])
+    parts = []
+    for p in data:
+        targets = command_to_wheels(p.commands[:, 0], p.commands[:, 1], p.commands[:, 2],
+                                    robot.k)
+        h_s, h_idx = np.unique(np.diff(p.t_s), return_inverse=True)
+        y0 = z0 = None
+        if p.start_rpm.any():
+            # steady state at the measured speeds (mecanum_hil.model.simulate.steady_state)
+            y0 = np.broadcast_to(p.start_rpm, (len(calibs), 4))
+            A, B, C = (co[:, i:i + 1] for i in range(3))
+            z0 = (B * y0 - A * (p.start_target - y0)) / C
+        wheels = wheel_speeds(co, h_s, h_idx, targets.T, y0, z0).transpose(0, 2, 1)
+        parts.append((p.wheel_rpm[None] - wheels)[:, p.wheel_mask])
+    return np.concatenate(parts, axis=1)
+
+
 def _residual_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration], robot: RobotProfile,
                    pose_weight: float) -> np.ndarray:
     """Residual vectors ``measured - model``, one row per calibration (wheels, then poses)."""
+    if not (pose_weight > 0 and any(p.pose_mask.any() for p in data)):
+        rows = _paper_rows(data, calibs, robot)
+        if rows is not None:
+            return rows
     parts = []
     for p, (wheels, pose) in zip(data, _simulate_all(data, calibs, robot), strict=True):
         parts.append((p.wheel_rpm[None] - wheels)[:, p.wheel_mask])
@@ -650,9 +691,8 @@ def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, 
 def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free: Sequence[str],
                on_bound: np.ndarray):
     """95 % Wald intervals from the Jacobian; warnings for parameters the data cannot pin down."""
-    # the t quantile from scipy.special (loaded with scipy.optimize anyway): exact, and
-    # scipy.stats would add ~0.2 s to every fit's start-up
-    from scipy.special import stdtrit
+    # the t quantile without scipy.stats (~0.2 s to import) or scipy.special: exact to rounding
+    from .lsq import t_quantile
 
     n, p = J.shape
     warnings: list[str] = []
@@ -670,7 +710,7 @@ def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free:
         cond = S[0] / S[-1] if S[-1] > 0 else math.inf
         if math.isfinite(cond) and cond <= MAX_CONDITION:
             cov = (Vt.T / S**2) @ Vt / np.outer(norms[~dead], norms[~dead])
-            half[~dead] = stdtrit(dof, 0.975) * np.sqrt(s2 * np.diag(cov))
+            half[~dead] = t_quantile(0.975, dof) * np.sqrt(s2 * np.diag(cov))
         else:
             names = ", ".join(n for n, d in zip(free, dead, strict=True) if not d)
             warnings.append(f"parameters {names} are not jointly identifiable from these data "
@@ -825,8 +865,6 @@ def fit_parameters(
 
 def _fit_parameters(recordings, calibration, robot, free, x0, bounds, pose_weight, sources,
                     max_evaluations) -> FitResult:
-    from scipy.optimize import least_squares
-
     free = list(dict.fromkeys(free))
     if not free:
         raise FitError("no free parameters to fit")
@@ -845,14 +883,14 @@ def _fit_parameters(recordings, calibration, robot, free, x0, bounds, pose_weigh
     idx = [free.index(n) for n in live]
     base = with_parameters(calibration, fixed)
     problem = _Problem(data, base, robot, live, lo[idx], hi[idx], pose_weight)
+    solve = _solver(base, live, pose_weight > 0 and any(p.pose_mask.any() for p in data))
     best = None
     failures = []
     for start in _starts(data, base, robot, live, x0, lo[idx], hi[idx]):
         x_start = np.array([start[n] for n in live])
         budget = max_evaluations or 200 * len(free)
         try:
-            sol = least_squares(problem.fun, x_start, jac=problem.jac, bounds=(lo[idx], hi[idx]),
-                                x_scale="jac", method="trf", max_nfev=budget)
+            sol = solve(problem, x_start, lo[idx], hi[idx], budget)
         except (ValueError, np.linalg.LinAlgError) as err:
             failures.append(f"least squares failed: {err}")
             continue
@@ -861,7 +899,7 @@ def _fit_parameters(recordings, calibration, robot, free, x0, bounds, pose_weigh
             failures.append(f"least squares did not converge: {sol.message}")
             continue
         if max_evaluations is None:
-            sol = _restarted(problem, sol, lo[idx], hi[idx], budget)
+            sol = _restarted(problem, sol, lo[idx], hi[idx], budget, solve)
         if best is None or sol.cost < best.cost:
             best = sol
     if best is None:
@@ -894,7 +932,39 @@ def _unseen(data: Sequence[_Prepared], free: Sequence[str], pose_weight: float) 
     return out if len(out) < len(free) else []
 
 
-def _restarted(problem, sol, lo, hi, max_nfev: int):
+def _solver(calibration: Calibration, live: Sequence[str], pose: bool):
+    """The least-squares method for a problem: ``solve(problem, x0, lower, upper, max_nfev)``.
+
+    The paper's model (no effect, only A, B, C free, wheel speeds only) has a smooth cost:
+    :func:`mecanum_hil.identify.lsq.levenberg_marquardt`, which needs no SciPy (its import
+    costs more than such a fit). Everything else: SciPy's trust-region reflective method,
+    whose handling of the kinks an effect's limit puts in the cost ``diagnose`` relies on.
+    """
+    if calibration.effects == _NO_EFFECTS and set(live) <= set(_COEFFICIENTS) and not pose:
+        from .lsq import levenberg_marquardt
+
+        def solve(problem, x0, lo, hi, max_nfev):
+            size = problem.fun(x0).size
+
+            def fun(x):
+                # a step projected onto the bounds can land on A = B = 0 (no stable model):
+                # an infinite cost, so the step is refused and the damping grows
+                try:
+                    return problem.fun(x)
+                except FitError:
+                    return np.full(size, np.inf)
+            return levenberg_marquardt(fun, problem.jac, x0, lo, hi, max_nfev=max_nfev)
+        return solve
+
+    def solve(problem, x0, lo, hi, max_nfev):
+        from scipy.optimize import least_squares
+
+        return least_squares(problem.fun, x0, jac=problem.jac, bounds=(lo, hi), x_scale="jac",
+                             method="trf", max_nfev=max_nfev)
+    return solve
+
+
+def _restarted(problem, sol, lo, hi, max_nfev: int, solve):
     """``sol`` improved by fresh searches from where it stopped on its step test.
 
     Where a drive limit switches on, the cost is not smooth: the finite-difference Jacobian
@@ -904,14 +974,11 @@ def _restarted(problem, sol, lo, hi, max_nfev: int):
     evaluations still counts when it is lower (it stops the restarts); one that fails is
     dropped, keeping the converged result.
     """
-    from scipy.optimize import least_squares
-
     for _ in range(MAX_RESTARTS):
         if sol.status not in (2, 3, 4):
             break
         try:
-            again = least_squares(problem.fun, sol.x, jac=problem.jac, bounds=(lo, hi),
-                                  x_scale="jac", method="trf", max_nfev=max_nfev)
+            again = solve(problem, sol.x, lo, hi, max_nfev)
         except (ValueError, np.linalg.LinAlgError):
             break
         if not (np.isfinite(again.cost) and again.cost < (1.0 - RESTART_GAIN) * sol.cost):

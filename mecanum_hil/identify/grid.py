@@ -292,9 +292,34 @@ def _args(g: GridData):
 
 
 def evaluate_points(g: GridData, points) -> np.ndarray:
-    """SSE [rpm^2] of each ``(A, B, C)`` row of ``points`` (+inf where not admissible)."""
+    """SSE [rpm^2] of each ``(A, B, C)`` row of ``points`` (+inf where not admissible).
+
+    A small job (a fit's start grid on a short recording) runs in numpy
+    (:mod:`mecanum_hil.model.linear`, equal to rounding) while numba is not loaded.
+    """
+    from .._jit import interpret
+    from ..model.linear import work_units
+
     pts = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
+    if interpret(work_units(g.target_rpm.size, pts.shape[0])):
+        return _sse_numpy(g, pts) + g.scatter
     return sse_points(pts, *_args(g)) + g.scatter
+
+
+def _sse_numpy(g: GridData, pts: np.ndarray) -> np.ndarray:
+    """:func:`sse_points` through :func:`mecanum_hil.model.linear.wheel_speeds`."""
+    from ..model.linear import wheel_speeds
+
+    A, B, C = pts.T
+    ok = (np.isfinite(pts).all(axis=1) & (A >= 0.0) & (B >= 0.0) & (C > 0.0) & (A + B > 0.0))
+    sse = np.full(pts.shape[0], np.inf)
+    total = np.zeros(int(ok.sum()))
+    for s in range(g.seg_start.size - 1):
+        lo, hi = g.seg_start[s], g.seg_start[s + 1]
+        y = wheel_speeds(pts[ok], g.h_s, g.h_idx[lo:hi - 1], g.target_rpm[None, lo:hi])[:, 0]
+        total += ((y - g.mean_rpm[lo:hi]) ** 2) @ g.weight[lo:hi]
+    sse[ok] = total
+    return sse
 
 
 def grid_argmin(g: GridData, a_values, b_values, c_values) -> tuple[float, float, float, float]:

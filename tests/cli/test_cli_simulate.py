@@ -112,9 +112,14 @@ def test_demo_runs_the_whole_loop(tmp_path):
     assert diagnosed.effects.top_speed_rpm == pytest.approx(115.0, abs=1.5)
     # The link's own latency is real too: a command acts from the controller's next 1 ms tick
     # after the controller reads it from the pty, later still on a loaded machine. With the
-    # noise the quick demo has, diagnose may name it (a CI run found 1.1 ms); nothing else.
-    assert set(diagnosed.effects.active()) <= {"saturation", "dead_time"}
-    assert diagnosed.effects.dead_time_s < 0.02
+    # noise the quick demo has, diagnose may name it (a CI run found 1.1 ms), as a dead time or
+    # as its close substitutes on step responses, a short drive lag or a held controller output
+    # (docs/diagnose.md); nothing else, and nothing longer than a loaded link's latency.
+    latency = {"dead_time": "dead_time_s", "drive_lag": "drive_lag_s",
+               "controller_period": "controller_period_s"}
+    assert set(diagnosed.effects.active()) <= {"saturation", *latency}
+    for param in latency.values():
+        assert getattr(diagnosed.effects, param) < 0.02
     # shadow mode watched the faulty run and stopped it
     shadow = read_recording(out / "shadow" / "paper-step-60-fault.csv")
     assert shadow.metadata["end_reason"] == "observer_stop"

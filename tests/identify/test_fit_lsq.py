@@ -176,14 +176,19 @@ def test_bad_input_is_a_fit_error():
         fit([measured(t, cmd, TRUE)], ROBOT, "lsq", a_grid=(0, 10, 1))
 
 
-def test_no_convergence_is_a_fit_error(monkeypatch):
+@pytest.mark.parametrize("effects", [Effects(), Effects(dead_time_s=0.02)])
+def test_no_convergence_is_a_fit_error(monkeypatch, effects):
+    # the paper's model alone is solved by identify/lsq.py, any other by SciPy's
     import scipy.optimize
 
-    real = scipy.optimize.least_squares
+    from mecanum_hil.identify import lsq
 
-    def starved(*args, **kwargs):  # the real solver, allowed a single evaluation
-        return real(*args, **{**kwargs, "max_nfev": 1})
+    for module, name in ((scipy.optimize, "least_squares"), (lsq, "levenberg_marquardt")):
+        real = getattr(module, name)
 
-    monkeypatch.setattr(scipy.optimize, "least_squares", starved)
+        def starved(*args, real=real, **kwargs):  # the real solver, allowed one evaluation
+            return real(*args, **{**kwargs, "max_nfev": 1})
+
+        monkeypatch.setattr(module, name, starved)
     with pytest.raises(FitError, match="did not converge"):
-        fit([measured(*step(), TRUE)], ROBOT)
+        fit([measured(*step(), TRUE)], ROBOT, calibration=Calibration(effects=effects))
