@@ -8,7 +8,8 @@ of ``--repeat`` interleaved runs: decoding every frame alone, and the whole ``me
 (decode + hub + detect + first pass and path + speed). Prints the cost on top of decoding in CPU
 time (all threads, ``time.process_time``) and in wall time, as ratios against decoding measured
 in the same run (OpenCV's default decoding, and in CPU time also one-thread decoding, which is
-how measure-video decodes: the analysis proper on top of its own decoding), and the real-time
+how measure-video decodes, in turns with its analysis in one thread: the analysis proper on top
+of its own decoding), and the real-time
 factor (targets: <= 30 % on top of decoding, >= 10x real time), with the machine's load
 average."""
 
@@ -32,8 +33,8 @@ from mecanum_hil.vision.video import iter_frames, open_video
 
 def decode_only(path: Path, threads: int | None = None) -> int:
     """Decode every frame, nothing else: OpenCV's default (FFmpeg's frame threads, one per
-    core), or with ``threads`` decoding threads (measure-video decodes with one, in a thread of
-    its own beside the analysis)."""
+    core), or with ``threads`` decoding threads (measure-video decodes with one, in turns with
+    its analysis)."""
     cap, _ = open_video(path, decoder_threads=threads)
     n = sum(1 for _ in iter_frames(cap))
     cap.release()

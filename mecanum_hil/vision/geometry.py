@@ -62,7 +62,7 @@ class Ellipse:
 
 def _from_cv(box) -> Ellipse | None:
     (cx, cy), (w, h), ang = box
-    if not (np.isfinite([cx, cy, w, h, ang]).all() and w > 0 and h > 0):
+    if not (all(math.isfinite(v) for v in (cx, cy, w, h, ang)) and w > 0 and h > 0):
         return None
     return Ellipse(float(cx), float(cy), 0.5 * float(w), 0.5 * float(h), float(ang))
 
@@ -111,8 +111,9 @@ def angular_coverage(angle_rad: np.ndarray) -> float:
     if angle_rad.size < 2:
         return 0.0
     a = np.sort(np.mod(angle_rad, 2 * np.pi))
-    gaps = np.diff(np.concatenate([a, [a[0] + 2 * np.pi]]))
-    return float(1.0 - gaps.max() / (2 * np.pi))
+    # The gaps between neighbours and the one across zero.
+    gap = np.maximum(np.diff(a).max(), a[0] + 2 * np.pi - a[-1])
+    return float(1.0 - gap / (2 * np.pi))
 
 
 @dataclass(frozen=True)
@@ -208,7 +209,14 @@ def _search_path(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
     (``path`` ``None`` when no hypothesis was plausible)."""
     m = len(frame_idx)
     grid = np.round(xy / 2.0).astype(np.int64)
-    cell = grid[:, 0] * 1_000_003 + grid[:, 1]
+    # Each candidate's 2 px cell, numbered 0..cells-1: distinct cells are then counted by
+    # marking them (np.unique's sort, once per hypothesis, cost more than the rest).
+    _, cell = np.unique(grid[:, 0] * 1_000_003 + grid[:, 1], return_inverse=True)
+    cell = cell.reshape(-1)
+    seen = np.zeros(int(cell.max()) + 1 if m else 0, dtype=bool)
+    xy32 = xy.astype(np.float32)  # what fit_ellipse hands OpenCV, converted once
+    xs = np.ascontiguousarray(xy[:, 0], dtype=float)
+    ys = np.ascontiguousarray(xy[:, 1], dtype=float)
     best: tuple[float, Ellipse | None, float] = (-1.0, None, 0.0)
     if initial is not None:
         best = _score_initial(initial, xy, hue_deg, cell, rho_tol, hue_tol_deg, best)
@@ -226,7 +234,9 @@ def _search_path(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
             break  # no better path in a long while: the marker's is found
         # Half the hypotheses follow one blob from frame to frame (five points of one chain),
         # half draw moving blobs of one hue at random (robust when the linking fails).
-        i0 = int(rng.choice(moving)) if moving.size and h % 4 else int(rng.integers(m))
+        # (moving[rng.integers(...)] draws what rng.choice(moving) draws, a fifth of its cost)
+        i0 = int(moving[rng.integers(moving.size)]) if moving.size and h % 4 else \
+            int(rng.integers(m))
         same_mask = _hue_close(hue_deg, hue_deg[i0], hue_tol_deg)
         same = np.flatnonzero(same_mask)
         if same.size < 5:
@@ -235,23 +245,35 @@ def _search_path(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
             chain = _follow(link, i0, int(rng.integers(5, max(6, min(n_frames, 400)))))
             if len(chain) < 5:
                 continue
-            pick = np.array(chain)[np.linspace(0, len(chain) - 1, 5).astype(int)]
+            # (np.linspace(0, len - 1, 5).astype(int): the quarters are exact in binary)
+            last = len(chain) - 1
+            pick = np.array([chain[(q * last) // 4] for q in range(5)])
         else:
             # (np.intersect1d(same, moving), without its sort)
             pool = np.flatnonzero(same_mask & moving_mask) if moving.size else same
             pick = rng.choice(pool if pool.size >= 5 else same, 5, replace=False)
-        pts = xy[pick]
-        if np.ptp(pts[:, 0]) + np.ptp(pts[:, 1]) < 4.0:
+        # The five points' extent (in Python floats: numpy's reductions cost more on five).
+        px, py = zip(*xy[pick].tolist(), strict=True)
+        if (max(px) - min(px)) + (max(py) - min(py)) < 4.0:
             continue
-        e = fit_ellipse(pts)
+        e = fit_ellipse(xy32[pick])
         if not plausible(e, max_radius_px):
             continue
-        rho, ang = e.unit(xy[same])
+        # (e.unit(xy[same]), on the coordinates' columns: the same arithmetic, less overhead)
+        t = math.radians(e.angle_deg)
+        ct, st = math.cos(t), math.sin(t)
+        dx = xs[same] - e.cx_px
+        dy = ys[same] - e.cy_px
+        u = (ct * dx + st * dy) / e.a_px
+        v = (-st * dx + ct * dy) / e.b_px
+        rho, ang = np.hypot(u, v), np.arctan2(-v, u)
         ok = np.abs(rho - 1.0) < rho_tol
         # Distinct places, not frames: a static blob that happens to lie on a hypothesis counts
         # once, however many frames it is in; times the share of the path visited: a blob
         # sliding along a line sits on a thin ellipse's two ends only.
-        score = np.unique(cell[same[ok]]).size * angular_coverage(ang[ok])
+        seen[:] = False
+        seen[cell[same[ok]]] = True
+        score = int(np.count_nonzero(seen)) * angular_coverage(ang[ok])
         if score > best[0]:
             if score > 1.05 * best[0]:
                 last_gain = h
@@ -341,13 +363,16 @@ HUE_FOLLOW_FRAMES = 31
 
 
 def _pick(err, ok, frame_idx, n_frames):
-    best_err = np.full(n_frames, np.inf)
+    """Each frame's candidate in ``ok`` with the smallest finite ``err`` (the first of equals),
+    -1 where none."""
     index = np.full(n_frames, -1)
-    for i in np.flatnonzero(ok):
-        f = frame_idx[i]
-        if err[i] < best_err[f]:
-            best_err[f] = err[i]
-            index[f] = i
+    sel = np.flatnonzero(ok & (err < np.inf))
+    if sel.size:
+        # By frame, then error, then candidate: each frame's first is its pick.
+        order = sel[np.lexsort((sel, err[sel], frame_idx[sel]))]
+        frames = frame_idx[order]
+        first = np.r_[True, frames[1:] != frames[:-1]]
+        index[frames[first]] = order[first]
     return index
 
 
@@ -395,17 +420,28 @@ def _link_frames(frame_idx, xy, hue_deg, n_frames, max_step_px, hue_tol) -> np.n
     dh = np.abs((hue_deg[ia] - hue_deg[ib] + 180.0) % 360.0 - 180.0)
     ok = ~(dh > hue_tol) & (d <= max_step_px)
     link[ia[ok]] = ib[ok]
-    for f in np.flatnonzero(~single):
-        a = order[starts[f]:starts[f + 1]]
-        b = order[starts[f + 1]:starts[f + 2]]
-        if a.size == 0 or b.size == 0:
-            continue
-        d = np.hypot(xy[a, 0][:, None] - xy[b, 0][None], xy[a, 1][:, None] - xy[b, 1][None])
-        dh = np.abs((hue_deg[a][:, None] - hue_deg[b][None] + 180.0) % 360.0 - 180.0)
-        d[dh > hue_tol] = np.inf
-        j = np.argmin(d, axis=1)
-        ok = d[np.arange(a.size), j] <= max_step_px
-        link[a[ok]] = b[j[ok]]
+    # The other pairs of frames all at once too: each frame's candidates padded to the most any
+    # frame has (the padding never nearest), the same arithmetic per pair as the singles'.
+    fm = np.flatnonzero(~single & (counts[:-1] > 0) & (counts[1:] > 0))
+    if fm.size == 0:
+        return link
+    width = int(max(counts[fm].max(), counts[fm + 1].max()))
+    k = np.arange(width)
+
+    def members(frames):
+        pos = starts[frames][:, None] + k
+        real = k < counts[frames][:, None]
+        return order[np.where(real, pos, 0)], real
+
+    a, a_real = members(fm)
+    b, b_real = members(fm + 1)
+    d = np.hypot(xy[a, 0][:, :, None] - xy[b, 0][:, None, :],
+                 xy[a, 1][:, :, None] - xy[b, 1][:, None, :])
+    dh = np.abs((hue_deg[a][:, :, None] - hue_deg[b][:, None, :] + 180.0) % 360.0 - 180.0)
+    d[(dh > hue_tol) | ~b_real[:, None, :]] = np.inf
+    j = np.argmin(d, axis=2)
+    ok = a_real & (np.take_along_axis(d, j[:, :, None], axis=2)[:, :, 0] <= max_step_px)
+    link[a[ok]] = np.take_along_axis(b, j, axis=1)[ok]
     return link
 
 

@@ -1,7 +1,7 @@
 """``measure-video`` as a library: a video of wheel markers in, a recording of wheel speeds out.
 
-One pass over the video: each frame is decoded (in a helper thread, so decoding and analysis
-overlap on two cores), the wheel's hub is located (:mod:`~mecanum_hil.vision.hub`: a camera that
+One pass over the video: each frame is decoded (in runs of a few, looked at as soon as they are
+decoded), the wheel's hub is located (:mod:`~mecanum_hil.vision.hub`: a camera that
 shakes or drifts) and each wheel's region is searched for marker candidates. After the pass the
 marker of each wheel is chosen over the whole video, relative to the hub
 (:func:`~mecanum_hil.vision.geometry.select_track`), its angle taken on the path mapped to a
@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 import queue
-import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +26,7 @@ from .detect import BlobDetector, MarkerSpec
 from .geometry import refit_track, select_track
 from .hub import STILL_CAMERA_PX, HubTracker, camera_offsets
 from .speed import FAST_STEP_TURNS, estimate_speed
-from .video import FrameTiming, decode_ahead, frame_times, open_video
+from .video import FrameTiming, frame_times, iter_frames, open_video
 
 #: Default regression window of the speed estimate [s] (see docs/vision.md).
 DEFAULT_WINDOW_S = 0.1
@@ -50,10 +49,8 @@ FOCUS_AFTER_FRAMES = 60
 STILL_CHECK_AFTER = 60
 STILL_CHECK_FRAMES = 10
 STILL_MOVED_PX = 0.3
-#: Frames handed over from the decoding thread at a time (see scan_video).
+#: Frames decoded before they are looked at, as one run (see scan_video).
 SCAN_BATCH = 10
-#: Runs of frames decoded ahead at most.
-SCAN_QUEUE = 2
 #: Frames (the latest) a try to focus looks at.
 FOCUS_FRAMES = 240
 #: Share of a turn the marker must have covered before the search focuses on its path: a path
@@ -143,57 +140,62 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
 
     Returns ``(info, stamps [s], per-detector lists of per-frame results, detectors)``.
     """
-    # Decoding has a thread of its own here, beside the analysis: FFmpeg's own frame threads
-    # would only add their cost (see open_video).
+    # Decoding and analysis take turns in this one thread, FFmpeg on one thread: the cheapest
+    # in CPU time. A frame is looked at right after it is decoded, while it is still in the
+    # core's cache (a decoding thread beside the analysis overlapped the two on two cores, but
+    # every frame then crossed cores and came back from memory: 5-10 % of decoding's CPU time
+    # more); FFmpeg's own frame threads would only add their cost (see open_video).
     cap, info = open_video(path, decoder_threads=1)
-    q: queue.Queue = queue.Queue(maxsize=SCAN_QUEUE)
-    stop = threading.Event()
-    # Frames come in runs of SCAN_BATCH: fewer hand-overs, and the hub is read for a run at once.
-    free: queue.Queue = queue.Queue()  # frames done with, for the decoder to reuse
-    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop, SCAN_BATCH, free),
-                              daemon=True)
+    # Frames come in runs of SCAN_BATCH (the hub is read for a run at once), decoded into the
+    # same few buffers again (no fresh megabyte of memory per frame).
+    free: queue.Queue = queue.Queue()
     try:
         # Inside the try: a region outside the frame must not leave the file open.
         detectors = detectors_for((info.width_px, info.height_px))
         results: list[list] = [[] for _ in detectors]
         stamps: list[float] = []
         next_focus = FOCUS_AFTER_FRAMES
-        worker.start()
-        while True:
-            item = q.get()
-            if item is None:
-                break
-            if isinstance(item, BaseException):
-                raise item
-            frames = [frame for _, _, frame in item]
-            for j, frame in enumerate(frames):
-                if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
-                    raise VideoError(f"{path}: frame {len(stamps) + j} has another size than "
-                                     "the first")
-            hubs = [det.hubs(frames) if isinstance(det, _WheelScan) else None
-                    for det in detectors]
-            for j, (_, t, frame) in enumerate(item):
-                stamps.append(t)
-                for k, det in enumerate(detectors):
-                    results[k].append(det(frame) if hubs[k] is None
-                                      else det.candidates(frame, hubs[k][j]))
-                if len(stamps) == next_focus:
-                    next_focus *= 2
-                    for k, det in enumerate(detectors):
-                        if isinstance(det, _WheelScan) and det.blobs.path is None:
-                            det.focus(results[k])
-                if progress is not None:
-                    progress(len(stamps), info.frame_count)
-            # Nothing keeps a frame (the results are new arrays): the decoder may reuse them.
-            for frame in frames:
-                free.put(frame)
-            del item, frames
+        run: list = []
+        for item in iter_frames(cap, free):
+            frame = item[2]
+            if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
+                raise VideoError(f"{path}: frame {item[0]} has another size than the first")
+            run.append(item)
+            if len(run) < SCAN_BATCH:
+                continue
+            next_focus = _scan_run(run, detectors, results, stamps, next_focus, free)
+            run = []
+            if progress is not None:
+                progress(len(stamps), info.frame_count)
+        if run:
+            _scan_run(run, detectors, results, stamps, next_focus, free)
+            if progress is not None:
+                progress(len(stamps), info.frame_count)
     finally:
-        stop.set()
-        if worker.is_alive():
-            worker.join(timeout=5.0)
         cap.release()
     return info, np.array(stamps, dtype=float), results, detectors
+
+
+def _scan_run(run: list, detectors: Sequence, results: list[list], stamps: list[float],
+              next_focus: int, free: queue.Queue) -> int:
+    """Run the detectors on a run of :func:`~mecanum_hil.vision.video.iter_frames` items;
+    hand the frames back to ``free`` and return the frame count of the next try to focus."""
+    frames = [frame for _, _, frame in run]
+    hubs = [det.hubs(frames) if isinstance(det, _WheelScan) else None for det in detectors]
+    for j, (_, t, frame) in enumerate(run):
+        stamps.append(t)
+        for k, det in enumerate(detectors):
+            results[k].append(det(frame) if hubs[k] is None
+                              else det.candidates(frame, hubs[k][j]))
+        if len(stamps) == next_focus:
+            next_focus *= 2
+            for k, det in enumerate(detectors):
+                if isinstance(det, _WheelScan) and det.blobs.path is None:
+                    det.focus(results[k])
+    # Nothing keeps a frame (the results are new arrays): the decoder may reuse them.
+    for frame in frames:
+        free.put(frame)
+    return next_focus
 
 
 class _WheelScan:
@@ -278,10 +280,12 @@ class _WheelScan:
         # (a fender hides part of each turn), no path search can pass the test below.
         if sum(len(c) > 0 for c, _ in results) < FOCUS_FOUND * n:
             return
-        cands = [c[:, :2] - np.array(self.shift(h)) for c, h in results]
-        frame_idx = np.concatenate([np.full(len(c), i) for i, c in enumerate(cands)]).astype(int)
-        xy = np.concatenate(cands)
-        hue = np.concatenate([c[:, 2] for c, _ in results])
+        allc = np.concatenate([c for c, _ in results])
+        counts = np.array([len(c) for c, _ in results])
+        frame_idx = np.repeat(np.arange(n), counts)
+        shifts = np.array([self.shift(h) for _, h in results]).reshape(-1, 2)
+        xy = allc[:, :2] - shifts[frame_idx]
+        hue = allc[:, 2]
         try:
             track = select_track(frame_idx, xy, hue, n, self.blobs.size_px,
                                  np.random.default_rng(1), hypotheses=200)
@@ -346,8 +350,7 @@ def _wheel_angles(results: list, n: int, det: _WheelScan, seed: int, source: str
         offsets, _ = camera_offsets(hub)
     else:
         offsets = np.zeros((n, 2))
-    frame_idx = np.concatenate([np.full(len(c), i) for i, (c, _) in enumerate(results)]
-                               ).astype(int)
+    frame_idx = np.repeat(np.arange(n), [len(c) for c, _ in results])
     allc = np.concatenate([c for c, _ in results]) if results else np.empty((0, 5))
     xy = allc[:, :2] - offsets[frame_idx]
     track = select_track(frame_idx, xy, allc[:, 2], n, det.blobs.size_px,
