@@ -143,7 +143,7 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     # Decoding and analysis take turns in this one thread, FFmpeg on one thread: the cheapest
     # in CPU time. A frame is looked at right after it is decoded, while it is still in the
     # core's cache (a decoding thread beside the analysis overlapped the two on two cores, but
-    # every frame then crossed cores and came back from memory: 5-10 % of decoding's CPU time
+    # every frame then crossed cores and came back from memory: 5-15 % of decoding's CPU time
     # more); FFmpeg's own frame threads would only add their cost (see open_video).
     cap, info = open_video(path, decoder_threads=1)
     # Frames come in runs of SCAN_BATCH (the hub is read for a run at once), decoded into the

@@ -106,8 +106,8 @@ def iter_frames(cap, free: queue.Queue | None = None
     """Yield ``(index, timestamp [s] or NaN, BGR frame)`` until the video ends.
 
     ``free``: frames the consumer is done with, decoded into again when they fit (no fresh
-    megabyte of memory per frame: its page faults and cache misses cost the decoding thread
-    about a tenth of decoding's time in measure-video's pipeline)."""
+    megabyte of memory per frame: its page faults and cache misses cost decoding about a tenth
+    of its time in measure-video's pipeline)."""
     import cv2
 
     index = 0
