@@ -41,9 +41,10 @@ _compiled_modules: set[str] = set()
 _spent = 0
 
 
-def _mode() -> str:
-    mode = os.environ.get("MECANUM_HIL_JIT", "auto").strip().lower()
-    return mode if mode in ("always", "never", "auto") else "auto"
+def mode() -> str:
+    """``MECANUM_HIL_JIT``: ``always``, ``never`` or ``auto`` (the default, also for others)."""
+    value = os.environ.get("MECANUM_HIL_JIT", "auto").strip().lower()
+    return value if value in ("always", "never", "auto") else "auto"
 
 
 class Kernel:
@@ -141,12 +142,12 @@ def interpret(units: int) -> bool:
     paths that stand in for a kernel on small jobs (``mecanum_hil.model.linear``).
     """
     global _spent
-    mode = _mode()
+    how = mode()
     # once numba is loaded for any kernel, another costs only its cache (tens of milliseconds)
-    if mode == "always" or (_compiled_modules and mode != "never"):
+    if how == "always" or (_compiled_modules and how != "never"):
         return False
     with _lock:
-        if mode == "never" or _spent + units <= INTERPRETED_BUDGET:
+        if how == "never" or _spent + units <= INTERPRETED_BUDGET:
             _spent += units
             return True
     return False

@@ -451,18 +451,19 @@ def _paper_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration],
     """Wheel residual rows of the paper's model (every calibration without effects) through
     :mod:`mecanum_hil.model.linear`, when that costs less than loading numba; else None."""
     from .._jit import interpret
-    from ..model.linear import wheel_speeds, work_units
+    from ..model.linear import step_lengths, wheel_speeds, work_units
 
     if any(c.effects != _NO_EFFECTS for c in calibs):
         return None
-    if not interpret(work_units(sum(p.t_s.size for p in data), 4 * len(calibs))):
+    grids = [step_lengths(p.t_s) for p in data]
+    if not interpret(work_units(sum(p.t_s.size for p in data), 4 * len(calibs),
+                                len(calibs) * sum(h.size for h, _ in grids))):
         return None
     co = np.array([c.coefficients for c in calibs])
     parts = []
-    for p in data:
+    for p, (h_s, h_idx) in zip(data, grids, strict=True):
         targets = command_to_wheels(p.commands[:, 0], p.commands[:, 1], p.commands[:, 2],
                                     robot.k)
-        h_s, h_idx = np.unique(np.diff(p.t_s), return_inverse=True)
         y0 = z0 = None
         if p.start_rpm.any():
             # steady state at the measured speeds (mecanum_hil.model.simulate.steady_state)

@@ -301,22 +301,24 @@ def evaluate_points(g: GridData, points) -> np.ndarray:
     from ..model.linear import work_units
 
     pts = np.ascontiguousarray(np.asarray(points, dtype=float).reshape(-1, 3))
-    if interpret(work_units(g.target_rpm.size, pts.shape[0])):
+    if interpret(work_units(g.target_rpm.size, pts.shape[0], pts.shape[0] * g.h_s.size)):
         return _sse_numpy(g, pts) + g.scatter
     return sse_points(pts, *_args(g)) + g.scatter
 
 
 def _sse_numpy(g: GridData, pts: np.ndarray) -> np.ndarray:
     """:func:`sse_points` through :func:`mecanum_hil.model.linear.wheel_speeds`."""
-    from ..model.linear import wheel_speeds
+    from ..model.linear import wheel_speeds, zoh_tables
 
     A, B, C = pts.T
     ok = (np.isfinite(pts).all(axis=1) & (A >= 0.0) & (B >= 0.0) & (C > 0.0) & (A + B > 0.0))
     sse = np.full(pts.shape[0], np.inf)
     total = np.zeros(int(ok.sum()))
+    tables = zoh_tables(pts[ok], g.h_s)  # once for every segment
     for s in range(g.seg_start.size - 1):
         lo, hi = g.seg_start[s], g.seg_start[s + 1]
-        y = wheel_speeds(pts[ok], g.h_s, g.h_idx[lo:hi - 1], g.target_rpm[None, lo:hi])[:, 0]
+        y = wheel_speeds(pts[ok], g.h_s, g.h_idx[lo:hi - 1], g.target_rpm[None, lo:hi],
+                         tables=tables)[:, 0]
         total += ((y - g.mean_rpm[lo:hi]) ** 2) @ g.weight[lo:hi]
     sse[ok] = total
     return sse

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 _MESSAGES = {
+    -1: "no step lowered the cost: the residuals are not finite around the point reached",
     0: "the maximum number of function evaluations is exceeded",
     1: "gtol termination condition is satisfied",
     2: "ftol termination condition is satisfied",
@@ -44,7 +45,8 @@ class Solution:
     cost : float
         Half the sum of squared residuals at ``x``.
     status : int
-        SciPy's codes: 0 evaluations exhausted, 1 gtol, 2 ftol, 3 xtol, 4 ftol and xtol.
+        SciPy's codes: 0 evaluations exhausted, 1 gtol, 2 ftol, 3 xtol, 4 ftol and xtol; -1
+        every step refused because the residuals there are not finite (a failure).
     nfev : int
         Residual evaluations.
     message : str
@@ -144,7 +146,10 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
             mu *= nu
             nu *= 2.0
             if not math.isfinite(mu) or mu > 1e300:
-                return _done(x, cost, 3, nfev)
+                # no step, however short, lowers the cost: where the residuals are finite
+                # around x that is a minimum (the step test); where every trial point failed
+                # (non-finite residuals) it is not, and the search failed
+                return _done(x, cost, 3 if np.isfinite(cost_new) else -1, nfev)
 
 
 def _done(x: np.ndarray, cost: float, status: int, nfev: int) -> Solution:
@@ -154,8 +159,10 @@ def _done(x: np.ndarray, cost: float, status: int, nfev: int) -> Solution:
 def t_quantile(p: float, dof: float) -> float:
     """Student's t quantile: the ``t`` with ``P(T <= t) = p`` for ``dof`` degrees of freedom.
 
-    Exact to rounding (as :func:`scipy.special.stdtrit`): Newton's method on the distribution
-    function through the regularised incomplete beta function (continued fraction).
+    Newton's method on the distribution function through the regularised incomplete beta
+    function (continued fraction). Against :func:`scipy.special.stdtrit`: relative error below
+    1e-10 for 1 <= ``dof`` <= 1e6 and 1e-15 < ``p`` < 1 - 1e-15 (tested), 1e-8 up to
+    ``dof`` = 1e9; meant for interval quantiles (``fit``: p = 0.975, dof = residuals - parameters).
 
     Parameters
     ----------
@@ -164,8 +171,8 @@ def t_quantile(p: float, dof: float) -> float:
     dof : float
         Degrees of freedom, > 0.
     """
-    if not (0.0 < p < 1.0 and dof > 0):
-        raise ValueError(f"need 0 < p < 1 and dof > 0, got p={p!r}, dof={dof!r}")
+    if not (0.0 < p < 1.0 and 0.5 <= dof < 1e12):
+        raise ValueError(f"need 0 < p < 1 and 0.5 <= dof < 1e12, got p={p!r}, dof={dof!r}")
     if p == 0.5:
         return 0.0
     if p < 0.5:

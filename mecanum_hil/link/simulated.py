@@ -173,9 +173,11 @@ class ControllerModel:
         self._warm_up()
 
     def _warm_up(self) -> None:
-        from .._jit import compiled
+        from .._jit import compiled, mode
         from ..model._kernels import simulate_kernel
 
+        if mode() == "never":  # told to interpret everything: nothing to compile
+            return
         compiled(simulate_kernel)
         simulate(np.zeros((2, 3)), np.array([0.0, self.dt_s]), self._calibration(), self.robot)
 

@@ -27,16 +27,28 @@ import math
 
 import numpy as np
 
-#: Rough cost of one time step [us] and of each set x series on it [us] (see the module text).
+#: Rough cost of one time step [us], of each set x series on it [us], and of one table row
+#: (one set at one distinct step length, complex arithmetic) [us] (see the module text).
 _STEP_US = 8.0
 _ELEMENT_US = 0.01
+_TABLE_US = 1.2
 #: What one unit of the interpreter's budget costs [us] (a robot-step of the simulator's source).
 _UNIT_US = 25.0
 
 
-def work_units(steps: int, sets: int) -> int:
-    """The interpreter budget a job of ``steps`` time steps over ``sets`` sets x series uses."""
-    return math.ceil(steps * (_STEP_US + _ELEMENT_US * sets) / _UNIT_US)
+def work_units(steps: int, sets: int, tables: int = 0) -> int:
+    """The interpreter budget a job uses: ``steps`` time steps over ``sets`` sets x series,
+    and ``tables`` rows of :func:`zoh_tables` (sets x distinct step lengths)."""
+    return math.ceil((steps * (_STEP_US + _ELEMENT_US * sets) + _TABLE_US * tables) / _UNIT_US)
+
+
+def step_lengths(t_s) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct step lengths [s] of a time grid and each step's row among them; lengths equal
+    to rounding (1e-12 s) share a row, as in the batch simulator."""
+    dt = np.diff(np.asarray(t_s, dtype=float))
+    key = np.round(dt * 1e12).astype(np.int64)
+    _, first, idx = np.unique(key, return_index=True, return_inverse=True)
+    return dt[first], idx.reshape(-1)
 
 
 def _well_conditioned(A, B, C, h):
@@ -125,7 +137,8 @@ def _series(A, B, C, h):
                     axis=-1)
 
 
-def wheel_speeds(coefficients, h_s, h_idx, targets_rpm, y0_rpm=None, z0_rpm_s=None):
+def wheel_speeds(coefficients, h_s, h_idx, targets_rpm, y0_rpm=None, z0_rpm_s=None, *,
+                 tables=None):
     """Wheel speeds of the paper's model at every sample, for every set and target series.
 
     Parameters
@@ -141,13 +154,16 @@ def wheel_speeds(coefficients, h_s, h_idx, targets_rpm, y0_rpm=None, z0_rpm_s=No
     y0_rpm, z0_rpm_s : array_like, shape (P, G) or (G,), optional
         Speed [rpm] and integral of the speed error [rpm s] at the first sample (default rest).
 
+    tables : ndarray, shape (P, K, 6), optional
+        :func:`zoh_tables` of ``coefficients`` and ``h_s``, when the caller has them.
+
     Returns
     -------
     ndarray, shape (P, G, T)
         Wheel speed at each sample [rpm] (the state before the sample's target acts).
     """
     u = np.asarray(targets_rpm, dtype=float)
-    tab = zoh_tables(coefficients, h_s)
+    tab = zoh_tables(coefficients, h_s) if tables is None else tables
     P, (G, T) = tab.shape[0], u.shape
     # per step length: six (P, 1) columns that broadcast over the series
     rows = [tuple(tab[:, k, j:j + 1] for j in range(6)) for k in range(tab.shape[1])]

@@ -101,3 +101,39 @@ print(json.dumps({{"code": code, "numba": "numba" in sys.modules,
     here = fitting.fit([rec], ROBOT)
     for name in "ABC":
         assert fitted[name] == pytest.approx(getattr(here.calibration, name), rel=1e-6)
+
+
+def test_a_search_where_every_step_fails_is_a_failure():
+    # residuals finite at the start only: no step is ever taken, and that is no minimum
+    def fun(x):
+        return np.array([x[0] - 1.0]) if x[0] == 0.0 else np.array([np.inf])
+
+    sol = levenberg_marquardt(fun, lambda x: np.array([[1.0]]), [0.0], [-np.inf], [np.inf],
+                              max_nfev=500)
+    assert sol.status == -1 and sol.x[0] == 0.0
+
+
+def test_a_real_clock_recording_is_fitted_compiled_not_in_numpy(tmp_path):
+    # every step length differs (a logger's own clock): the start grid's tables alone would
+    # cost seconds in numpy, so the fit loads numba instead (and gives the same answer)
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.009, 0.011, 600))
+    t -= t[0]
+    cmd = np.zeros((t.size, 3))
+    cmd[:, 0], cmd[:, 2] = 60.0, 90.0
+    truth = Calibration().with_coefficients(27.0, 8.5, 610.0)
+    wheels = simulate(cmd, t, truth, ROBOT).wheel_rpm[0] + rng.normal(0, 0.3, (t.size, 4))
+    path = tmp_path / "clock.csv"
+    write_recording(Recording(t, cmd, wheels, np.full((t.size, 3), np.nan)), path)
+    code = f"""
+import json, sys
+from mecanum_hil.cli import main
+code = main(["fit", {str(path)!r}, "--out", {str(tmp_path / "cal.toml")!r}, "--no-report",
+             "--json"])
+print(json.dumps({{"code": code, "numba": "numba" in sys.modules}}))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=300, cwd=ROOT)
+    lines = out.stdout.strip().splitlines()
+    assert json.loads(lines[-1]) == {"code": 0, "numba": True}
+    assert json.loads(lines[0])["C"] == pytest.approx(610.0, rel=0.05)

@@ -231,6 +231,10 @@ def write_report(diagnosis: Diagnosis, recordings: Sequence[Recording], out_dir:
           f"(noise level about {d.noise_rpm:.3g} rpm). Effects named: "
           f"{', '.join(d.effects) or 'none'}. Unexplained structured residual: "
           f"{'**yes**' if d.unexplained else 'no'}.", "",
+          *[f"A longer search, not the effect of the round's best candidate ({r.candidate}), "
+            f"took the wheel RMSE from {r.rmse_before:.4g} to {r.rmse_after:.4g} rpm: the "
+            "model was refitted and nothing named for it." for r in d.refits],
+          *([""] if d.refits else []),
           "## Where the model as given fails", "", "```", *d.localisation_initial.lines(),
           "```", "",
           f"Refitting its own parameters alone gives a wheel RMSE of {d.rmse_baseline:.4g} rpm "

@@ -124,6 +124,23 @@ class DiagnoseStep:
 
 
 @dataclass(frozen=True)
+class Refit:
+    """A round whose winner added nothing a longer search did not (:func:`search_credit`).
+
+    Attributes
+    ----------
+    candidate : str
+        The effect whose candidate fit found the better model.
+    rmse_before, rmse_after : float
+        Wheel RMSE of the model before and after the refit [rpm].
+    """
+
+    candidate: str
+    rmse_before: float
+    rmse_after: float
+
+
+@dataclass(frozen=True)
 class Diagnosis:
     """What ``diagnose`` found.
 
@@ -176,6 +193,10 @@ class Diagnosis:
     pose_rmse_final: tuple[float, float] = (math.nan, math.nan)
     #: Named properties of the final model that add nothing to it (``proportional_only``).
     findings: tuple[Finding, ...] = ()
+    #: Rounds that named nothing because a longer search, not the winning candidate's effect,
+    #: earned the gain (:func:`search_credit`): the model was refitted instead. In the report
+    #: and the log; not in the JSON, whose keys are pinned (its ``rmse_final`` includes them).
+    refits: tuple[Refit, ...] = ()
 
     @property
     def explained_share(self) -> float:
@@ -360,7 +381,7 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
     cur_free = [n for n in free if n != "deadband_rpm"]
 
     steps: list[DiagnoseStep] = []
-    searches_on = 0
+    refits: list[Refit] = []
     rejected: tuple[CandidateScore, ...] = ()
     carried: tuple[Calibration, tuple, HeldOut] | None = None
     wheel_cands = [c for c in candidates if c != "slip" and c not in accepted]
@@ -473,15 +494,16 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
             win = max(ok, key=lambda s: s.relative)
             f = fits[win.effect]
             plain = None
-            if channel == "wheel" and searches_on < MAX_SEARCHES_ON:
+            if channel == "wheel" and len(refits) < MAX_SEARCHES_ON:
                 plain = search_credit(ev, f.calibration, win.effect, cur_free, names, scale2, f0)
             if plain is not None:
                 # the model without the effect, refitted from where the candidate's search
                 # ended, fits as well: the search earned the gain, not the effect
-                searches_on += 1
+                refits.append(Refit(win.effect, _rmse_per_recording(ev, current)[0],
+                                    _rmse_per_recording(ev, plain[0])[0]))
                 say(f"  -> {win.effect} adds nothing a longer search did not: refitted without "
-                    f"it from its fit, wheel RMSE {_rmse_per_recording(ev, current)[0]:.3f} -> "
-                    f"{_rmse_per_recording(ev, plain[0])[0]:.3f} rpm; nothing named this round")
+                    f"it from its fit, wheel RMSE {refits[-1].rmse_before:.3f} -> "
+                    f"{refits[-1].rmse_after:.3f} rpm; nothing named this round")
                 current = plain[0]
                 last_ci = {**last_ci, **plain[1]}
                 continue
@@ -530,7 +552,7 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
     return Diagnosis(tuple(steps), unexplained, rmse_initial, rmse_base, final[0], noise,
                      initial, baseline, final_cal, loc0, loc1, check, rejected, names,
                      rmse_ref, shape, _pose_pair(base_rm[2]), _pose_pair(final[2]),
-                     _findings(final_cal, recs, rob, say))
+                     _findings(final_cal, recs, rob, say), tuple(refits))
 
 
 def _findings(cal: Calibration, recs: Sequence[Recording], robot: RobotProfile,
