@@ -49,7 +49,8 @@ FOCUS_AFTER_FRAMES = 60
 STILL_CHECK_AFTER = 60
 STILL_CHECK_FRAMES = 10
 STILL_MOVED_PX = 0.3
-#: Frames decoded before they are looked at, as one run (see scan_video).
+#: Frames decoded before they are looked at, as one run, where a hub is read in runs (see
+#: scan_video).
 SCAN_BATCH = 10
 #: Frames (the latest) a try to focus looks at.
 FOCUS_FRAMES = 240
@@ -147,8 +148,13 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     # more); FFmpeg's own frame threads would only add their cost (see open_video).
     cap, info = open_video(path, decoder_threads=1)
     # Frames come in runs of SCAN_BATCH (the hub is read for a run at once), decoded into the
-    # same few buffers again (no fresh megabyte of memory per frame).
-    free: queue.Queue = queue.Queue()
+    # same few buffers again (no fresh megabyte of memory per frame). Where no wheel's hub is
+    # read for a run (not tracked, or a still camera checked on single frames), each frame is
+    # looked at as soon as it is decoded and its buffer decoded into again: one buffer, still
+    # in the core's cache, instead of SCAN_BATCH in turn (3-10 % of decoding's CPU time). The
+    # runs of the hub stay where they were (every SCAN_BATCH-th frame from the first): the
+    # results are the same. The buffer last handed back is decoded into first (a stack).
+    free: queue.Queue = queue.LifoQueue()
     try:
         # Inside the try: a region outside the frame must not leave the file open.
         detectors = detectors_for((info.width_px, info.height_px))
@@ -161,16 +167,17 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
             if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
                 raise VideoError(f"{path}: frame {item[0]} has another size than the first")
             run.append(item)
-            if len(run) < SCAN_BATCH:
+            if (len(stamps) + len(run)) % SCAN_BATCH and not all(
+                    not isinstance(det, _WheelScan) or det.single_frames for det in detectors):
                 continue
             next_focus = _scan_run(run, detectors, results, stamps, next_focus, free)
             run = []
-            if progress is not None:
+            if progress is not None and not len(stamps) % SCAN_BATCH:
                 progress(len(stamps), info.frame_count)
         if run:
             _scan_run(run, detectors, results, stamps, next_focus, free)
-            if progress is not None:
-                progress(len(stamps), info.frame_count)
+        if progress is not None and len(stamps) % SCAN_BATCH:
+            progress(len(stamps), info.frame_count)
     finally:
         cap.release()
     return info, np.array(stamps, dtype=float), results, detectors
@@ -215,6 +222,12 @@ class _WheelScan:
         #: :data:`STILL_CHECK_FRAMES` frames until it moves (the frames between are then
         #: interpolated by :func:`~mecanum_hil.vision.hub.camera_offsets`).
         self.sparse = False
+
+    @property
+    def single_frames(self) -> bool:
+        """Whether the hub is read on single frames from now on (not tracked, or a still
+        camera: see :meth:`hubs`): nothing is gained by reading it for a run of frames."""
+        return self.hub is None or self.sparse
 
     def shift(self, hub: tuple[float, float, float]) -> tuple[float, float]:
         """The hub's offset from the first frame [px] (0 when unknown)."""

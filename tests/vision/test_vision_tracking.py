@@ -11,6 +11,7 @@ import pytest
 from conftest import steady
 
 import mecanum_hil.vision.detect as detect
+import mecanum_hil.vision.measure as measure
 from mecanum_hil.vision import RenderSettings, render_video
 from mecanum_hil.vision.detect import BlobDetector, MarkerSpec
 from mecanum_hil.vision.geometry import Ellipse
@@ -93,6 +94,38 @@ def test_following_the_marker_finds_what_the_whole_search_finds(tmp_path, monkey
     whole, followed = candidates(False), candidates(True)
     assert all(len(c) >= 1 for c in whole)
     assert all(np.array_equal(a, b) for a, b in zip(whole, followed, strict=True))
+
+
+def test_frames_one_at_a_time_once_no_hub_is_read_in_runs_measure_the_same(tmp_path,
+                                                                             monkeypatch):
+    res = render_video(steady(90.0, 3.0), tmp_path / "still.avi", RenderSettings(
+        640, 480, fps=30.0, noise_std=3.0, exposure=0.5, distractors=2))
+    runs: list[int] = []
+    scan_run = measure._scan_run
+
+    def counted(run, *args):
+        runs.append(len(run))
+        return scan_run(run, *args)
+
+    monkeypatch.setattr(measure, "_scan_run", counted)
+    done: list[int] = []
+    for hub in (True, False):
+        runs.clear()
+        done.clear()
+        opts = measure.MeasureOptions(track_hub=hub)
+        single = measure.measure_video(res.path, opts, lambda k, _: done.append(k))
+        assert done[-1] == single.summary["frames"] and done == sorted(set(done))
+        # A still camera: runs of SCAN_BATCH while the hub is watched, then one frame at a
+        # time; no hub: one at a time from the start.
+        first = measure.STILL_CHECK_AFTER if hub else 0
+        assert runs == ([measure.SCAN_BATCH] * (first // measure.SCAN_BATCH)
+                        + [1] * (single.summary["frames"] - first))
+        with monkeypatch.context() as m:
+            m.setattr(measure._WheelScan, "single_frames", property(lambda self: False))
+            in_runs = measure.measure_video(res.path, opts)
+        assert np.array_equal(single.recording.wheel_rpm, in_runs.recording.wheel_rpm,
+                              equal_nan=True)
+        assert single.summary == in_runs.summary
 
 
 def test_frames_are_handed_over_in_runs_and_their_buffers_reused(shaking, tmp_path):
