@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import rms, steady
+from vision_cases import rms, steady
 
 from mecanum_hil.vision import (
     MarkerSpec,

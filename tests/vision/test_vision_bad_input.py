@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import steady
+from vision_cases import steady
 
 from mecanum_hil.cli import main
 from mecanum_hil.errors import VideoError

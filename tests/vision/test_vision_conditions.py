@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import rms
+from vision_cases import rms
 
 from mecanum_hil.cli import main
 from mecanum_hil.errors import VideoError
@@ -289,7 +289,7 @@ def test_a_reflection_never_becomes_a_whole_turn_with_a_speed_range(expected):
 def test_a_wheel_beyond_the_limit_from_the_start_is_warned_about(tmp_path):
     """1116 rpm at 30 fps (0.62 turn a frame) never crosses the limit: the images are those of
     684 rpm backwards. That reading cannot be refused, but it must not come silently."""
-    from conftest import steady
+    from vision_cases import steady
 
     res = render_video(steady(1116.0, 1.0), tmp_path / "fast.avi", RenderSettings(noise_std=2.0))
     meas = measure_video(res.path)

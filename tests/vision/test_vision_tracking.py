@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from conftest import steady
+from vision_cases import steady
 
 import mecanum_hil.vision.detect as detect
 import mecanum_hil.vision.measure as measure
