@@ -466,10 +466,9 @@ def _paper_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration],
                                     robot.k)
         y0 = z0 = None
         if p.start_rpm.any():
-            # steady state at the measured speeds (mecanum_hil.model.simulate.steady_state)
-            y0 = np.broadcast_to(p.start_rpm, (len(calibs), 4))
-            A, B, C = (co[:, i:i + 1] for i in range(3))
-            z0 = (B * y0 - A * (p.start_target - y0)) / C
+            # the simulator's start in motion: steady state at the measured speeds
+            state = np.stack([steady_state(c, p.start_rpm, p.start_target) for c in calibs])
+            y0, z0 = state[:, :4], state[:, 4:8]
         wheels = wheel_speeds(co, h_s, h_idx, targets.T, y0, z0).transpose(0, 2, 1)
         parts.append((p.wheel_rpm[None] - wheels)[:, p.wheel_mask])
     return np.concatenate(parts, axis=1)
@@ -478,7 +477,7 @@ def _paper_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration],
 def _residual_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration], robot: RobotProfile,
                    pose_weight: float) -> np.ndarray:
     """Residual vectors ``measured - model``, one row per calibration (wheels, then poses)."""
-    if not (pose_weight > 0 and any(p.pose_mask.any() for p in data)):
+    if not _fits_pose(data, pose_weight):
         rows = _paper_rows(data, calibs, robot)
         if rows is not None:
             return rows
@@ -491,6 +490,11 @@ def _residual_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration], rob
             d *= pose_weight * p.pose_scale
             parts.append(d[:, p.pose_mask])
     return np.concatenate(parts, axis=1)
+
+
+def _fits_pose(data: Sequence[_Prepared], pose_weight: float) -> bool:
+    """Whether the residuals include pose channels (a weight, and a pose measured somewhere)."""
+    return pose_weight > 0 and any(p.pose_mask.any() for p in data)
 
 
 def _wheel_count(data: Sequence[_Prepared]) -> int:
@@ -884,7 +888,7 @@ def _fit_parameters(recordings, calibration, robot, free, x0, bounds, pose_weigh
     idx = [free.index(n) for n in live]
     base = with_parameters(calibration, fixed)
     problem = _Problem(data, base, robot, live, lo[idx], hi[idx], pose_weight)
-    solve = _solver(base, live, pose_weight > 0 and any(p.pose_mask.any() for p in data))
+    solve = _solver(base, live, _fits_pose(data, pose_weight))
     best = None
     failures = []
     for start in _starts(data, base, robot, live, x0, lo[idx], hi[idx]):
@@ -919,7 +923,7 @@ def _unseen(data: Sequence[_Prepared], free: Sequence[str], pose_weight: float) 
     """Free parameters no fitted residual depends on: with the pose channels unused (no weight
     or no pose measured), a wheel gain of a wheel measured in no recording, and the slip
     efficiencies. Empty when every free parameter would be held (nothing left to fit)."""
-    pose = pose_weight > 0 and any(p.pose_mask.any() for p in data)
+    pose = _fits_pose(data, pose_weight)
     if pose:
         return []
     seen = np.zeros(4, bool)

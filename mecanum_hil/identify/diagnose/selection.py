@@ -263,7 +263,7 @@ def _score(h: HeldOut, noise2: float) -> float:
 
 
 def search_credit(ev, fitted: Calibration, effect: str, free: Sequence[str],
-                  sources: Sequence[str], scale2: float, f0: float):
+                  sources: Sequence[str], scale2: float, f0: float, f1: float):
     """The model without ``effect``, refitted from the candidate's fit, when it does as well.
 
     A candidate is fitted with A, B, C (and the effects already named) free; where the cost is
@@ -271,7 +271,8 @@ def search_credit(ev, fitted: Calibration, effect: str, free: Sequence[str],
     and a candidate's longer search then finds a better model whatever the effect (a staircase
     to its ceiling: wheel gains of 1.00005 took the RMSE from 1.22 to 0.76 rpm). Remove the
     effect from the candidate's fit and refit the rest from there: if that loses less than
-    ``MIN_DROP`` of the in-sample score ``f0``, the effect earned nothing.
+    ``MIN_DROP`` of the in-sample score ``f0`` against the candidate's own ``f1`` (in-sample
+    mean squares over ``scale2``), the effect earned nothing.
 
     Returns
     -------
@@ -285,7 +286,7 @@ def search_credit(ev, fitted: Calibration, effect: str, free: Sequence[str],
     except (FitError, ConfigError):
         return None
     plain = with_parameters(plain, res.parameters)
-    loss = (in_sample_ms(ev, plain, "wheel") - in_sample_ms(ev, fitted, "wheel")) / scale2
+    loss = in_sample_ms(ev, plain, "wheel") / scale2 - f1
     return (plain, dict(res.ci95)) if loss < MIN_DROP * f0 else None
 
 
@@ -495,7 +496,10 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
             f = fits[win.effect]
             plain = None
             if channel == "wheel" and len(refits) < MAX_SEARCHES_ON:
-                plain = search_credit(ev, f.calibration, win.effect, cur_free, names, scale2, f0)
+                # the winner's in-sample score, as its share was computed from it
+                f1 = f0 - win.in_sample * (f0 - 1.0)
+                plain = search_credit(ev, f.calibration, win.effect, cur_free, names, scale2, f0,
+                                      f1)
             if plain is not None:
                 # the model without the effect, refitted from where the candidate's search
                 # ended, fits as well: the search earned the gain, not the effect
