@@ -7,7 +7,7 @@ a first untimed run), median of ``--repeats`` runs. Baseline, measured in the sa
 Commands, on one recording (``../shared/data/real/micromouse/testPid7.csv`` when present, with
 its robot profile, else the committed sample ``recordings/samples/paper-step-60.csv``):
 ``--help``, ``fit``, ``fit --no-report``, ``simulate``, ``shadow --replay``, ``diagnose``.
-``fit`` writes its report PNG by default, which loads matplotlib (~0.3 s).
+``fit`` writes its report PNG by default (drawn with Pillow, ~0.07 s).
 
 Run: ``python bench/bench_startup.py [--repeats 5] [--skip-diagnose]``
 """

@@ -33,6 +33,9 @@ def plot_fit(result: FitResult, recordings: Sequence[Recording], robot: RobotPro
              path: str | Path, labels: Sequence[str] | None = None) -> Path:
     """Measured (dots) against fitted (lines) wheel speeds, one panel per recording.
 
+    Drawn with Pillow (:mod:`mecanum_hil.plots.raster`): ``fit`` writes it on every run, and
+    matplotlib's import alone would double the command's time.
+
     Parameters
     ----------
     result : FitResult
@@ -46,42 +49,29 @@ def plot_fit(result: FitResult, recordings: Sequence[Recording], robot: RobotPro
     labels : sequence of str, optional
         Panel titles (default: the fit's data sources).
     """
-    from ..plots import _pyplot, save_figure
+    from ..plots.raster import COLOURS, Panel, Series, write_chart
 
-    plt = _pyplot()
     cal = result.calibration
     labels = list(labels or cal.info.get("sources", []))
     per = list(cal.info.get("fit_percent_per_recording", []))
-    n = len(recordings)
-    ncols = min(n, 3)
-    nrows = (n + ncols - 1) // ncols
-    fig, axes = plt.subplots(nrows, ncols, figsize=(5.4 * ncols, 3.9 * nrows), squeeze=False)
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    panels = []
     for k, rec in enumerate(recordings):
-        ax = axes[k // ncols, k % ncols]
         model = simulate(rec.commands, rec.t_s, cal, robot,
                          initial_pose=start_pose(rec)).wheel_rpm[0]
+        series = []
         for i in range(4):
             meas = rec.wheel_rpm[:, i]
             if not np.isfinite(meas).any():
                 continue
-            ax.plot(rec.t_s, meas, ".", ms=2.5, color=colours[i], alpha=0.6,
-                    label=f"wheel {i + 1} measured")
-            ax.plot(rec.t_s, model[:, i], "-", lw=1.3, color=colours[i],
-                    label=f"wheel {i + 1} fitted")
+            series += [Series(rec.t_s, meas, COLOURS[i], f"wheel {i + 1} measured", dots=True),
+                       Series(rec.t_s, model[:, i], COLOURS[i], f"wheel {i + 1} fitted")]
         title = labels[k] if k < len(labels) else f"recording {k + 1}"
         if k < len(per):
             title = f"{Path(title).name}: fit {per[k]:.1f} %"
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel("t [s]")
-        ax.set_ylabel("wheel speed [rpm]")
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=6)
-    for k in range(n, nrows * ncols):
-        axes[k // ncols, k % ncols].set_visible(False)
-    fig.suptitle(f"fit ({result.method}): A={cal.A:.4g} B={cal.B:.4g} C={cal.C:.4g}, "
-                 f"RMSE {result.rmse_rpm:.3g} rpm, fit {result.fit_percent:.1f} %", fontsize=10)
-    return save_figure(fig, path, dpi=110)
+        panels.append(Panel(tuple(series), title, "t [s]", "wheel speed [rpm]"))
+    return write_chart(path, panels, ncols=min(len(panels), 3),
+                       title=f"fit ({result.method}): A={cal.A:.4g} B={cal.B:.4g} C={cal.C:.4g}, "
+                             f"RMSE {result.rmse_rpm:.3g} rpm, fit {result.fit_percent:.1f} %")
 
 
 def fit_files(paths: Sequence[str | Path], out: str | Path, robot: RobotProfile,

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import MecanumHILError
-from .io.recording import Recording
+from ..errors import MecanumHILError
+from ..io.recording import Recording
 
 
 def _pyplot():
