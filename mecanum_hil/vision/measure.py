@@ -11,8 +11,10 @@ circle, unwrapped across gaps and differentiated (:func:`~mecanum_hil.vision.spe
 from __future__ import annotations
 
 import math
+import os
 import queue
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,7 +28,7 @@ from .detect import BlobDetector, MarkerSpec
 from .geometry import refit_track, select_track
 from .hub import STILL_CAMERA_PX, HubTracker, camera_offsets
 from .speed import FAST_STEP_TURNS, estimate_speed
-from .video import FrameTiming, frame_times, iter_frames, open_video
+from .video import FrameTiming, decode_ahead, frame_times, iter_frames, open_video
 
 #: Default regression window of the speed estimate [s] (see docs/vision.md).
 DEFAULT_WINDOW_S = 0.1
@@ -52,6 +54,9 @@ STILL_MOVED_PX = 0.3
 #: Frames decoded before they are looked at, as one run, where a hub is read in runs (see
 #: scan_video).
 SCAN_BATCH = 10
+#: Memory the frames decoded ahead may take for decoding beside the analysis [bytes] (see
+#: scan_video): 1920x1080 and smaller; larger frames are decoded in turns with the analysis.
+BESIDE_MAX_BYTES = 256 * 2 ** 20
 #: Frames (the latest) a try to focus looks at.
 FOCUS_FRAMES = 240
 #: Share of a turn the marker must have covered before the search focuses on its path: a path
@@ -90,6 +95,11 @@ class MeasureOptions:
         resolves motions beyond half a turn per frame (aliasing), which are refused without it.
     track_hub : bool
         Follow the hub per frame (a camera that shakes or drifts); off: fixed image coordinates.
+    decode_beside : bool or None
+        Decode in a helper thread beside the analysis (less wall time with a second core
+        free) rather than in turns with it in one thread (the least CPU time); ``None``: beside
+        when the 1-minute load average leaves a second core free (see :func:`scan_video`). The
+        results are the same.
     """
 
     rois: tuple[tuple[int, tuple[int, int, int, int] | None], ...] = ((1, None),)
@@ -101,6 +111,7 @@ class MeasureOptions:
     seed: int = 0
     expected_rpm: tuple[float, float] | None = None
     track_hub: bool = True
+    decode_beside: bool | None = None
 
     def __post_init__(self) -> None:
         wheels = [w for w, _ in self.rois]
@@ -136,51 +147,113 @@ class VideoMeasurement:
 
 
 def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequence],
-               progress: Callable[[int, int], None] | None = None):
+               progress: Callable[[int, int], None] | None = None,
+               decode_beside: bool | None = None):
     """Decode every frame once and run the detectors on it.
+
+    ``decode_beside``: decode in a helper thread while this one analyses (default: when other
+    jobs leave a second core free, by the 1-minute load average, and four runs of frames fit in
+    :data:`BESIDE_MAX_BYTES`); else decode and analyse in turns in this thread. The results are
+    the same either way.
 
     Returns ``(info, stamps [s], per-detector lists of per-frame results, detectors)``.
     """
-    # Decoding and analysis take turns in this one thread, FFmpeg on one thread: the cheapest
-    # in CPU time. A frame is looked at right after it is decoded, while it is still in the
-    # core's cache (a decoding thread beside the analysis overlapped the two on two cores, but
-    # every frame then crossed cores and came back from memory: 5-15 % of decoding's CPU time
-    # more); FFmpeg's own frame threads would only add their cost (see open_video).
     cap, info = open_video(path, decoder_threads=1)
-    # Frames come in runs of SCAN_BATCH (the hub is read for a run at once), decoded into the
-    # same few buffers again (no fresh megabyte of memory per frame). Where no wheel's hub is
-    # read for a run (not tracked, or a still camera checked on single frames), each frame is
-    # looked at as soon as it is decoded and its buffer decoded into again: one buffer, still
-    # in the core's cache, instead of SCAN_BATCH in turn (3-10 % of decoding's CPU time). The
-    # runs of the hub stay where they were (every SCAN_BATCH-th frame from the first): the
-    # results are the same. The buffer last handed back is decoded into first (a stack).
+    if decode_beside is None:
+        # up to four runs of frames in memory: analysed, two waiting, being decoded
+        held = 4 * SCAN_BATCH * 3 * info.width_px * info.height_px
+        decode_beside = _idle_cores() >= 1 and held <= BESIDE_MAX_BYTES
+    # FFmpeg decodes on one thread either way: its frame threads cost 5-50 % more CPU time
+    # (see open_video), and beside the analysis they only slowed the whole down.
+    # Beside: what the user waits for is the wall clock; with a second core free decoding and
+    # analysis overlap (10-35 % less wall time than in turns), at 5-15 % more CPU time (frames
+    # cross cores, and the decoding thread waits for the GIL the analysis holds). With another
+    # job busy on the second core it is 0-10 % slower than in turns (bench/bench_video.py).
+    # In turns: each frame is looked at while still in the core's cache: the least CPU time.
+    # Frames are decoded into the same few buffers again (no fresh megabyte of memory per
+    # frame); the buffer last handed back is decoded into first (a stack).
     free: queue.Queue = queue.LifoQueue()
+    runs = None
     try:
         # Inside the try: a region outside the frame must not leave the file open.
         detectors = detectors_for((info.width_px, info.height_px))
         results: list[list] = [[] for _ in detectors]
         stamps: list[float] = []
         next_focus = FOCUS_AFTER_FRAMES
-        run: list = []
-        for item in iter_frames(cap, free):
-            frame = item[2]
-            if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
-                raise VideoError(f"{path}: frame {item[0]} has another size than the first")
-            run.append(item)
-            if (len(stamps) + len(run)) % SCAN_BATCH and not all(
-                    not isinstance(det, _WheelScan) or det.single_frames for det in detectors):
-                continue
+        runs = (_runs_beside(cap, free) if decode_beside else _runs_in_turns(cap, free, detectors))
+        for run in runs:
+            for index, _, frame in run:
+                if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
+                    raise VideoError(f"{path}: frame {index} has another size than the first")
             next_focus = _scan_run(run, detectors, results, stamps, next_focus, free)
-            run = []
-            if progress is not None and not len(stamps) % SCAN_BATCH:
+            if progress is not None and (not len(stamps) % SCAN_BATCH or len(run) > 1):
                 progress(len(stamps), info.frame_count)
-        if run:
-            _scan_run(run, detectors, results, stamps, next_focus, free)
-        if progress is not None and len(stamps) % SCAN_BATCH:
+        if progress is not None and stamps and len(stamps) % SCAN_BATCH:
             progress(len(stamps), info.frame_count)
     finally:
+        if runs is not None:
+            runs.close()  # the helper thread is stopped before the file is closed
         cap.release()
     return info, np.array(stamps, dtype=float), results, detectors
+
+
+def _idle_cores() -> float:
+    """Cores this process may run on beyond its own one that other jobs leave free: the count
+    less the 1-minute load average (all of them where the load is unknown)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except (AttributeError, OSError):  # Windows
+        load = 0.0
+    return cores - 1 - load
+
+
+def _runs_in_turns(cap, free: queue.Queue, detectors: Sequence) -> Iterator[list]:
+    """Runs of :func:`~mecanum_hil.vision.video.iter_frames` items, decoded in this thread.
+
+    Runs of SCAN_BATCH where a hub is read for a run at once; where no wheel's hub is read for
+    a run (not tracked, or a still camera checked on single frames), single frames, each looked
+    at as soon as it is decoded and its buffer decoded into again: one buffer, still in the
+    core's cache, instead of SCAN_BATCH in turn (3-10 % of decoding's CPU time). The runs of
+    the hub stay where they were (every SCAN_BATCH-th frame from the first): the results are
+    the same.
+    """
+    run: list = []
+    done = 0
+    for item in iter_frames(cap, free):
+        run.append(item)
+        if (done + len(run)) % SCAN_BATCH and not all(
+                not isinstance(det, _WheelScan) or det.single_frames for det in detectors):
+            continue
+        done += len(run)
+        yield run
+        run = []
+    if run:
+        yield run
+
+
+def _runs_beside(cap, free: queue.Queue) -> Iterator[list]:
+    """Runs of SCAN_BATCH :func:`~mecanum_hil.vision.video.iter_frames` items, decoded ahead
+    in a helper thread; closing the generator stops and joins the thread."""
+    q: queue.Queue = queue.Queue(maxsize=2)
+    stop = threading.Event()
+    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop, SCAN_BATCH, free),
+                              daemon=True)
+    worker.start()
+    try:
+        while True:
+            item = q.get()
+            if item is None:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        worker.join()
 
 
 def _scan_run(run: list, detectors: Sequence, results: list[list], stamps: list[float],
@@ -401,7 +474,7 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
             return [ArucoDetector(roi, size) for _, roi in opts.rois]
         return [_WheelScan(opts.marker, roi, size, opts.track_hub) for _, roi in opts.rois]
 
-    info, stamps, per_wheel, detectors = scan_video(path, make, progress)
+    info, stamps, per_wheel, detectors = scan_video(path, make, progress, opts.decode_beside)
     n = stamps.size
     if n < 3:
         raise VideoError(f"{src}: only {n} frame(s) could be decoded (empty or corrupt video)")

@@ -3,6 +3,7 @@ the hub from its edges, the marker followed in a window, frames handed over in r
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import threading
 
@@ -96,8 +97,8 @@ def test_following_the_marker_finds_what_the_whole_search_finds(tmp_path, monkey
     assert all(np.array_equal(a, b) for a, b in zip(whole, followed, strict=True))
 
 
-def test_frames_one_at_a_time_once_no_hub_is_read_in_runs_measure_the_same(tmp_path,
-                                                                             monkeypatch):
+def test_frames_one_at_a_time_in_runs_or_decoded_beside_measure_the_same(tmp_path,
+                                                                          monkeypatch):
     res = render_video(steady(90.0, 3.0), tmp_path / "still.avi", RenderSettings(
         640, 480, fps=30.0, noise_std=3.0, exposure=0.5, distractors=2))
     runs: list[int] = []
@@ -112,7 +113,7 @@ def test_frames_one_at_a_time_once_no_hub_is_read_in_runs_measure_the_same(tmp_p
     for hub in (True, False):
         runs.clear()
         done.clear()
-        opts = measure.MeasureOptions(track_hub=hub)
+        opts = measure.MeasureOptions(track_hub=hub, decode_beside=False)
         single = measure.measure_video(res.path, opts, lambda k, _: done.append(k))
         assert done[-1] == single.summary["frames"] and done == sorted(set(done))
         # A still camera: runs of SCAN_BATCH while the hub is watched, then one frame at a
@@ -126,6 +127,18 @@ def test_frames_one_at_a_time_once_no_hub_is_read_in_runs_measure_the_same(tmp_p
         assert np.array_equal(single.recording.wheel_rpm, in_runs.recording.wheel_rpm,
                               equal_nan=True)
         assert single.summary == in_runs.summary
+        # decoded in a helper thread beside the analysis: runs of SCAN_BATCH, same results
+        runs.clear()
+        done.clear()
+        beside = measure.measure_video(res.path, dataclasses.replace(opts, decode_beside=True),
+                                       lambda k, _: done.append(k))
+        n = single.summary["frames"]
+        assert runs == [measure.SCAN_BATCH] * (n // measure.SCAN_BATCH) + (
+            [n % measure.SCAN_BATCH] if n % measure.SCAN_BATCH else [])
+        assert done[-1] == n and done == sorted(set(done))
+        assert np.array_equal(single.recording.wheel_rpm, beside.recording.wheel_rpm,
+                              equal_nan=True)
+        assert single.summary == beside.summary
 
 
 def test_frames_are_handed_over_in_runs_and_their_buffers_reused(shaking, tmp_path):
@@ -158,3 +171,27 @@ def test_millisecond_timestamps_of_a_constant_rate_give_its_exact_times():
     np.testing.assert_array_equal(frame_times(exact + 0.5, 30.0).t_s, (exact + 0.5) - 0.5)
     stamps = np.cumsum(np.r_[0.0, np.tile([1 / 30, 1 / 20], 10)])
     assert frame_times(stamps, 30.0).variable
+
+
+@pytest.mark.parametrize(("idle", "max_bytes", "beside"), [
+    (1.0, measure.BESIDE_MAX_BYTES, True),   # a second core free
+    (0.2, measure.BESIDE_MAX_BYTES, False),  # another job busy on it (load average)
+    (1.0, 4 * 2 ** 20, False),               # four runs of frames would not fit
+])
+def test_decoding_beside_by_default_only_with_a_core_and_the_memory_free(
+        tmp_path, monkeypatch, idle, max_bytes, beside):
+    res = render_video(steady(60.0, 1.0), tmp_path / "v.avi", RenderSettings(
+        320, 240, fps=30.0, noise_std=2.0))
+    runs: list[int] = []
+    scan_run = measure._scan_run
+
+    def counted(run, *args):
+        runs.append(len(run))
+        return scan_run(run, *args)
+
+    monkeypatch.setattr(measure, "_scan_run", counted)
+    monkeypatch.setattr(measure, "_idle_cores", lambda: idle)
+    monkeypatch.setattr(measure, "BESIDE_MAX_BYTES", max_bytes)
+    measure.measure_video(res.path, measure.MeasureOptions(track_hub=False))
+    # in turns without a hub: one frame at a time; beside: runs of SCAN_BATCH
+    assert (max(runs) == measure.SCAN_BATCH) is beside
