@@ -204,6 +204,184 @@ def _controller_tick(u, per, A, C, dmax, y, z, hold):
         hold[i] = c
 
 
+@njit(cache=True, inline="always")
+def _load_state(state, r, y, z, ue, hold, dl):
+    """Unpack row ``r`` of ``state`` (see ``STATE_WIDTH``) into the wheels' and the drive's
+    arrays; returns the time to the controller's next tick [s]."""
+    for i in range(4):
+        y[i] = state[r, i]
+        z[i] = state[r, 4 + i]
+        ue[i] = state[r, 8 + i]
+        hold[i] = state[r, 12 + i]
+        dl[i] = state[r, 16 + i]
+    return state[r, 20]
+
+
+@njit(cache=True, inline="always")
+def _store_state(state_out, r, y, z, ue, hold, dl, until_tick):
+    """Pack the wheels' and the drive's arrays into row ``r`` of ``state_out``."""
+    for i in range(4):
+        state_out[r, i] = y[i]
+        state_out[r, 4 + i] = z[i]
+        state_out[r, 8 + i] = ue[i]
+        state_out[r, 12 + i] = hold[i]
+        state_out[r, 16 + i] = dl[i]
+    state_out[r, 20] = until_tick
+
+
+@njit(cache=True, inline="always")
+def _record_sample(wheels_out, pose_out, r, t, y, X, Y, phi):
+    """Write robot ``r``'s wheel speeds [rpm] and pose (``phi`` [rad] as [deg]) at sample ``t``."""
+    for i in range(4):
+        wheels_out[r, t, i] = y[i]
+    pose_out[r, t, 0] = X
+    pose_out[r, t, 1] = Y
+    pose_out[r, t, 2] = math.degrees(phi)
+
+
+@njit(cache=True, inline="always")
+def _wheel_targets(n, w, th, k, db, gains, tgt):
+    """Wheel targets [rpm] of the command ``(n [rpm], w [deg/s], th [deg])`` into ``tgt``:
+    inverse kinematics, then deadband ``db`` [rpm] and the wheel ``gains`` (4,)."""
+    thr = math.radians(th)
+    s = math.sin(thr)
+    c = math.cos(thr)
+    v = n / (abs(s) + abs(c))
+    vx = v * s
+    vy = -v * c
+    kwz = k * w / 6.0
+    tgt[0] = vx - vy - kwz
+    tgt[1] = vx + vy + kwz
+    tgt[2] = vx + vy - kwz
+    tgt[3] = vx - vy + kwz
+    for i in range(4):
+        if abs(tgt[i]) < db:
+            tgt[i] = 0.0
+        tgt[i] *= gains[i]
+
+
+@njit(cache=True, inline="always")
+def _ramp_setpoints(tgt, ue, ub, ramping, rl, hs):
+    """Set-points ``ub`` [rpm] the four drives hold over a sub-step of ``hs`` seconds towards
+    the targets ``tgt``: with a rate limit ``rl`` [rpm/s] the ramp's mean (second order in the
+    step). Advances the ramps' ends ``ue``."""
+    for i in range(4):
+        u = tgt[i]
+        if ramping:
+            d = u - ue[i]
+            lim = rl * hs
+            if d > lim:
+                d = lim
+            elif d < -lim:
+                d = -lim
+            u = ue[i] + 0.5 * d
+            ue[i] += d
+        else:
+            ue[i] = u
+        ub[i] = u
+
+
+@njit(cache=True, inline="always")
+def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A, B, C,
+                         drive_max, top):
+    """Advance the four wheels over one sub-step on the closed-form path.
+
+    ``coef``: the sub-step's row of the kernel's ``table`` (its exact discretisation). A wheel
+    whose drive is at the saturation limit moves exactly towards ``top`` [rpm] instead, its
+    integrator frozen while the error pushes further (anti-windup). Writes the integral of each
+    wheel's speed over the sub-step into ``q`` [rpm s].
+    """
+    a11 = coef[0]
+    a12 = coef[1]
+    a21 = coef[2]
+    a22 = coef[3]
+    b1 = coef[4]
+    b2 = coef[5]
+    cq1 = coef[6]
+    cq2 = coef[7]
+    dq = coef[8]
+    eb = coef[9]
+    hs = coef[10]
+    _ramp_setpoints(tgt, ue, ub, ramping, rl, hs)
+    for i in range(4):
+        u = ub[i]
+        yi = y[i]
+        zi = z[i]
+        if saturating:
+            drive = A * (u - yi) + C * zi
+            if drive > drive_max or drive < -drive_max:
+                sg = 1.0 if drive > 0 else -1.0
+                ys = sg * top
+                if B > 0:
+                    y[i] = ys + (yi - ys) * eb
+                    q[i] = ys * hs + (yi - ys) * (1.0 - eb) / B
+                else:
+                    y[i] = yi
+                    q[i] = yi * hs
+                # anti-windup: integrate only while the error pulls out
+                if sg * (u - yi) < 0:
+                    z[i] = zi + (u - yi) * hs
+                continue
+        q[i] = cq1 * yi + cq2 * zi + dq * u
+        y[i] = a11 * yi + a12 * zi + b1 * u
+        z[i] = a21 * yi + a22 * zi + b2 * u
+
+
+@njit(cache=True, inline="always")
+def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
+                            saturating, per, a_lag, brk, A, B, C, dmax):
+    """Advance the four wheels over one sub-step on the path of the drive's own dynamics.
+
+    The sub-step is cut into pieces that end at the controller's ticks (period ``per`` [s]),
+    each advanced by :func:`_drive_piece`. ``coef``: the sub-step's row of the kernel's
+    ``table``; ``tab``: scratch (11,). Writes the integral of each wheel's speed over the
+    sub-step into ``q`` [rpm s]; returns the time to the next tick [s].
+    """
+    hs = coef[10]
+    _ramp_setpoints(tgt, ue, ub, ramping, rl, hs)
+    for i in range(4):
+        q[i] = 0.0
+    for j in range(10):
+        tab[j] = coef[j]
+    tab[10] = hs
+    rem = hs
+    while rem > 1e-12:
+        if per > 0 and until_tick <= 1e-12:
+            _controller_tick(ub, per, A, C, dmax, y, z, hold)
+            until_tick = per
+        piece = min(rem, until_tick) if per > 0 else rem
+        if per > 0 or a_lag < np.inf or saturating:
+            eb_p, g_p, ea_p = _lag_factors(B, a_lag, piece)
+        else:  # the closed-form PI path (tab) needs none
+            eb_p = g_p = ea_p = 0.0
+        for i in range(4):
+            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, dmax,
+                         y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
+        rem -= piece
+        if per > 0:
+            until_tick -= piece
+    return until_tick
+
+
+@njit(cache=True, inline="always")
+def _advance_pose(q, ex, ey, ez, k, lin, X, Y, phi, cph, sph):
+    """Pose after a sub-step whose wheel-speed integrals are ``q`` [rpm s]: the body twist
+    averaged over it (times the efficiencies), then the SE(2) exponential. ``cph, sph``: cos and
+    sin of ``phi`` [rad], carried along; ``lin``: metres per (rpm s)."""
+    bvx = 0.25 * (q[0] + q[1] + q[2] + q[3]) * ex
+    bvy = 0.25 * (-q[0] + q[1] + q[2] - q[3]) * ey
+    bwz = 0.25 * (-q[0] + q[1] - q[2] + q[3]) / k * ez
+    a = bwz * _RPM_S_TO_RAD
+    so, co, ca, sa = _exp_se2(a)
+    dxl = lin * (bvx * so - bvy * co)
+    dyl = lin * (bvx * co + bvy * so)
+    X += cph * dxl - sph * dyl
+    Y += sph * dxl + cph * dyl
+    phi += a
+    cph, sph = cph * ca - sph * sa, sph * ca + cph * sa
+    return X, Y, phi, cph, sph
+
+
 @njit(cache=True, parallel=True)
 def simulate_kernel(
     commands, didx, nsub, table, coeffs, k, wheel_radius_m,
@@ -253,13 +431,7 @@ def simulate_kernel(
         dl = np.empty(4)
         ub = np.empty(4)
         tab = np.empty(11)
-        for i in range(4):
-            y[i] = state[r, i]
-            z[i] = state[r, 4 + i]
-            ue[i] = state[r, 8 + i]
-            hold[i] = state[r, 12 + i]
-            dl[i] = state[r, 16 + i]
-        until_tick = state[r, 20]
+        until_tick = _load_state(state, r, y, z, ue, hold, dl)
         per = dyn[r, 0]
         lag = dyn[r, 1]
         a_lag = 1.0 / lag if lag > 0 else np.inf
@@ -273,10 +445,10 @@ def simulate_kernel(
         A = coeffs[r, 0]
         B = coeffs[r, 1]
         C = coeffs[r, 2]
-        db = deadband[r]
         top = top_speed[r]
         saturating = top < np.inf
         drive_max = B * top
+        dmax = drive_max if saturating else np.inf
         rl = rate_limit[r]
         ramping = rl < np.inf
         ex = efficiency[r, 0]
@@ -286,11 +458,7 @@ def simulate_kernel(
         last_w = np.nan
         last_th = np.nan
         for t in range(T):
-            for i in range(4):
-                wheels_out[r, t, i] = y[i]
-            pose_out[r, t, 0] = X
-            pose_out[r, t, 1] = Y
-            pose_out[r, t, 2] = math.degrees(phi)
+            _record_sample(wheels_out, pose_out, r, t, y, X, Y, phi)
             if t == T - 1:
                 break
             n = commands[r, t, 0]
@@ -300,122 +468,19 @@ def simulate_kernel(
                 last_n = n
                 last_w = w
                 last_th = th
-                thr = math.radians(th)
-                s = math.sin(thr)
-                c = math.cos(thr)
-                v = n / (abs(s) + abs(c))
-                vx = v * s
-                vy = -v * c
-                kwz = k * w / 6.0
-                tgt[0] = vx - vy - kwz
-                tgt[1] = vx + vy + kwz
-                tgt[2] = vx + vy - kwz
-                tgt[3] = vx - vy + kwz
-                for i in range(4):
-                    if abs(tgt[i]) < db:
-                        tgt[i] = 0.0
-                    tgt[i] *= gains[r, i]
-            row = didx[t]
-            a11 = table[r, row, 0]
-            a12 = table[r, row, 1]
-            a21 = table[r, row, 2]
-            a22 = table[r, row, 3]
-            b1 = table[r, row, 4]
-            b2 = table[r, row, 5]
-            cq1 = table[r, row, 6]
-            cq2 = table[r, row, 7]
-            dq = table[r, row, 8]
-            eb = table[r, row, 9]
-            hs = table[r, row, 10]
+                _wheel_targets(n, w, th, k, deadband[r], gains[r], tgt)
+            coef = table[r, didx[t]]
             for _ in range(nsub[t]):
                 if dynamics:
-                    dmax = drive_max if saturating else np.inf
-                    for i in range(4):
-                        u = tgt[i]
-                        if ramping:
-                            d = u - ue[i]
-                            lim = rl * hs
-                            d = min(max(d, -lim), lim)
-                            u = ue[i] + 0.5 * d
-                            ue[i] += d
-                        else:
-                            ue[i] = u
-                        ub[i] = u
-                        q[i] = 0.0
-                    for j in range(10):
-                        tab[j] = table[r, row, j]
-                    tab[10] = hs
-                    rem = hs
-                    # pieces end at the controller's ticks
-                    while rem > 1e-12:
-                        if per > 0 and until_tick <= 1e-12:
-                            _controller_tick(ub, per, A, C, dmax, y, z, hold)
-                            until_tick = per
-                        piece = min(rem, until_tick) if per > 0 else rem
-                        if per > 0 or a_lag < np.inf or saturating:
-                            eb_p, g_p, ea_p = _lag_factors(B, a_lag, piece)
-                        else:  # the closed-form PI path (tab) needs none
-                            eb_p = g_p = ea_p = 0.0
-                        for i in range(4):
-                            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, dmax,
-                                         y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
-                        rem -= piece
-                        if per > 0:
-                            until_tick -= piece
+                    until_tick = _drive_dynamics_substep(
+                        tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
+                        saturating, per, a_lag, brk, A, B, C, dmax)
                 else:
-                    for i in range(4):
-                        u = tgt[i]
-                        if ramping:
-                            d = u - ue[i]
-                            lim = rl * hs
-                            if d > lim:
-                                d = lim
-                            elif d < -lim:
-                                d = -lim
-                            # hold the ramp's mean over the sub-step (second order in the step)
-                            u = ue[i] + 0.5 * d
-                            ue[i] += d
-                        else:
-                            ue[i] = u
-                        yi = y[i]
-                        zi = z[i]
-                        if saturating:
-                            drive = A * (u - yi) + C * zi
-                            if drive > drive_max or drive < -drive_max:
-                                sg = 1.0 if drive > 0 else -1.0
-                                ys = sg * top
-                                if B > 0:
-                                    y[i] = ys + (yi - ys) * eb
-                                    q[i] = ys * hs + (yi - ys) * (1.0 - eb) / B
-                                else:
-                                    y[i] = yi
-                                    q[i] = yi * hs
-                                # anti-windup: integrate only while the error pulls out
-                                if sg * (u - yi) < 0:
-                                    z[i] = zi + (u - yi) * hs
-                                continue
-                        q[i] = cq1 * yi + cq2 * zi + dq * u
-                        y[i] = a11 * yi + a12 * zi + b1 * u
-                        z[i] = a21 * yi + a22 * zi + b2 * u
-                # body twist averaged over the sub-step [rpm s], then the SE(2) exponential
-                bvx = 0.25 * (q[0] + q[1] + q[2] + q[3]) * ex
-                bvy = 0.25 * (-q[0] + q[1] + q[2] - q[3]) * ey
-                bwz = 0.25 * (-q[0] + q[1] - q[2] + q[3]) / k * ez
-                a = bwz * _RPM_S_TO_RAD
-                so, co, ca, sa = _exp_se2(a)
-                dxl = lin * (bvx * so - bvy * co)
-                dyl = lin * (bvx * co + bvy * so)
-                X += cph * dxl - sph * dyl
-                Y += sph * dxl + cph * dyl
-                phi += a
-                cph, sph = cph * ca - sph * sa, sph * ca + cph * sa
-        for i in range(4):
-            state_out[r, i] = y[i]
-            state_out[r, 4 + i] = z[i]
-            state_out[r, 8 + i] = ue[i]
-            state_out[r, 12 + i] = hold[i]
-            state_out[r, 16 + i] = dl[i]
-        state_out[r, 20] = until_tick
+                    _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating,
+                                         A, B, C, drive_max, top)
+                X, Y, phi, cph, sph = _advance_pose(q, ex, ey, ez, k, lin, X, Y, phi, cph, sph)
+        _store_state(state_out, r, y, z, ue, hold, dl, until_tick)
         pose_final[r, 0] = X
         pose_final[r, 1] = Y
         pose_final[r, 2] = math.degrees(phi)
+

@@ -241,55 +241,14 @@ def simulate_batch(
     -------
     Trajectory
     """
-    from .._jit import pick
-    from ._kernels import STATE_WIDTH, WHEEL_STATE_WIDTH, simulate_kernel
-    from .stepper import effect_arrays
-
     robot = robot or RobotProfile()
     t = _times(time_s)
-    cmd = np.asarray(commands, dtype=float)
-    if cmd.ndim == 2:
-        cmd = cmd[None]
-    if cmd.ndim != 3 or cmd.shape[1:] != (t.size, 3):
-        raise ConfigError(f"commands must have shape (N, {t.size}, 3), got {cmd.shape}")
-    if not np.isfinite(np.sum(cmd)):  # one pass; any NaN or inf makes the sum non-finite
-        raise ConfigError("commands contain NaN or infinite values")
-    calibs = [calibration] if isinstance(calibration, Calibration) else list(calibration)
-    n_rob = max(cmd.shape[0], len(calibs))
-    shared = cmd.shape[0] == 1  # one command stream for all robots (a fit's Jacobian)
-    if cmd.shape[0] == 1 and n_rob > 1:
-        cmd = np.broadcast_to(cmd, (n_rob, t.size, 3))
-    if len(calibs) == 1:
-        calibs = calibs * n_rob
-    if len(calibs) != n_rob or cmd.shape[0] != n_rob:
-        raise ConfigError(f"{cmd.shape[0]} command streams but {len(calibs)} calibrations")
-    for c in calibs:
-        if math.isfinite(c.effects.top_speed_rpm) and c.B <= 0:
-            raise ConfigError(f"{c.source}: the saturation effect needs B > 0")
-    pose0 = np.ascontiguousarray(np.broadcast_to(np.asarray(initial_pose, float), (n_rob, 3)))
-    state0 = np.zeros((n_rob, STATE_WIDTH))
-    if initial_state is not None:
-        given = np.asarray(initial_state, float)
-        if given.shape[-1] not in (WHEEL_STATE_WIDTH, STATE_WIDTH):
-            raise ConfigError(f"initial_state must have {STATE_WIDTH} (or {WHEEL_STATE_WIDTH}) "
-                              f"columns, got shape {given.shape}")
-        state0[:, :given.shape[-1]] = given
-    cmd0 = (np.zeros((n_rob, 3)) if initial_command is None
-            else np.broadcast_to(np.asarray(initial_command, float), (n_rob, 3)))
-
-    if out is not None:
-        if out.wheel_rpm.shape != (n_rob, t.size, 4) or out.pose.shape != (n_rob, t.size, 3):
-            raise ConfigError("out= trajectory has the wrong shape for these commands")
-        wheels, pose, final_state = out.wheel_rpm, out.pose, out.final_state
-    else:
-        wheels = np.empty((n_rob, t.size, 4))
-        pose = np.empty((n_rob, t.size, 3))
-        # Touch the output pages from one thread first: on these machines, first-touch page
-        # faults taken from several threads at once were several times slower than doing so.
-        wheels.fill(0.0)
-        pose.fill(0.0)
-        final_state = np.empty((n_rob, STATE_WIDTH))
+    cmd, calibs, shared = _robots_and_commands(commands, t, calibration)
+    n_rob = len(calibs)
+    pose0, state0, cmd0 = _initial_values(n_rob, initial_pose, initial_state, initial_command)
+    wheels, pose, final_state = _output_arrays(out, n_rob, t.size)
     final_pose = np.empty((n_rob, 3))
+    outputs = (wheels, pose, final_state, final_pose)
 
     # Robots are simulated in groups sharing a time grid: the same dead time (its grid is split at
     # the delayed command changes) and the same path (sub-stepped or closed-form), so a robot's
@@ -300,53 +259,147 @@ def simulate_batch(
         members = np.flatnonzero([k == key for k in keys])
         whole = members.size == n_rob
         group = calibs if whole else [calibs[i] for i in members]
-        one = shared and members.size > 1 and bool(np.all(cmd0[members] == cmd0[members[0]]))
-        if one:  # the robots' (delayed) commands are one stream: computed once, not copied
-            gcmd = np.broadcast_to(cmd[0], (members.size, t.size, 3))
-        else:
-            gcmd = cmd if whole else cmd[members]
-        if delay > 0 and one:
-            grid, first, sample_idx = _delay_grid(t, gcmd[:1], float(delay),
-                                                  cmd0[members[:1]])
-            gcmd = np.broadcast_to(first[0], (members.size, grid.size, 3))
-        elif delay > 0:
-            grid, gcmd, sample_idx = _delay_grid(t, gcmd, float(delay), cmd0[members])
-        else:
-            grid, sample_idx = t, None
-        table, didx, nsub = _step_tables(
-            group, np.diff(grid) if grid.size > 1 else np.array([1.0]),
-            max_substep_s if nonlinear else None)
-        if grid.size == 1:
-            didx = np.zeros(1, np.int64)
-            nsub = np.zeros(1, np.int64)
-        else:
-            didx = np.append(didx, 0)
-            nsub = np.append(nsub, 0)
-        args = (
-            gcmd, didx, nsub, table,  # any strides: a view is not copied
-            np.array([c.coefficients for c in group], dtype=float),
-            float(robot.k), float(robot.wheel_radius_m),
-            *effect_arrays([c.effects for c in group]),
-            state0 if whole else np.ascontiguousarray(state0[members]),
-            pose0 if whole else np.ascontiguousarray(pose0[members]),
-        )
-        # a small job runs in the interpreter: numba's start-up costs more than it (_jit.py)
-        kernel = pick(simulate_kernel, members.size * max(int(nsub.sum()), 1))
-        if sample_idx is None and whole:
-            kernel(*args, wheels, pose, final_state, final_pose)
-            continue
-        gw = np.empty((members.size, grid.size, 4))
-        gp = np.empty((members.size, grid.size, 3))
-        gs = np.empty((members.size, STATE_WIDTH))
-        gf = np.empty((members.size, 3))
-        kernel(*args, gw, gp, gs, gf)
-        if sample_idx is not None:
-            gw, gp = gw[:, sample_idx], gp[:, sample_idx]
-        wheels[members] = gw
-        pose[members] = gp
-        final_state[members] = gs
-        final_pose[members] = gf
+        grid, gcmd, sample_idx = _group_commands(t, cmd, cmd0, members, whole, shared, delay)
+        table, didx, nsub = _group_steps(group, grid, max_substep_s if nonlinear else None)
+        args = _kernel_inputs(group, robot, gcmd, table, didx, nsub,
+                              state0 if whole else np.ascontiguousarray(state0[members]),
+                              pose0 if whole else np.ascontiguousarray(pose0[members]))
+        _run_group(args, members, whole, grid.size, sample_idx, outputs)
     return Trajectory(t, np.asarray(cmd), wheels, pose, final_state)
+
+
+def _robots_and_commands(commands, t: np.ndarray, calibration):
+    """Check the commands and calibrations and bring them to one per robot.
+
+    Returns the (N, T, 3) commands (a broadcast view when one stream is shared), the N
+    calibrations and whether the commands were one shared stream (a fit's Jacobian).
+    """
+    cmd = np.asarray(commands, dtype=float)
+    if cmd.ndim == 2:
+        cmd = cmd[None]
+    if cmd.ndim != 3 or cmd.shape[1:] != (t.size, 3):
+        raise ConfigError(f"commands must have shape (N, {t.size}, 3), got {cmd.shape}")
+    if not np.isfinite(np.sum(cmd)):  # one pass; any NaN or inf makes the sum non-finite
+        raise ConfigError("commands contain NaN or infinite values")
+    calibs = [calibration] if isinstance(calibration, Calibration) else list(calibration)
+    n_rob = max(cmd.shape[0], len(calibs))
+    shared = cmd.shape[0] == 1
+    if cmd.shape[0] == 1 and n_rob > 1:
+        cmd = np.broadcast_to(cmd, (n_rob, t.size, 3))
+    if len(calibs) == 1:
+        calibs = calibs * n_rob
+    if len(calibs) != n_rob or cmd.shape[0] != n_rob:
+        raise ConfigError(f"{cmd.shape[0]} command streams but {len(calibs)} calibrations")
+    for c in calibs:
+        if math.isfinite(c.effects.top_speed_rpm) and c.B <= 0:
+            raise ConfigError(f"{c.source}: the saturation effect needs B > 0")
+    return cmd, calibs, shared
+
+
+def _initial_values(n_rob: int, initial_pose, initial_state, initial_command):
+    """Per robot: initial pose (N, 3), state (N, ``STATE_WIDTH``) and command before the start
+    (N, 3), each broadcast from what was given (a 12-column state is padded with zeros)."""
+    from ._kernels import STATE_WIDTH, WHEEL_STATE_WIDTH
+
+    pose0 = np.ascontiguousarray(np.broadcast_to(np.asarray(initial_pose, float), (n_rob, 3)))
+    state0 = np.zeros((n_rob, STATE_WIDTH))
+    if initial_state is not None:
+        given = np.asarray(initial_state, float)
+        if given.shape[-1] not in (WHEEL_STATE_WIDTH, STATE_WIDTH):
+            raise ConfigError(f"initial_state must have {STATE_WIDTH} (or {WHEEL_STATE_WIDTH}) "
+                              f"columns, got shape {given.shape}")
+        state0[:, :given.shape[-1]] = given
+    cmd0 = (np.zeros((n_rob, 3)) if initial_command is None
+            else np.broadcast_to(np.asarray(initial_command, float), (n_rob, 3)))
+    return pose0, state0, cmd0
+
+
+def _output_arrays(out: Trajectory | None, n_rob: int, n_t: int):
+    """Wheel speeds (N, T, 4), poses (N, T, 3) and final states to write: ``out``'s, or new."""
+    from ._kernels import STATE_WIDTH
+
+    if out is not None:
+        if out.wheel_rpm.shape != (n_rob, n_t, 4) or out.pose.shape != (n_rob, n_t, 3):
+            raise ConfigError("out= trajectory has the wrong shape for these commands")
+        return out.wheel_rpm, out.pose, out.final_state
+    wheels = np.empty((n_rob, n_t, 4))
+    pose = np.empty((n_rob, n_t, 3))
+    # Touch the output pages from one thread first: on these machines, first-touch page
+    # faults taken from several threads at once were several times slower than doing so.
+    wheels.fill(0.0)
+    pose.fill(0.0)
+    return wheels, pose, np.empty((n_rob, STATE_WIDTH))
+
+
+def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: np.ndarray,
+                    whole: bool, shared: bool, delay: float):
+    """A group's time grid, its commands on that grid and the samples' places on it (None when
+    the grid is ``t``): with a dead time the grid is refined at the delayed command changes."""
+    one = shared and members.size > 1 and bool(np.all(cmd0[members] == cmd0[members[0]]))
+    if one:  # the robots' (delayed) commands are one stream: computed once, not copied
+        gcmd = np.broadcast_to(cmd[0], (members.size, t.size, 3))
+    else:
+        gcmd = cmd if whole else cmd[members]
+    if delay > 0 and one:
+        grid, first, sample_idx = _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]])
+        return grid, np.broadcast_to(first[0], (members.size, grid.size, 3)), sample_idx
+    if delay > 0:
+        return _delay_grid(t, gcmd, float(delay), cmd0[members])
+    return t, gcmd, None
+
+
+def _group_steps(group: Sequence[Calibration], grid: np.ndarray, max_substep_s: float | None):
+    """The kernel's step tables for a group on ``grid`` (see :func:`_step_tables`), with the
+    row and sub-step count of the last sample (which starts no step) set to 0."""
+    table, didx, nsub = _step_tables(
+        group, np.diff(grid) if grid.size > 1 else np.array([1.0]), max_substep_s)
+    if grid.size == 1:
+        return table, np.zeros(1, np.int64), np.zeros(1, np.int64)
+    return table, np.append(didx, 0), np.append(nsub, 0)
+
+
+def _kernel_inputs(group: Sequence[Calibration], robot: RobotProfile, gcmd: np.ndarray,
+                   table: np.ndarray, didx: np.ndarray, nsub: np.ndarray, state0: np.ndarray,
+                   pose0: np.ndarray) -> tuple:
+    """The arguments of :func:`~mecanum_hil.model._kernels.simulate_kernel` before its
+    outputs."""
+    from .stepper import effect_arrays
+
+    return (
+        gcmd, didx, nsub, table,  # any strides: a view is not copied
+        np.array([c.coefficients for c in group], dtype=float),
+        float(robot.k), float(robot.wheel_radius_m),
+        *effect_arrays([c.effects for c in group]),
+        state0, pose0,
+    )
+
+
+def _run_group(args: tuple, members: np.ndarray, whole: bool, grid_size: int,
+               sample_idx: np.ndarray | None, outputs: tuple) -> None:
+    """Run the kernel for a group and write its results into the rows ``members`` of
+    ``outputs`` (wheels, pose, final state, final pose), at the samples ``sample_idx`` of its
+    grid; all robots on the samples' own grid write there directly."""
+    from .._jit import pick
+    from ._kernels import STATE_WIDTH, simulate_kernel
+
+    nsub = args[2]
+    # a small job runs in the interpreter: numba's start-up costs more than it (_jit.py)
+    kernel = pick(simulate_kernel, members.size * max(int(nsub.sum()), 1))
+    if sample_idx is None and whole:
+        kernel(*args, *outputs)
+        return
+    gw = np.empty((members.size, grid_size, 4))
+    gp = np.empty((members.size, grid_size, 3))
+    gs = np.empty((members.size, STATE_WIDTH))
+    gf = np.empty((members.size, 3))
+    kernel(*args, gw, gp, gs, gf)
+    if sample_idx is not None:
+        gw, gp = gw[:, sample_idx], gp[:, sample_idx]
+    wheels, pose, final_state, final_pose = outputs
+    wheels[members] = gw
+    pose[members] = gp
+    final_state[members] = gs
+    final_pose[members] = gf
 
 
 def simulate(

@@ -39,6 +39,8 @@ from ...model.robot import RobotProfile
 #: Orders of the output-error model: past outputs and input taps.
 NA = 4
 NB = 4
+#: Fits of two delays whose costs differ by less than this share are a tie (the shorter wins).
+TIE_RELATIVE = 1e-6
 #: Largest delay tried [samples] at least, and at most (the data's own latency sets it between).
 MIN_MAX_DELAY = 6
 MAX_MAX_DELAY = 60
@@ -233,7 +235,7 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
             r0 = resid(theta0, d)
         starts.append((float(r0 @ r0), d, theta0))
     starts.sort(key=lambda s: s[0])
-    best = None
+    refined = []
     size = sum(y.size for _, _, _, _, y, _ in series)
     for _, d, theta0 in starts[:REFINED_DELAYS if size <= SMALL_DATA else REFINED_DELAYS_LARGE]:
         try:
@@ -241,13 +243,15 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
                                 max_nfev=25 * theta0.size)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        if not np.isfinite(sol.cost):
-            continue
-        if best is None or sol.cost < best[0]:
-            best = (sol.cost, d, sol.x)
-    if best is None:
+        if np.isfinite(sol.cost):
+            refined.append((sol.cost, d, sol.x))
+    if not refined:
         return None
-    _, d, theta = best
+    # Delays whose fits tie to rounding (the simulation runs compiled or interpreted, which
+    # round differently) go to the shortest: the same answer in every process.
+    lowest = min(c for c, _, _ in refined)
+    _, d, theta = min((r for r in refined if r[0] <= lowest * (1.0 + TIE_RELATIVE)),
+                      key=lambda r: r[1])
     sims = _simulate(theta, d, series, wheel_of)
     res = []
     for (r, w, tu, _, _, ok), s in zip(series, sims, strict=True):

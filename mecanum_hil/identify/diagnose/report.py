@@ -23,8 +23,8 @@ from ...model.robot import RobotProfile
 from ...prediction import predict
 from ..regimes import pose_residual, rmse
 from .candidates import effect_parameters
-from .localise import STRUCTURE_RATIO, STRUCTURE_RHO, initial_pose_at_rest
-from .selection import MIN_EXPLAINED, MIN_RELATIVE, Diagnosis
+from .localise import STRUCTURE_RATIO, STRUCTURE_RHO, Finding, initial_pose_at_rest
+from .selection import MIN_EXPLAINED, MIN_RELATIVE, DiagnoseStep, Diagnosis
 
 
 def plot_comparison(measured: Recording, curves: dict[str, Recording], path: str | Path,
@@ -213,85 +213,138 @@ def write_report(diagnosis: Diagnosis, recordings: Sequence[Recording], out_dir:
                  robot: RobotProfile | None = None, title: str = "diagnose report") -> Path:
     """Write ``report.md`` and its PNG plots into ``out_dir``; return the markdown's path."""
     rob = robot or RobotProfile()
+    out = _report_folder(out_dir)
+    d = diagnosis
+    names = list(d.names)
+    recordings = [initial_pose_at_rest(r) for r in recordings]
+    md = _summary_lines(d, recordings, title)
+    for k, step in enumerate(d.steps, start=1):
+        md += _step_lines(d, k, step, recordings, names, rob, out)
+    for f in d.findings:
+        md += _finding_lines(f)
+    md += _remainder_lines(d)
+    if d.unexplained:
+        md += _unexplained_lines(d, recordings, names, rob, out)
+    md += _step_section(d, recordings, names, rob, out)
+    return _write_markdown(out / "report.md", md)
+
+
+def _report_folder(out_dir: str | Path) -> Path:
+    """The report's folder, created where missing."""
     out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise MecanumHILError(f"{out}: cannot create report folder: {err.strerror or err}"
                               ) from err
-    d = diagnosis
-    names = list(d.names)
-    recordings = [initial_pose_at_rest(r) for r in recordings]
+    return out
+
+
+def _summary_lines(d: Diagnosis, recordings: Sequence[Recording], title: str) -> list[str]:
+    """The title, the gap closed, the refits, where the model as given fails, the baseline and
+    the selection rules."""
     ini = d.initial
-    md = [f"# {title}", "",
-          f"{len(recordings)} recordings, {sum(len(r) for r in recordings)} samples. Model as "
-          f"given: A = {ini.A:.5g} 1/s, B = {ini.B:.5g} 1/s, C = {ini.C:.5g} 1/s^2 "
-          f"({ini.source}); effects: {', '.join(ini.effects.active()) or 'none'}.", "",
-          f"**Wheel RMSE {d.rmse_initial:.4g} rpm -> {d.rmse_final:.4g} rpm** "
-          f"(noise level about {d.noise_rpm:.3g} rpm). Effects named: "
-          f"{', '.join(d.effects) or 'none'}. Unexplained structured residual: "
-          f"{'**yes**' if d.unexplained else 'no'}.", "",
-          *[f"A longer search, not the effect of the round's best candidate ({r.candidate}), "
-            f"took the wheel RMSE from {r.rmse_before:.4g} to {r.rmse_after:.4g} rpm: the "
-            "model was refitted and nothing named for it." for r in d.refits],
-          *([""] if d.refits else []),
-          "## Where the model as given fails", "", "```", *d.localisation_initial.lines(),
-          "```", "",
-          f"Refitting its own parameters alone gives a wheel RMSE of {d.rmse_baseline:.4g} rpm "
-          f"(A = {d.baseline.A:.5g}, B = {d.baseline.B:.5g}, C = {d.baseline.C:.5g}).", "",
-          "Candidates are fitted together with A, B, C and scored on held-out data "
-          "(approximate leave-one-recording-out, or held-out time blocks when there is one "
-          "recording); the score is the held-out mean square divided by the noise level "
-          "squared (1 = noise floor). A candidate is kept if it lowers the held-out score by "
-          f"at least {100 * MIN_RELATIVE:.0f} % and removes at least "
-          f"{100 * MIN_EXPLAINED:.0f} % of the in-sample excess over the floor.", ""]
-    for k, step in enumerate(d.steps, start=1):
-        spec = EFFECTS[step.effect]
-        md += [f"## Step {k}: {step.effect}", "", f"*{spec.description}*", "",
-               "| parameter | value | 95 % interval |", "|---|---|---|", *_param_lines(step), "",
-               *_equivalent_lines(step),
-               "| candidate | held-out RMS | explains of excess (held out / in sample) | "
-               "of score | parameters |",
-               "|---|---|---|---|---|"]
-        for c in step.candidates:
-            mark = " **(added)**" if c.accepted else ""
-            md.append(f"| {c.effect}{mark} | {_fmt(c.heldout_rmse)} | "
-                      f"{_fmt(100 * c.explained, 3)} % / {_fmt(100 * c.in_sample, 3)} % | "
-                      f"{_fmt(100 * c.relative, 3)} % | {c.note or c.parameters} |")
-        md += ["", "| recording | wheel RMSE before [rpm] | after [rpm] |", "|---|---|---|"]
-        for name, b, a in zip(names, step.rmse_before_per_recording,
-                              step.rmse_after_per_recording, strict=True):
-            md.append(f"| {name} | {b:.4g} | {a:.4g} |")
-        md.append(f"| **all** | **{step.rmse_before:.4g}** | **{step.rmse_after:.4g}** |")
-        md += ["", f"Share of the gap over the noise floor this step removed: "
-               f"{_fmt(100 * d.share(step), 3)} %."]
-        if np.isfinite(step.pose_rmse_before).any():
-            b, a = step.pose_rmse_before, step.pose_rmse_after
-            md += ["", f"Pose RMSE before: X {b[0]:.4g} m, Y {b[1]:.4g} m, heading "
-                   f"{b[2]:.4g} deg; after: X {a[0]:.4g} m, Y {a[1]:.4g} m, heading "
-                   f"{a[2]:.4g} deg."]
-        if step.warnings:
-            md += ["", "Fit warnings: " + "; ".join(step.warnings)]
-        old = [predict(r, step.calibration_before, rob) for r in recordings]
-        new = [predict(r, step.calibration_after, rob) for r in recordings]
-        if step.effect == "slip":
-            gain = [_pose_rmse(r, o) - _pose_rmse(r, n)
-                    for r, o, n in zip(recordings, old, new, strict=True)]
-        else:
-            gain = [b - a for b, a in zip(step.rmse_before_per_recording,
-                                          step.rmse_after_per_recording, strict=True)]
-        i = int(np.nanargmax(gain))
-        png = plot_comparison(recordings[i], {"old model": old[i], f"with {step.effect}": new[i]},
-                              out / f"step{k}-{step.effect}.png",
-                              f"step {k}: {step.effect} on {names[i]}")
-        md += ["", f"Where the gap shrank most ({names[i]}):", "", f"![step {k}]({png.name})", ""]
-    for f in d.findings:
-        md += [f"## Named: {f.effect}", "", f"{f.description[0].upper()}{f.description[1:]} "
-               "(`docs/diagnose.md`: carried by A, B, C; nothing is added to the "
-               "calibration).", "", "| figure | value |", "|---|---|",
-               *[f"| `{k}` | {_fmt(v, 5)} |" for k, v in f.parameters.items()], ""]
+    return [f"# {title}", "",
+            f"{len(recordings)} recordings, {sum(len(r) for r in recordings)} samples. Model as "
+            f"given: A = {ini.A:.5g} 1/s, B = {ini.B:.5g} 1/s, C = {ini.C:.5g} 1/s^2 "
+            f"({ini.source}); effects: {', '.join(ini.effects.active()) or 'none'}.", "",
+            f"**Wheel RMSE {d.rmse_initial:.4g} rpm -> {d.rmse_final:.4g} rpm** "
+            f"(noise level about {d.noise_rpm:.3g} rpm). Effects named: "
+            f"{', '.join(d.effects) or 'none'}. Unexplained structured residual: "
+            f"{'**yes**' if d.unexplained else 'no'}.", "",
+            *[f"A longer search, not the effect of the round's best candidate ({r.candidate}), "
+              f"took the wheel RMSE from {r.rmse_before:.4g} to {r.rmse_after:.4g} rpm: the "
+              "model was refitted and nothing named for it." for r in d.refits],
+            *([""] if d.refits else []),
+            "## Where the model as given fails", "", "```", *d.localisation_initial.lines(),
+            "```", "",
+            f"Refitting its own parameters alone gives a wheel RMSE of {d.rmse_baseline:.4g} "
+            f"rpm (A = {d.baseline.A:.5g}, B = {d.baseline.B:.5g}, C = {d.baseline.C:.5g}).",
+            "",
+            "Candidates are fitted together with A, B, C and scored on held-out data "
+            "(approximate leave-one-recording-out, or held-out time blocks when there is one "
+            "recording); the score is the held-out mean square divided by the noise level "
+            "squared (1 = noise floor). A candidate is kept if it lowers the held-out score by "
+            f"at least {100 * MIN_RELATIVE:.0f} % and removes at least "
+            f"{100 * MIN_EXPLAINED:.0f} % of the in-sample excess over the floor.", ""]
+
+
+def _step_lines(d: Diagnosis, k: int, step: DiagnoseStep, recordings: Sequence[Recording],
+                names: Sequence[str], robot: RobotProfile, out: Path) -> list[str]:
+    """Step ``k``'s section: the effect, its parameters, every candidate, the RMSE before and
+    after, and its plot."""
+    spec = EFFECTS[step.effect]
+    md = [f"## Step {k}: {step.effect}", "", f"*{spec.description}*", "",
+          "| parameter | value | 95 % interval |", "|---|---|---|", *_param_lines(step), "",
+          *_equivalent_lines(step), *_candidate_table(step), "",
+          *_rmse_table(names, step), "",
+          f"Share of the gap over the noise floor this step removed: "
+          f"{_fmt(100 * d.share(step), 3)} %."]
+    if np.isfinite(step.pose_rmse_before).any():
+        b, a = step.pose_rmse_before, step.pose_rmse_after
+        md += ["", f"Pose RMSE before: X {b[0]:.4g} m, Y {b[1]:.4g} m, heading "
+               f"{b[2]:.4g} deg; after: X {a[0]:.4g} m, Y {a[1]:.4g} m, heading "
+               f"{a[2]:.4g} deg."]
+    if step.warnings:
+        md += ["", "Fit warnings: " + "; ".join(step.warnings)]
+    return md + _step_plot_lines(k, step, recordings, names, robot, out)
+
+
+def _candidate_table(step: DiagnoseStep) -> list[str]:
+    """Every candidate of the step's round: held-out RMS, share explained, parameters."""
+    md = ["| candidate | held-out RMS | explains of excess (held out / in sample) | "
+          "of score | parameters |",
+          "|---|---|---|---|---|"]
+    for c in step.candidates:
+        mark = " **(added)**" if c.accepted else ""
+        md.append(f"| {c.effect}{mark} | {_fmt(c.heldout_rmse)} | "
+                  f"{_fmt(100 * c.explained, 3)} % / {_fmt(100 * c.in_sample, 3)} % | "
+                  f"{_fmt(100 * c.relative, 3)} % | {c.note or c.parameters} |")
+    return md
+
+
+def _rmse_table(names: Sequence[str], step: DiagnoseStep) -> list[str]:
+    """The step's wheel RMSE before and after, per recording and over all."""
+    md = ["| recording | wheel RMSE before [rpm] | after [rpm] |", "|---|---|---|"]
+    for name, b, a in zip(names, step.rmse_before_per_recording,
+                          step.rmse_after_per_recording, strict=True):
+        md.append(f"| {name} | {b:.4g} | {a:.4g} |")
+    md.append(f"| **all** | **{step.rmse_before:.4g}** | **{step.rmse_after:.4g}** |")
+    return md
+
+
+def _step_plot_lines(k: int, step: DiagnoseStep, recordings: Sequence[Recording],
+                     names: Sequence[str], robot: RobotProfile, out: Path) -> list[str]:
+    """Plot old and new model on the recording where the step shrank the gap most (pose RMSE
+    for slip, wheel RMSE otherwise); return the lines that show it."""
+    old = [predict(r, step.calibration_before, robot) for r in recordings]
+    new = [predict(r, step.calibration_after, robot) for r in recordings]
+    if step.effect == "slip":
+        gain = [_pose_rmse(r, o) - _pose_rmse(r, n)
+                for r, o, n in zip(recordings, old, new, strict=True)]
+    else:
+        gain = [b - a for b, a in zip(step.rmse_before_per_recording,
+                                      step.rmse_after_per_recording, strict=True)]
+    i = int(np.nanargmax(gain))
+    png = plot_comparison(recordings[i], {"old model": old[i], f"with {step.effect}": new[i]},
+                          out / f"step{k}-{step.effect}.png",
+                          f"step {k}: {step.effect} on {names[i]}")
+    return ["", f"Where the gap shrank most ({names[i]}):", "", f"![step {k}]({png.name})", ""]
+
+
+def _finding_lines(f: Finding) -> list[str]:
+    """A named property of the final model (``proportional_only``) and its figures."""
+    return [f"## Named: {f.effect}", "", f"{f.description[0].upper()}{f.description[1:]} "
+            "(`docs/diagnose.md`: carried by A, B, C; nothing is added to the "
+            "calibration).", "", "| figure | value |", "|---|---|",
+            *[f"| `{k}` | {_fmt(v, 5)} |" for k, v in f.parameters.items()], ""]
+
+
+def _remainder_lines(d: Diagnosis) -> list[str]:
+    """What remains: where, its shape, the reference model, whether it is structured, and the
+    last round's candidates when none qualified."""
     c = d.check
-    md += ["## What remains", "", "```", *d.localisation_final.lines(), "```", ""]
+    md = ["## What remains", "", "```", *d.localisation_final.lines(), "```", ""]
     if d.shape is not None:
         md += [f"Shape of the remaining residual: {d.shape.describe()}.", ""]
     md += [f"Generic reference model (output error of higher order, "
@@ -308,17 +361,25 @@ def write_report(diagnosis: Diagnosis, recordings: Sequence[Recording], out_dir:
                "| candidate | held-out RMS | explains of excess | of score |", "|---|---|---|---|"]
         md += [f"| {s.effect} | {_fmt(s.heldout_rmse)} | {_fmt(100 * s.explained, 3)} % | "
                f"{_fmt(100 * s.relative, 3)} % |" for s in d.rejected]
-    if d.unexplained:
-        final = [predict(r, d.calibration, rob) for r in recordings]
-        worst = int(np.nanargmax([rs.rmse_rpm for rs in d.localisation_final.recordings]))
-        png = plot_comparison(recordings[worst], {"final model": final[worst]},
-                              out / "unexplained.png", f"unexplained residual on {names[worst]}")
-        md += ["", "**Unexplained:** structured residual remains that no effect of the library "
-               "explains; it is largest in: "
-               + (", ".join(d.localisation_final.worst_regimes()) or "no single regime")
-               + ".", "", f"![unexplained]({png.name})"]
-    md += _step_section(d, recordings, names, rob, out)
-    path = out / "report.md"
+    return md
+
+
+def _unexplained_lines(d: Diagnosis, recordings: Sequence[Recording], names: Sequence[str],
+                       robot: RobotProfile, out: Path) -> list[str]:
+    """The unexplained residual: where it is largest, and the final model plotted on the
+    recording it fits worst."""
+    final = [predict(r, d.calibration, robot) for r in recordings]
+    worst = int(np.nanargmax([rs.rmse_rpm for rs in d.localisation_final.recordings]))
+    png = plot_comparison(recordings[worst], {"final model": final[worst]},
+                          out / "unexplained.png", f"unexplained residual on {names[worst]}")
+    return ["", "**Unexplained:** structured residual remains that no effect of the library "
+            "explains; it is largest in: "
+            + (", ".join(d.localisation_final.worst_regimes()) or "no single regime")
+            + ".", "", f"![unexplained]({png.name})"]
+
+
+def _write_markdown(path: Path, md: Sequence[str]) -> Path:
+    """Write the report's lines to ``path``."""
     try:
         path.write_text("\n".join(md) + "\n")
     except OSError as err:
