@@ -261,7 +261,8 @@ class ControllerModel:
         self.anchor = tick
         self._invalidate()
 
-    def _apply_due_faults(self, tick: int) -> None:
+    def apply_due_faults(self, tick: int) -> None:
+        """Let the scheduled faults due at or before ``tick`` happen (each once a session)."""
         while self._faults:
             fault: Fault = self._faults[0]
             fault_tick = math.ceil(fault.at_s * self.rate_hz - 1e-9)
@@ -278,7 +279,7 @@ class ControllerModel:
         """The true wheel speeds at ``tick`` (no noise) [rpm]."""
         if tick < self.anchor:
             raise ValueError(f"tick {tick} is before the model's anchor {self.anchor}")
-        self._apply_due_faults(tick)
+        self.apply_due_faults(tick)
         if tick > self._cache_end:
             if tick - self.anchor > 2 * self.lookahead:
                 self._move_anchor(tick)
@@ -447,6 +448,9 @@ class SimulatedController:
             return
         if not self.connected or not isinstance(msg, Command | Stop | Heartbeat | EstopReset):
             return  # before the first HELLO only HELLO and PING are answered
+        # what happened before this message is acted on first: an ESTOP_RESET handled before
+        # the telemetry loop had applied an e-stop pressed at 0 s was undone by it a tick later
+        self.model.apply_due_faults(self._tick_now())
         if isinstance(msg, Command):
             problem = self.command_problem(msg)
             if problem is not None:

@@ -281,6 +281,22 @@ def test_6f_a_hello_never_clears_the_e_stop(tmp_path):
     assert not last.status & proto.Status.ESTOP and last.status & proto.Status.STOPPED
 
 
+def test_6g_an_e_stop_reset_read_with_the_hello_clears_an_e_stop_pressed_at_0_s(tmp_path):
+    """CI found it: under load the firmware read HELLO and ESTOP_RESET in one pass, before its
+    telemetry had let the fault at 0 s happen; the reset cleared nothing and the fault then
+    latched the e-stop again."""
+    fx_path = tmp_path / "fx.toml"
+    fx_path.write_text("[[faults]]\nat_s = 0.0\nestop = true\n")
+    link, clock, ctrl = _virtual(load_sim_effects(fx_path))
+    _advance(clock, ctrl, 0.05)
+    assert link.out[-1].status & proto.Status.ESTOP
+    link.feed(proto.encode(proto.Hello()) + proto.encode(proto.EstopReset(1)))
+    _advance(clock, ctrl, 0.05)
+    last = link.out[-1]
+    assert isinstance(last, proto.Telemetry) and last.ack_seq == 1
+    assert not last.status & proto.Status.ESTOP and last.status & proto.Status.STOPPED
+
+
 def test_documented_exit_codes_match_the_session(repo):
     from mecanum_hil.link.session import EXIT_CODES
 
