@@ -25,6 +25,12 @@ SINGLE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
                      "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
+#: How long to wait for sim-robot's first line [s]. It compiles its simulator before it
+#: answers: a first run after install compiles numba's kernels, 44 s on the 2-core machine
+#: when idle, twice that beside another job; a process that dies is reported at once.
+STARTUP_TIMEOUT_S = 180.0
+
+
 class SimRobotProcess:
     """A running ``sim-robot`` process.
 
@@ -37,7 +43,7 @@ class SimRobotProcess:
         File receiving its standard error (one line per event).
     """
 
-    def __init__(self, args: Sequence[str], startup_timeout_s: float = 60.0,
+    def __init__(self, args: Sequence[str], startup_timeout_s: float = STARTUP_TIMEOUT_S,
                  env: dict[str, str] | None = None) -> None:
         self._log = tempfile.NamedTemporaryFile(prefix="sim-robot-", suffix=".log", delete=False)
         self.log_path = Path(self._log.name)
@@ -96,7 +102,7 @@ class SimRobotProcess:
             pass
 
 
-def spawn_sim_robot(*args: str, startup_timeout_s: float = 60.0,
+def spawn_sim_robot(*args: str, startup_timeout_s: float = STARTUP_TIMEOUT_S,
                     env: dict[str, str] | None = None) -> SimRobotProcess:
     """Start ``mecanum-hil sim-robot ARGS`` (e.g. ``"--serial"``) and wait for its first line."""
     return SimRobotProcess(list(args), startup_timeout_s, env)

@@ -5,6 +5,15 @@ inner loop. Commands are piecewise constant; wheel state is updated with the exa
 discretisation of :mod:`mecanum_hil.model.motor`, and the pose with the exact solution for the
 body twist averaged over the (sub)step (the SE(2) exponential), so straight runs and pure turns
 are exact to rounding.
+
+The steps of :func:`simulate_kernel` are helpers numba inlines into it (``inline="always"``):
+each is called per wheel and substep, and a call that is not inlined counts references on its
+array arguments, shared by the robots' threads. Measured 2026-11-23 on the 2-core machine, 256
+robots x 5 s at 1 kHz: inlined, 26 / 22 / 13 M robot-steps/s (linear / saturation, rate limit
+and deadband / the drive's own dynamics), 18.8 / 18.1 / 11.3 for the one long function before;
+with no helper inlined 20 / 18 / 3.9, with only ``_drive_piece`` not inlined 5.4 on the drive.
+The price is numba's first compile, once per install (its cache is on disk): 44 s against 34 s
+for the one long function and 19 s with no helper inlined.
 """
 
 from __future__ import annotations
