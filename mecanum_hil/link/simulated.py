@@ -134,6 +134,12 @@ class UnmodelledSensor:
         return out.copy()
 
 
+#: Time of the truth kept behind the model's anchor [s]: what telemetry still owed and the
+#: unmodelled sensor may ask for after a fault moved the anchor on (a pass that late is far past
+#: the watchdog's 250 ms).
+PAST_S = 1.0
+
+
 class ControllerModel:
     """The simulated robot on a fixed tick: commands in at ticks, wheel speeds out at ticks.
 
@@ -185,6 +191,12 @@ class ControllerModel:
     def restart(self) -> None:
         """Restart the clock at tick 0 (at HELLO); the robot keeps moving as it was."""
         self.anchor = 0
+        # the truth at ticks behind the anchor, from its first tick: a fault moves the anchor
+        # on when a message is read, and telemetry still owed, or the sensor's walk, may ask
+        # for the ticks before it
+        self._past_start = 0
+        self._past = np.zeros((0, 4))
+        self._past_poses = np.zeros((0, 3))
         self._sched_ticks: list[int] = []
         self._sched_cmds: list[tuple[float, float, float]] = []
         self.effects = self.sim_effects.initial_effects(self.base.effects)
@@ -254,12 +266,31 @@ class ControllerModel:
             traj = self._simulate(tick)
             self._state = traj.final_state.copy()
             self._pose = traj.pose[0, -1].copy()
+            self._keep_past(traj.wheel_rpm[0, :-1], traj.pose[0, :-1])
         self._anchor_cmd = self.command_at(tick)
         keep = bisect_right(self._sched_ticks, tick)
         del self._sched_ticks[:keep]
         del self._sched_cmds[:keep]
         self.anchor = tick
         self._invalidate()
+
+    def _keep_past(self, wheels: np.ndarray, poses: np.ndarray) -> None:
+        """Keep the truth from the anchor up to the next one (at most :data:`PAST_S`)."""
+        keep = math.ceil(PAST_S * self.rate_hz)
+        if self._past_start + len(self._past) != self.anchor:
+            self._past_start, self._past = self.anchor, self._past[:0]
+            self._past_poses = self._past_poses[:0]
+        self._past = np.concatenate([self._past, wheels])[-keep:]
+        self._past_poses = np.concatenate([self._past_poses, poses])[-keep:]
+        self._past_start = self.anchor + len(wheels) - len(self._past)
+
+    def _truth_before_anchor(self, tick: int) -> int:
+        """Row of ``tick`` (behind the anchor) in the kept past."""
+        row = tick - self._past_start
+        if not 0 <= row < len(self._past):
+            raise ValueError(f"tick {tick} is before the model's anchor {self.anchor} and "
+                             "its kept past")
+        return row
 
     def apply_due_faults(self, tick: int) -> None:
         """Let the scheduled faults due at or before ``tick`` happen (each once a session)."""
@@ -278,7 +309,7 @@ class ControllerModel:
     def wheel_rpm(self, tick: int) -> np.ndarray:
         """The true wheel speeds at ``tick`` (no noise) [rpm]."""
         if tick < self.anchor:
-            raise ValueError(f"tick {tick} is before the model's anchor {self.anchor}")
+            return self._past[self._truth_before_anchor(tick)]
         self.apply_due_faults(tick)
         if tick > self._cache_end:
             if tick - self.anchor > 2 * self.lookahead:
@@ -292,6 +323,8 @@ class ControllerModel:
     def pose(self, tick: int) -> np.ndarray:
         """The true pose ``(X [m], Y [m], phi [deg])`` at ``tick``: what a camera or motion
         capture would measure (the wire protocol carries none)."""
+        if tick < self.anchor:
+            return self._past_poses[self._truth_before_anchor(tick)].copy()
         self.wheel_rpm(tick)
         return self._poses[tick - self.anchor].copy()
 

@@ -297,6 +297,43 @@ def test_6g_an_e_stop_reset_read_with_the_hello_clears_an_e_stop_pressed_at_0_s(
     assert not last.status & proto.Status.ESTOP and last.status & proto.Status.STOPPED
 
 
+def _telemetry(link):
+    return {m.time_us: m for m in link.out if isinstance(m, proto.Telemetry)}
+
+
+def test_6h_a_message_read_late_after_a_fault_still_gets_the_telemetry_owed(tmp_path):
+    """A fault applied when a message is read moves the model on; telemetry still owed from
+    before it (a pass 30 ms late) is the truth of its own tick, as without the message
+    (review of 6g: it raised ValueError and ended sim-robot)."""
+    fx_path = tmp_path / "fx.toml"
+    fx_path.write_text("[[faults]]\nat_s = 0.11\nestop = true\n")
+    runs = []
+    for message in (None, proto.Heartbeat(2)):
+        link, clock, ctrl = _virtual(load_sim_effects(fx_path))
+        link.feed(proto.encode(proto.Command(60.0, 0.0, 90.0, seq=1)))
+        _advance(clock, ctrl, 0.095)
+        clock.now_s += 0.030  # a late pass
+        if message is not None:
+            link.feed(proto.encode(message))
+        ctrl.run_once()
+        runs.append(_telemetry(link))
+    quiet, late = runs
+    for t_us in (100_000, 110_000, 120_000):
+        np.testing.assert_allclose(late[t_us].wheel_rpm, quiet[t_us].wheel_rpm, atol=1e-9)
+    assert late[100_000].wheel_rpm[0] > 20 and late[120_000].status & proto.Status.ESTOP
+
+
+def test_6i_the_unmodelled_sensor_walks_across_a_fault_applied_on_a_message(tmp_path):
+    fx_path = tmp_path / "fx.toml"
+    fx_path.write_text("[unmodelled.roller_ripple]\namplitude = 0.05\nper_turn = 6\n"
+                       "[[faults]]\nat_s = 0.11\nestop = true\n")
+    link, clock, ctrl = _virtual(load_sim_effects(fx_path))
+    _advance(clock, ctrl, 0.3, link, lambda: proto.Command(30.0, 0.0, 90.0))
+    tlm = _telemetry(link)
+    assert len(tlm) == 30 and ctrl.internal_errors == 0
+    assert tlm[100_000].wheel_rpm[0] > 5 and tlm[290_000].status & proto.Status.ESTOP
+
+
 def test_documented_exit_codes_match_the_session(repo):
     from mecanum_hil.link.session import EXIT_CODES
 
