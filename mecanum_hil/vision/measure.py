@@ -152,9 +152,9 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     """Decode every frame once and run the detectors on it.
 
     ``decode_beside``: decode in a helper thread while this one analyses (default: when other
-    jobs leave a second core free, by the 1-minute load average, and four runs of frames fit in
-    :data:`BESIDE_MAX_BYTES`); else decode and analyse in turns in this thread. The results are
-    the same either way.
+    jobs leave :data:`BESIDE_IDLE_CORES` of a second core free by the 1-minute load average,
+    and four runs of frames fit in :data:`BESIDE_MAX_BYTES`); else decode and analyse in turns
+    in this thread. The results are the same either way.
 
     Returns ``(info, stamps [s], per-detector lists of per-frame results, detectors)``.
     """
@@ -162,7 +162,7 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     if decode_beside is None:
         # up to four runs of frames in memory: analysed, two waiting, being decoded
         held = 4 * SCAN_BATCH * 3 * info.width_px * info.height_px
-        decode_beside = _idle_cores() >= 1 and held <= BESIDE_MAX_BYTES
+        decode_beside = _idle_cores() >= BESIDE_IDLE_CORES and held <= BESIDE_MAX_BYTES
     # FFmpeg decodes on one thread either way: its frame threads cost 5-50 % more CPU time
     # (see open_video), and beside the analysis they only slowed the whole down.
     # Beside: what the user waits for is the wall clock; with a second core free decoding and
@@ -180,6 +180,7 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
         results: list[list] = [[] for _ in detectors]
         stamps: list[float] = []
         next_focus = FOCUS_AFTER_FRAMES
+        reported = 0
         runs = (_runs_beside(cap, free) if decode_beside else _runs_in_turns(cap, free, detectors))
         for run in runs:
             for index, _, frame in run:
@@ -188,13 +189,21 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
             next_focus = _scan_run(run, detectors, results, stamps, next_focus, free)
             if progress is not None and (not len(stamps) % SCAN_BATCH or len(run) > 1):
                 progress(len(stamps), info.frame_count)
-        if progress is not None and stamps and len(stamps) % SCAN_BATCH:
+                reported = len(stamps)
+        if progress is not None and stamps and len(stamps) != reported:
             progress(len(stamps), info.frame_count)
     finally:
         if runs is not None:
             runs.close()  # the helper thread is stopped before the file is closed
         cap.release()
     return info, np.array(stamps, dtype=float), results, detectors
+
+
+#: Idle cores (beyond this process's own) from which decoding goes beside the analysis: half a
+#: core, i.e. a 1-minute load average up to 0.5 on two cores. With another job busy on the
+#: second core (load 1) beside was 0-10 % slower than in turns; asking for a whole idle core
+#: (load 0.00) left an idle desktop's 0.1 in turns (review, 2026-11-23).
+BESIDE_IDLE_CORES = 0.5
 
 
 def _idle_cores() -> float:

@@ -60,8 +60,8 @@ def open_video(path: str | Path, decoder_threads: int | None = None):
 
     ``decoder_threads`` caps FFmpeg's decoding threads (default: OpenCV's, one per core). One
     is the cheapest in CPU time (FFmpeg's frame threads cost 5-50 % more CPU time for mp4v and
-    MJPG on this 2-core machine, varying with its load), for a caller that counts CPU time
-    rather than wall time (measure-video decodes and analyses in turns, in one thread).
+    MJPG on this 2-core machine, varying with its load); measure-video decodes on one, in turns
+    with its analysis or in a helper thread beside it (see its ``scan_video``).
 
     Raises
     ------
