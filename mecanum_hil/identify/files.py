@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..io.recording import Recording, read_recording
 from ..io.timing import read_for_analysis
 from ..model.calibration import Calibration, save_calibration
@@ -102,6 +103,9 @@ def fit_files(paths: Sequence[str | Path], out: str | Path, robot: RobotProfile,
     -------
     FitOutput
     """
+    if report is not None and Path(report).suffix.lower() != ".png":
+        # checked before the fit: the report is drawn as PNG only (plots/raster.py)
+        raise ConfigError(f"{report}: the report is a PNG image: give a name ending in .png")
     recordings = [read_for_analysis(p) for p in paths]
     sources = [str(p) for p in paths]
     result = fit(recordings, robot, method, calibration, sources=sources, **grid_options)

@@ -102,9 +102,9 @@ def nice_ticks(lo: float, hi: float, most: int = 7) -> tuple[np.ndarray, int]:
         Digits after the point that print every tick exactly.
     """
     span = hi - lo
-    if not (math.isfinite(span) and span > 0):
-        return np.array([lo]), 0
     raw = span / max(most - 1, 1)
+    if not (math.isfinite(span) and raw > 0):  # also a span that underflows when divided
+        return np.array([lo]), 0
     power = 10.0 ** math.floor(math.log10(raw))
     for mult in (1.0, 2.0, 2.5, 5.0, 10.0):
         step = mult * power
@@ -122,13 +122,39 @@ def _limits(values: list[np.ndarray], margin: float) -> tuple[float, float]:
     finite = [v for v in finite if v.size]
     if not finite:
         return 0.0, 1.0
-    lo = min(float(v.min()) for v in finite)
-    hi = max(float(v.max()) for v in finite)
+    # a diverged model's values near the float limit would overflow the span: the axis stops
+    # at +-1e300 and such points are drawn at its edge
+    lo = max(min(float(v.min()) for v in finite), -1e300)
+    hi = min(max(float(v.max()) for v in finite), 1e300)
     if hi - lo <= 1e-12 * max(abs(lo), abs(hi), 1.0):
         pad = max(abs(lo) * 0.05, 0.5)
         return lo - pad, hi + pad
     pad = (hi - lo) * margin
     return lo - pad, hi + pad
+
+
+def _panel_image(panel: Panel, panel_px: tuple[int, int]):
+    """One panel drawn at :data:`_SCALE` times its size, then reduced (Pillow image)."""
+    from PIL import Image, ImageDraw
+
+    s = _SCALE
+    pw, ph = panel_px[0] * s, panel_px[1] * s
+    image = Image.new("RGB", (pw, ph), _WHITE)
+    frame = _frame(panel, 66 * s, 24 * s, pw - 12 * s, ph - 40 * s)
+    ticks = _ticks(frame)
+    _grid(ImageDraw.Draw(image), frame, ticks)
+    canvas = np.array(image)
+    for series in panel.series:
+        if series.dots:
+            _stamp_dots(canvas, frame, series, 1.9 * s)
+    image = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(image)
+    for series in panel.series:
+        if not series.dots:
+            _draw_line(draw, frame, series, round(1.3 * s))
+    _axes(draw, image, frame, panel, ticks, s)
+    _legend(draw, frame, panel.series, s)
+    return image.reduce(s)
 
 
 @cache
@@ -329,37 +355,21 @@ def write_chart(path: str | Path, panels: Sequence[Panel], ncols: int, title: st
     """
     from PIL import Image, ImageDraw
 
-    s = _SCALE
     ncols = max(1, min(ncols, len(panels) or 1))
     nrows = max(1, math.ceil(len(panels) / ncols))
     head = 26 if title else 0
-    pw, ph = panel_px[0] * s, panel_px[1] * s
-    image = Image.new("RGB", (pw * ncols, ph * nrows + head * s), _WHITE)
-    draw = ImageDraw.Draw(image)
-    frames = []
+    image = Image.new("RGB", (panel_px[0] * ncols, panel_px[1] * nrows + head), _WHITE)
+    # each panel drawn supersampled on its own and reduced into place: memory stays one
+    # panel's, however many recordings (the whole grid at twice the size was ~10 MB a panel)
     for k, panel in enumerate(panels):
-        x0, y0 = (k % ncols) * pw, head * s + (k // ncols) * ph
-        frames.append(_frame(panel, x0 + 66 * s, y0 + 24 * s, x0 + pw - 12 * s,
-                             y0 + ph - 40 * s))
-    ticks = [_ticks(f) for f in frames]
-    for frame, t in zip(frames, ticks, strict=True):
-        _grid(draw, frame, t)
-    canvas = np.array(image)
-    for frame, panel in zip(frames, panels, strict=True):
-        for series in panel.series:
-            if series.dots:
-                _stamp_dots(canvas, frame, series, 1.9 * s)
-    image = Image.fromarray(canvas)
-    draw = ImageDraw.Draw(image)
-    for frame, panel, t in zip(frames, panels, ticks, strict=True):
-        for series in panel.series:
-            if not series.dots:
-                _draw_line(draw, frame, series, round(1.3 * s))
-        _axes(draw, image, frame, panel, t, s)
-        _legend(draw, frame, panel.series, s)
+        image.paste(_panel_image(panel, panel_px),
+                    ((k % ncols) * panel_px[0], head + (k // ncols) * panel_px[1]))
     if title:
-        _text(draw, (image.width / 2, 6 * s), title, _font(10 * s), align="centre")
-    image = image.reduce(s)
+        s = _SCALE
+        band = Image.new("RGB", (image.width * s, head * s), _WHITE)
+        _text(ImageDraw.Draw(band), (band.width / 2, 6 * s), title, _font(10 * s),
+              align="centre")
+        image.paste(band.reduce(s), (0, 0))
     p = Path(path)
     try:
         p.parent.mkdir(parents=True, exist_ok=True)

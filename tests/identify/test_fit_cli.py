@@ -113,6 +113,13 @@ def test_real_micromouse_step_responses(shared_real_data, tmp_path):
     assert (tmp_path / "testPid7.png").stat().st_size > 10_000
 
 
+def test_a_report_named_other_than_png_is_refused_before_the_fit(step_csv, tmp_path, run):
+    code, _, err = run("fit", step_csv, "--out", tmp_path / "c.toml", "--report",
+                         tmp_path / "r.svg")
+    assert code != 0 and err.startswith("error: ") and ".png" in err
+    assert err.count("\n") == 1 and not (tmp_path / "c.toml").exists()
+
+
 def test_fit_demo_writes_calibration_and_report(step_csv, tmp_path):
     from mecanum_hil.identify.files import fit_demo
 

@@ -36,6 +36,17 @@ def test_nice_ticks_are_round_and_inside(lo, hi, expected, decimals):
 def test_nice_ticks_of_an_empty_span():
     ticks, _ = nice_ticks(3.0, 3.0)
     assert ticks.tolist() == [3.0]
+    ticks, _ = nice_ticks(5e-324, 1e-323)  # a span that underflows when divided
+    assert ticks.tolist() == [5e-324]
+
+
+def test_values_near_the_float_limit_are_drawn(tmp_path):
+    """A diverged model's huge but finite values (review 2026-11-23: a traceback before)."""
+    t = np.linspace(0.0, 1.0, 50)
+    for dots in (False, True):
+        panel = Panel((Series(t, np.sin(7 * t) * 1.7e308, COLOURS[0], "a", dots=dots),), "x")
+        path = write_chart(tmp_path / f"h{dots}.png", [panel], ncols=1, panel_px=(200, 150))
+        assert Image.open(path).size == (200, 150)
 
 
 def _colour_columns(img: np.ndarray, colour, tol: int = 40) -> np.ndarray:
