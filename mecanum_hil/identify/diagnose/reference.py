@@ -39,8 +39,10 @@ from ...model.robot import RobotProfile
 #: Orders of the output-error model: past outputs and input taps.
 NA = 4
 NB = 4
-#: Fits of two delays whose costs differ by less than this share are a tie (the shorter wins).
+#: Fits of two delays whose costs differ by less than this share, or by less than
+#: TIE_ABSOLUTE [rpm^2] (noiseless data fit to rounding), are a tie (the shorter wins).
 TIE_RELATIVE = 1e-6
+TIE_ABSOLUTE = 1e-12
 #: Largest delay tried [samples] at least, and at most (the data's own latency sets it between).
 MIN_MAX_DELAY = 6
 MAX_MAX_DELAY = 60
@@ -210,6 +212,12 @@ def fit_reference(recordings: Sequence[Recording], robot: RobotProfile) -> Refer
         return _fit(series, wheels, wheel_of, dt)
 
 
+
+def _ties(cost: float, best: float) -> bool:
+    """Whether a fit of ``cost`` ties with the ``best`` one (:data:`TIE_RELATIVE`)."""
+    return cost <= best * (1.0 + TIE_RELATIVE) + TIE_ABSOLUTE
+
+
 def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
     from scipy.optimize import least_squares
 
@@ -234,10 +242,15 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
             theta0[NA + NB:] = 1.0
             r0 = resid(theta0, d)
         starts.append((float(r0 @ r0), d, theta0))
-    starts.sort(key=lambda s: s[0])
-    refined = []
+    starts.sort(key=lambda s: (s[0], s[1]))
     size = sum(y.size for _, _, _, _, y, _ in series)
-    for _, d, theta0 in starts[:REFINED_DELAYS if size <= SMALL_DATA else REFINED_DELAYS_LARGE]:
+    keep = min(REFINED_DELAYS if size <= SMALL_DATA else REFINED_DELAYS_LARGE, len(starts))
+    # starts tying with the last one kept are refined too: which of them is kept would turn
+    # on rounding (compiled or interpreted simulation)
+    if keep:
+        keep += sum(_ties(c, starts[keep - 1][0]) for c, _, _ in starts[keep:])
+    refined = []
+    for _, d, theta0 in starts[:keep]:
         try:
             sol = least_squares(resid, theta0, args=(d,), method="lm",
                                 max_nfev=25 * theta0.size)
@@ -250,8 +263,7 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
     # Delays whose fits tie to rounding (the simulation runs compiled or interpreted, which
     # round differently) go to the shortest: the same answer in every process.
     lowest = min(c for c, _, _ in refined)
-    _, d, theta = min((r for r in refined if r[0] <= lowest * (1.0 + TIE_RELATIVE)),
-                      key=lambda r: r[1])
+    _, d, theta = min((r for r in refined if _ties(r[0], lowest)), key=lambda r: r[1])
     sims = _simulate(theta, d, series, wheel_of)
     res = []
     for (r, w, tu, _, _, ok), s in zip(series, sims, strict=True):
