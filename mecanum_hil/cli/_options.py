@@ -1,6 +1,5 @@
 """Option aliases shared by the commands (one definition, the same flags everywhere)."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

@@ -5,7 +5,6 @@ Called by :mod:`mecanum_hil.cli.record` when ``--policy`` is given; the library 
 and ``summary.json``.
 """
 
-from __future__ import annotations
 
 from pathlib import Path
 

@@ -1,6 +1,5 @@
 """``mecanum-hil batch``: fit, diagnose, shadow-replay or measure a fleet's archive on Dask."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

@@ -1,6 +1,5 @@
 """``mecanum-hil calibrate-camera``: intrinsics and lens distortion from a ChArUco board."""
 
-from __future__ import annotations
 
 import json
 from pathlib import Path

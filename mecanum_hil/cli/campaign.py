@@ -1,7 +1,6 @@
 """``mecanum-hil campaign``: record an identification campaign from the simulated controller,
 in simulated time, with a hidden truth from an effects file."""
 
-from __future__ import annotations
 
 import math
 from pathlib import Path

@@ -4,7 +4,6 @@ Exit codes: 0 every rule that ran passed, 1 a rule failed (or the link could not
 The wheels turn: run it with the robot on stands.
 """
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

@@ -1,6 +1,5 @@
 """``mecanum-hil demo``: the whole loop on the built-in simulated robot."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

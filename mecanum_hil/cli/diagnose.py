@@ -1,6 +1,5 @@
 """``mecanum-hil diagnose``: name the physical effects the model lacks, add them, show the gap."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

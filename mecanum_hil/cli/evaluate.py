@@ -1,7 +1,6 @@
 """``mecanum-hil evaluate``: a policy's success rate, return, time to target or margin, in
 simulation."""
 
-from __future__ import annotations
 
 from typing import Annotated
 

@@ -5,7 +5,6 @@ Commands, measured wheel speeds and pose, and optionally the model's prediction
 ``--events``) as log messages. ``mecanum-hil import RUN.mcap`` gives the recording back.
 """
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

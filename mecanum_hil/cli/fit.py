@@ -1,6 +1,5 @@
 """``mecanum-hil fit``: the wheel model's coefficients A, B, C from recordings."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

@@ -1,6 +1,5 @@
 """``mecanum-hil fleet-report``: which robots drifted and how, from a batch's results table."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

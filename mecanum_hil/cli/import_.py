@@ -4,7 +4,6 @@ One command for every format (``mecanum_hil.importers``); each format's options 
 here and passed on only when the user gave them, so a format refuses an option it does not take.
 """
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

@@ -1,6 +1,5 @@
 """``mecanum-hil measure-pose``: the robot's pose (X, Y, phi) from an overhead camera's video."""
 
-from __future__ import annotations
 
 import json
 from pathlib import Path

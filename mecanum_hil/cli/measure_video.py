@@ -1,6 +1,5 @@
 """``mecanum-hil measure-video``: wheel speed from a camera video of wheel markers."""
 
-from __future__ import annotations
 
 import json
 from pathlib import Path

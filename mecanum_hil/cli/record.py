@@ -7,7 +7,6 @@ collected in ``observers`` below; a command-line option that adds one (e.g. shad
 builds it there.
 """
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

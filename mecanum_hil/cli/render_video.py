@@ -1,6 +1,5 @@
 """``mecanum-hil render-video``: a video of wheel markers turning as a recording says."""
 
-from __future__ import annotations
 
 import json
 from pathlib import Path

@@ -5,7 +5,6 @@ Offline (``--replay REC.csv``) the monitor runs over a recording as if live; liv
 Exit code 0 without alarms, 3 with.
 """
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

@@ -1,6 +1,5 @@
 """``mecanum-hil sim-robot``: the simulated controller, serving the wire protocol."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

@@ -1,6 +1,5 @@
 """``mecanum-hil simulate``: the model's prediction for a recording's commands or a profile."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

@@ -1,6 +1,5 @@
 """``mecanum-hil train``: train a policy on a calibration's model (CMA-ES, the ``rl`` extra)."""
 
-from __future__ import annotations
 
 from pathlib import Path
 from typing import Annotated

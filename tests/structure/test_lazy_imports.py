@@ -52,3 +52,11 @@ def test_the_all_extra_holds_every_extra():
     (spec,) = extras["all"]
     named = set(spec.split("[", 1)[1].rstrip("]").split(","))
     assert named == set(extras) - {"all", "test"}
+
+
+def test_command_annotations_are_evaluated_once_at_import():
+    """typer reads every command's options from its annotations on each run; as strings
+    (``from __future__ import annotations``) each would be evaluated twice a run, 0.15 s of
+    ``--help``'s 0.22 s on the 2-core machine (issue 19). The cli modules keep them objects."""
+    for path in sorted(CLI.glob("*.py")):
+        assert "from __future__ import annotations" not in path.read_text(), path.name
