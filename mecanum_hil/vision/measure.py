@@ -193,9 +193,11 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
         if progress is not None and stamps and len(stamps) != reported:
             progress(len(stamps), info.frame_count)
     finally:
-        if runs is not None:
-            runs.close()  # the helper thread is stopped before the file is closed
-        cap.release()
+        try:
+            if runs is not None:
+                runs.close()  # the helper thread is stopped before the file is closed
+        finally:
+            cap.release()  # even when a second Ctrl-C ends the wait for the thread
     return info, np.array(stamps, dtype=float), results, detectors
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mecanum_hil.io.recording import read_recording
-from mecanum_hil.model import load_calibration
+from mecanum_hil.model import Calibration, load_calibration, simulate, uniform_time
 
 
 def cli(*args, cwd=None):
@@ -115,11 +115,18 @@ def test_demo_runs_the_whole_loop(tmp_path):
     # noise the quick demo has, diagnose may name it (a CI run found 1.1 ms), as a dead time or
     # as its close substitutes on step responses, a short drive lag or a held controller output
     # (docs/diagnose.md); nothing else, and nothing longer than a loaded link's latency.
-    latency = {"dead_time": "dead_time_s", "drive_lag": "drive_lag_s",
-               "controller_period": "controller_period_s"}
+    # Their parameters are not identifiable from these steps (a CI run named a 62 ms drive lag
+    # with A, B, C 35 times the paper's: the same step response to 2 ms): the diagnosed
+    # model's response below the ceiling is what must stay the robot's.
+    latency = {"dead_time", "drive_lag", "controller_period"}
     assert set(diagnosed.effects.active()) <= {"saturation", *latency}
-    for param in latency.values():
-        assert getattr(diagnosed.effects, param) < 0.02
+    t = uniform_time(1.0, 1000.0)
+    step60 = np.tile([60.0, 0.0, 90.0], (t.size, 1))
+    truth, model = (simulate(step60, t, cal).wheel_rpm[0][:, 0]
+                    for cal in (Calibration(), diagnosed))
+    onset = [t[np.argmax(w >= 30.0)] for w in (truth, model)]
+    assert abs(onset[1] - onset[0]) < 0.02  # a loaded link's latency at most
+    assert np.max(np.abs(model - truth)) < 0.1 * 60.0
     # shadow mode watched the faulty run and stopped it
     shadow = read_recording(out / "shadow" / "paper-step-60-fault.csv")
     assert shadow.metadata["end_reason"] == "observer_stop"
