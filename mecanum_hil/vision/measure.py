@@ -13,7 +13,6 @@ from __future__ import annotations
 import math
 import os
 import queue
-import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +27,7 @@ from .detect import BlobDetector, MarkerSpec
 from .geometry import refit_track, select_track
 from .hub import STILL_CAMERA_PX, HubTracker, camera_offsets
 from .speed import FAST_STEP_TURNS, estimate_speed
-from .video import FrameTiming, decode_ahead, frame_times, iter_frames, open_video
+from .video import FrameTiming, decoded_ahead, frame_times, iter_frames, open_video
 
 #: Default regression window of the speed estimate [s] (see docs/vision.md).
 DEFAULT_WINDOW_S = 0.1
@@ -249,22 +248,7 @@ def _runs_in_turns(cap, free: queue.Queue, detectors: Sequence) -> Iterator[list
 def _runs_beside(cap, free: queue.Queue) -> Iterator[list]:
     """Runs of SCAN_BATCH :func:`~mecanum_hil.vision.video.iter_frames` items, decoded ahead
     in a helper thread; closing the generator stops and joins the thread."""
-    q: queue.Queue = queue.Queue(maxsize=2)
-    stop = threading.Event()
-    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop, SCAN_BATCH, free),
-                              daemon=True)
-    worker.start()
-    try:
-        while True:
-            item = q.get()
-            if item is None:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
-        worker.join()
+    return decoded_ahead(cap, maxsize=2, batch=SCAN_BATCH, free=free)
 
 
 def _scan_run(run: list, detectors: Sequence, results: list[list], stamps: list[float],

@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import functools
 import math
-import queue
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +37,7 @@ from .. import __version__
 from ..errors import VideoError
 from .camera import CameraModel, CameraPose, rays_to_plane
 from .scene import UNIT_CORNERS, Scene, dictionary_by_name
-from .video import decode_ahead, frame_times, open_video
+from .video import decoded_ahead, frame_times, open_video
 
 #: Default smoothing window [s] (0 turns smoothing off).
 DEFAULT_WINDOW_S = 0.2
@@ -251,18 +249,9 @@ def scan(path: str | Path, per_frame: Callable[[int, np.ndarray], None],
     return ``(VideoInfo, stamps [s])``."""
     cap, info = open_video(path)
     stamps: list[float] = []
-    q: queue.Queue = queue.Queue(maxsize=8)
-    stop = threading.Event()
-    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop), daemon=True)
-    worker.start()
+    frames = decoded_ahead(cap, maxsize=8, join_timeout_s=5.0)
     try:
-        while True:
-            item = q.get()
-            if item is None:
-                break
-            if isinstance(item, BaseException):
-                raise item
-            _, t, frame = item
+        for _, t, frame in frames:
             if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
                 raise VideoError(f"{path}: frame {len(stamps)} has another size than the first")
             per_frame(len(stamps), frame)
@@ -270,8 +259,7 @@ def scan(path: str | Path, per_frame: Callable[[int, np.ndarray], None],
             if progress is not None:
                 progress(len(stamps), info.frame_count)
     finally:
-        stop.set()
-        worker.join(timeout=5.0)
+        frames.close()  # the helper thread is stopped before the file is closed
         cap.release()
     return info, np.array(stamps, dtype=float)
 

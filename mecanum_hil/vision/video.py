@@ -171,6 +171,59 @@ def decode_ahead(cap, out: queue.Queue, stop: threading.Event, batch: int = 0,
         _put_unless_stopped(out, err, stop)
 
 
+def decoded_ahead(cap, maxsize: int, batch: int = 0, free: queue.Queue | None = None,
+                  join_timeout_s: float | None = None) -> Iterator[tuple | list]:
+    """Yield what :func:`decode_ahead` decodes in a helper thread, until the video ends.
+
+    Parameters
+    ----------
+    cap : cv2.VideoCapture
+        The open video; the caller keeps owning it (and releases it after closing this
+        generator).
+    maxsize : int
+        Items decoded ahead at most [items] (the queue's size).
+    batch : int
+        With ``batch`` > 0: lists of up to ``batch`` :func:`iter_frames` items [frames].
+    free : queue.Queue or None
+        Frame buffers to decode into again; see :func:`iter_frames`.
+    join_timeout_s : float or None
+        Longest wait for the helper thread when stopping it [s]; None waits until it ends.
+
+    Yields
+    ------
+    tuple or list
+        :func:`iter_frames` items ``(index, timestamp [s] or NaN, BGR frame)``, or lists of
+        them with ``batch`` > 0.
+
+    Raises
+    ------
+    BaseException
+        Whatever stopped decoding, re-raised here after the frames before it.
+
+    Notes
+    -----
+    The thread starts at the first ``next()``. Closing the generator (or its end, or an error)
+    stops the thread and joins it: close it deterministically (``contextlib.closing`` or
+    ``.close()`` in a ``finally``) before releasing ``cap``.
+    """
+    q: queue.Queue = queue.Queue(maxsize=maxsize)
+    stop = threading.Event()
+    worker = threading.Thread(target=decode_ahead, args=(cap, q, stop, batch, free),
+                              daemon=True)
+    worker.start()
+    try:
+        while True:
+            item = q.get()
+            if item is None:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        worker.join(timeout=join_timeout_s)
+
+
 @dataclass(frozen=True)
 class FrameTiming:
     """Frame times and how they were obtained.

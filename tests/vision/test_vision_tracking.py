@@ -97,10 +97,8 @@ def test_following_the_marker_finds_what_the_whole_search_finds(tmp_path, monkey
     assert all(np.array_equal(a, b) for a, b in zip(whole, followed, strict=True))
 
 
-def test_frames_one_at_a_time_in_runs_or_decoded_beside_measure_the_same(tmp_path,
-                                                                          monkeypatch):
-    res = render_video(steady(90.0, 3.2), tmp_path / "still.avi", RenderSettings(
-        640, 480, fps=30.0, noise_std=3.0, exposure=0.5, distractors=2))
+def _count_scan_runs(monkeypatch) -> list[int]:
+    """Patch ``measure._scan_run`` to note each run's length [frames]; return that list."""
     runs: list[int] = []
     scan_run = measure._scan_run
 
@@ -109,6 +107,14 @@ def test_frames_one_at_a_time_in_runs_or_decoded_beside_measure_the_same(tmp_pat
         return scan_run(run, *args)
 
     monkeypatch.setattr(measure, "_scan_run", counted)
+    return runs
+
+
+def test_frames_one_at_a_time_in_runs_or_decoded_beside_measure_the_same(tmp_path,
+                                                                          monkeypatch):
+    res = render_video(steady(90.0, 3.2), tmp_path / "still.avi", RenderSettings(
+        640, 480, fps=30.0, noise_std=3.0, exposure=0.5, distractors=2))
+    runs = _count_scan_runs(monkeypatch)
     done: list[int] = []
     for hub in (True, False):
         runs.clear()
@@ -183,14 +189,7 @@ def test_decoding_beside_by_default_only_with_a_core_and_the_memory_free(
         tmp_path, monkeypatch, idle, max_bytes, beside):
     res = render_video(steady(60.0, 1.0), tmp_path / "v.avi", RenderSettings(
         320, 240, fps=30.0, noise_std=2.0))
-    runs: list[int] = []
-    scan_run = measure._scan_run
-
-    def counted(run, *args):
-        runs.append(len(run))
-        return scan_run(run, *args)
-
-    monkeypatch.setattr(measure, "_scan_run", counted)
+    runs = _count_scan_runs(monkeypatch)
     monkeypatch.setattr(measure, "_idle_cores", lambda: idle)
     monkeypatch.setattr(measure, "BESIDE_MAX_BYTES", max_bytes)
     measure.measure_video(res.path, measure.MeasureOptions(track_hub=False))
