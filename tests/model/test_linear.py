@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mecanum_hil.model import Calibration
+from mecanum_hil.model import Calibration, linear
 from mecanum_hil.model.discretise import discretise_many
 from mecanum_hil.model.kinematics import command_to_wheels
 from mecanum_hil.model.linear import wheel_speeds, zoh_tables
@@ -72,3 +72,27 @@ def test_a_start_in_motion_equals_the_simulator_from_steady_state():
     z0 = (B * start - A * (targets[0] - start)) / C
     ours = wheel_speeds(COEFFICIENTS, [0.002], np.zeros(T - 1, int), targets.T, start, z0)
     np.testing.assert_allclose(ours.transpose(0, 2, 1), ref, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("T", [1, 2, 3, 240, 9000])
+def test_the_scan_equals_stepping(T):
+    """Few sets x series run as a prefix scan, in chunks of SCAN_CHUNK steps; many step by
+    step: the same speeds to rounding, across chunk boundaries and from a start in motion."""
+    rng = np.random.default_rng(T)
+    h_s = np.array([0.001, 0.002, 0.0035])
+    h_idx = rng.integers(0, h_s.size, max(T - 1, 0))
+    targets = np.repeat(rng.uniform(-150, 150, (4, T // 30 + 1)), 30, axis=1)[:, :T]
+    y0 = rng.uniform(-60, 60, (len(COEFFICIENTS), 4))
+    z0 = rng.uniform(-0.5, 0.5, (len(COEFFICIENTS), 4))
+    tab = zoh_tables(COEFFICIENTS, h_s)
+    assert len(COEFFICIENTS) * 4 <= linear.SCAN_MAX_SERIES
+    scanned = wheel_speeds(COEFFICIENTS, h_s, h_idx, targets, y0, z0)
+    stepped = linear._stepwise(tab, h_idx, targets, y0, z0)
+    assert scanned.shape == stepped.shape == (len(COEFFICIENTS), 4, T)
+    np.testing.assert_allclose(scanned, stepped, rtol=0, atol=1e-9)
+    # and through the public function when the sets are many
+    many = np.repeat(COEFFICIENTS, 2, axis=0)
+    assert many.shape[0] * 4 > linear.SCAN_MAX_SERIES
+    np.testing.assert_allclose(wheel_speeds(many, h_s, h_idx, targets)[::2],
+                               wheel_speeds(COEFFICIENTS, h_s, h_idx, targets),
+                               rtol=0, atol=1e-9)
