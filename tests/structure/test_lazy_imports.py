@@ -60,3 +60,20 @@ def test_command_annotations_are_evaluated_once_at_import():
     ``--help``'s 0.22 s on the 2-core machine (issue 19). The cli modules keep them objects."""
     for path in sorted(CLI.glob("*.py")):
         assert "from __future__ import annotations" not in path.read_text(), path.name
+
+
+@pytest.mark.parametrize("args", [["--help"], [], ["--debug", "--help"], ["no-such-command"]])
+def test_the_root_listing_says_what_the_whole_app_says(args, capsys):
+    """Without a command named, main builds each command as its name and help alone (typer
+    reading 19 signatures was a tenth of ``--help``): the same text and exit code as the app
+    with every command (issue 19)."""
+    from mecanum_hil import cli
+
+    code = cli.main(args)
+    listed = capsys.readouterr()
+    try:
+        cli.app(args=args, prog_name="mecanum-hil")
+    except SystemExit as exit_:
+        whole = exit_.code
+    assert (code, listed.out, listed.err) == (whole, *capsys.readouterr())
+    assert "measure-video" in listed.out + listed.err or args == ["no-such-command"]
