@@ -117,7 +117,7 @@ def zoh_tables(coefficients, h_s) -> np.ndarray:
 
 def _series(A, B, C, h):
     """The same six entries through the augmented matrix's exponential, by Taylor series with
-    scaling and squaring, elementwise (as ``mecanum_hil.model.discretise._expm4``).
+    scaling and squaring, elementwise (as ``mecanum_hil.model.discretise._discretise_series``).
 
     Of the 4 x 4 augmented matrix ``[[M h, 0, b h], [h, 0, 0, 0], 0]`` only the motor's 2 x 2
     block ``F = M h`` and input column ``b h`` reach these entries (the third state, the
