@@ -38,6 +38,7 @@ def command(
     import json
 
     from ..identify.diagnose import CANDIDATES, diagnose
+    from ..identify.diagnose.reference import reference_comparison
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile, save_calibration
 
@@ -80,8 +81,8 @@ def command(
                + ("; structured residual remains (unexplained)" if diag.unexplained else ""))
     if diag.shape is not None and diag.unexplained:
         typer.echo(f"what remains: {diag.shape.describe()}")
-    typer.echo(f"reference model: wheel RMSE {diag.rmse_reference:.4g} rpm; the named effects "
-               f"close {100 * diag.explained_share:.0f} % of the gap it explains")
+    typer.echo(f"reference model: wheel RMSE {diag.rmse_reference:.4g} rpm; "
+               + reference_comparison(diag.rmse_baseline, diag.rmse_final, diag.rmse_reference))
     if out is not None:
         typer.echo(f"wrote {out}")
     if report is not None:

@@ -86,6 +86,13 @@ class Recording:
         """Whether every sample has all three commands."""
         return bool(len(self)) and bool(np.isfinite(self.commands).all())
 
+    @property
+    def measured_period_s(self) -> float:
+        """Median interval between rows with a measured wheel speed [s]; rows without one (a
+        recorded run's command rows) are not samples. NaN with fewer than two."""
+        t = self.t_s[np.isfinite(self.wheel_rpm).any(axis=1)]
+        return float(np.median(np.diff(t))) if t.size > 1 else math.nan
+
     def extra_numeric(self, name: str) -> np.ndarray:
         """An extra column as floats (empty or non-numeric fields become NaN)."""
         out = np.full(len(self), np.nan)

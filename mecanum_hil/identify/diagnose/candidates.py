@@ -18,6 +18,7 @@ from ..fit import (
     parameter_value,
     with_parameters,
 )
+from .heldout import in_sample_ms
 from .localise import _Evaluator
 
 CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "rate_limit", "deadband", "wheel_gain",
@@ -53,11 +54,30 @@ def _effect_values(cal: Calibration, effect: str) -> dict[str, Any]:
 
 
 def _smoothed(w: np.ndarray) -> np.ndarray:
-    k = np.ones(3) / 3.0
-    out = np.stack([np.convolve(np.nan_to_num(w[:, i]), k, "same") for i in range(w.shape[1])], 1)
-    out[~np.isfinite(w)] = np.nan
-    out[[0, -1]] = np.nan  # the convolution's edges see padding
+    """Three-point moving average of each wheel over its measured samples: rows without a
+    measurement (a recorded run's command rows) are skipped, not read as zeros; each wheel's
+    first and last measured samples (the average would need padding there) are NaN."""
+    out = np.full(w.shape, np.nan)
+    for i in range(w.shape[1]):
+        ok = np.flatnonzero(np.isfinite(w[:, i]))
+        if ok.size >= 3:
+            out[ok[1:-1], i] = (w[ok[:-2], i] + w[ok[1:-1], i] + w[ok[2:], i]) / 3.0
     return out
+
+
+def _steepest_rpm_per_s(t: np.ndarray, w: np.ndarray) -> float:
+    """The largest absolute slope of the smoothed wheel speeds between consecutive measured
+    samples [rpm/s] (0 without two)."""
+    sm = _smoothed(w)
+    best = 0.0
+    for i in range(w.shape[1]):
+        ok = np.flatnonzero(np.isfinite(sm[:, i]))
+        if ok.size >= 2:
+            d = np.abs(np.diff(sm[ok, i])) / np.diff(t[ok])
+            d = d[np.isfinite(d)]
+            if d.size:
+                best = max(best, float(d.max()))
+    return best
 
 
 def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
@@ -67,7 +87,7 @@ def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
     for r in ev.recs:
         tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
         w, t = r.wheel_rpm, r.t_s
-        dts.append(float(np.median(np.diff(t))))
+        dts.append(r.measured_period_s)
         big = max(20.0 * noise_rpm, 5.0)
         for i in range(4):
             if not np.isfinite(w[:, i]).any():
@@ -84,7 +104,7 @@ def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
     if not lat:
         return 0.0
     # whole microseconds: differences of sample times carry rounding noise
-    return round(max(float(np.median(lat)) - float(np.median(dts)), 0.0), 6)
+    return round(max(float(np.median(lat)) - float(np.nanmedian(dts)), 0.0), 6)
 
 
 #: Residual evaluations of the refit at each point of a grid (controller period), and at each
@@ -96,7 +116,8 @@ MULTI_START: dict[str, tuple[float, ...]] = {"breakaway": (1.0, 2.0), "drive_lag
 
 
 def _sample_period_s(ev: _Evaluator) -> float:
-    return float(np.median(np.concatenate([np.diff(r.t_s) for r in ev.recs])))
+    """Median period of the measurements [s] (:attr:`Recording.measured_period_s`)."""
+    return float(np.nanmedian([r.measured_period_s for r in ev.recs]))
 
 
 def _rise_time_s(ev: _Evaluator, noise_rpm: float) -> float:
@@ -133,12 +154,7 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
         return {"dead_time_s": _latency_s(ev, noise_rpm)}
     if effect == "rate_limit":
         # a ramp limit caps the measured acceleration: start at the steepest one
-        best = 1.0
-        for r in recs:
-            d = np.abs(np.diff(_smoothed(r.wheel_rpm), axis=0)) / np.diff(r.t_s)[:, None]
-            d = d[np.isfinite(d)]
-            if d.size:
-                best = max(best, float(d.max()))
+        best = max([1.0] + [_steepest_rpm_per_s(r.t_s, r.wheel_rpm) for r in recs])
         return {"rate_limit_rpm_per_s": best}
     if effect == "saturation":
         peak = max(float(np.nanmax(np.abs(_smoothed(r.wheel_rpm)))) for r in recs)
@@ -417,6 +433,63 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
                        tuple(n for n in base_free if n.startswith("efficiency")) + new,
                        dict(res.ci95), res.warnings)
     free = list(base_free) + list(new)
+    try:
+        fitted = _searched(ev, effect, base, cal, guess, bounds, base_free, free, sources,
+                           two_stage)
+    except (FitError, ConfigError) as err:
+        fitted, failure = None, err
+    # a kinked cost (a limit that switches on, a delay) has local minima: the searches from
+    # the data's start values can end worse than the model without the effect, which is a
+    # member of the family (the effect absent). Then a search from the model as it is, with
+    # the effect where it does least within its range (monotone: it never ends above its
+    # start); and if that too ends worse, the candidate is the model without it
+    ms = in_sample_ms(ev, fitted.calibration) if fitted is not None else math.inf
+    ms_base = in_sample_ms(ev, base)
+    if ms <= ms_base:
+        return fitted
+    least = with_parameters(base, _least_values(effect, bounds))
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):
+            res = fit_parameters(ev.recs, least, ev.robot, free,
+                                 x0={n: parameter_value(least, n) for n in free},
+                                 bounds=bounds, sources=sources)
+        floor = _Fitted(effect, with_parameters(least, res.parameters), tuple(free),
+                        dict(res.ci95),
+                        res.warnings + tuple(_edge_warnings(res.parameters, bounds)))
+        ms_floor = in_sample_ms(ev, floor.calibration)
+    except (FitError, ConfigError):
+        floor, ms_floor = None, math.inf
+    if ms_floor < min(ms, ms_base):
+        return floor
+    if fitted is None and floor is None:
+        raise failure
+    return _Fitted(effect, base, tuple(free), {}, (
+        f"{effect}: no fit within its search range does better than the model without it",))
+
+
+def _least_values(effect: str, bounds: Mapping[str, tuple[float, float]]
+                   ) -> dict[str, float]:
+    """An effect's parameters where, within its search range, it does least: no delay, lag or
+    breakaway (0), unit gains and efficiencies, the highest ceiling and ramp limit (which may
+    still act: a ramp limit on the set-point acts on every step)."""
+    out = {}
+    for n in effect_parameters(effect):
+        lo, hi = bounds.get(n, (-math.inf, math.inf))
+        if n.startswith(("gains", "efficiency")):
+            v = 1.0
+        elif n in ("top_speed_rpm", "rate_limit_rpm_per_s"):
+            v = hi
+        else:
+            v = 0.0
+        out[n] = float(np.clip(v, lo, hi))
+    return out
+
+
+def _searched(ev: _Evaluator, effect: str, base: Calibration, cal: Calibration,
+              guess: Mapping[str, float], bounds: Mapping[str, tuple[float, float]],
+              base_free: Sequence[str], free: Sequence[str], sources: Sequence[str],
+              two_stage: bool) -> _Fitted:
+    """The candidate's searches from the data's start values (:func:`fit_candidate`)."""
     if degenerate(base):
         # from a corner no local search leaves (C -> 0 mimics a ceiling with a lower gain):
         # the engine's coarse grid restarts A, B, C with the effect at its start, and the

@@ -312,7 +312,7 @@ def residual_shape(recordings: Sequence[Recording], residuals: Sequence[np.ndarr
                 sgn = np.sign(tg[j, w] - before)
                 after = np.flatnonzero((np.arange(len(rec)) >= j) & (sgn * (y - half) >= 0))
                 t50 = t[after[0]] if after.size else t[j] + 0.1
-                rise = max(t50 - t[j], float(np.median(np.diff(t))))
+                rise = max(t50 - t[j], rec.measured_period_s)
                 dt = t - t[j]
                 sel = dt >= 0
                 phase[sel & (dt < 1.0), w] = "settling"
@@ -328,7 +328,7 @@ def residual_shape(recordings: Sequence[Recording], residuals: Sequence[np.ndarr
         good = np.isfinite(rr)
         if good.sum() < 32:
             continue
-        dt = float(np.median(np.diff(t)))
+        dt = float(np.median(np.diff(t[good])))
         tu = np.arange(t[good][0], t[good][-1], dt)
         ru = np.interp(tu, t[good], rr[good])
         ru = ru - ru.mean()

@@ -201,7 +201,9 @@ def _max_delay(series) -> int:
 def fit_reference(recordings: Sequence[Recording], robot: RobotProfile) -> ReferenceFit | None:
     """Fit the reference output-error model (module docstring); ``None`` when the data are too
     short for it."""
-    dt = float(np.median(np.concatenate([np.diff(r.t_s) for r in recordings])))
+    # the measurements' period (a recorded run's command rows are not samples)
+    dt = float(np.median(np.concatenate([
+        np.diff(r.t_s[np.isfinite(r.wheel_rpm).any(axis=1)]) for r in recordings])))
     series = _series(recordings, robot, dt)
     if not series:
         return None
@@ -279,3 +281,20 @@ def explained_share(rmse_fit: float, rmse_named: float, rmse_reference: float) -
     if not gap > 0:
         return math.nan
     return float((rmse_fit ** 2 - rmse_named ** 2) / gap)
+
+
+def reference_comparison(rmse_fit: float, rmse_named: float, rmse_reference: float) -> str:
+    """The named model against the reference, in words: the share of the explainable gap it
+    closes, or, where it does better than the reference (a limit, a delay or a deadband that no
+    linear model follows), that it does, rather than a share beyond 100 %."""
+    share = explained_share(rmse_fit, rmse_named, rmse_reference)
+    if not math.isfinite(rmse_reference):
+        return "no reference model could be fitted"
+    if rmse_named < rmse_reference:
+        return (f"the named model does better than it ({rmse_named:.4g} against "
+                f"{rmse_reference:.4g} rpm): it captures what a linear model of that order "
+                "cannot")
+    if not math.isfinite(share):
+        return "it explains nothing beyond the refitted model"
+    return f"the named effects close {100 * share:.0f} % of the gap it can explain"
+

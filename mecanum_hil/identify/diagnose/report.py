@@ -24,6 +24,7 @@ from ...prediction import predict
 from ..regimes import pose_residual, rmse
 from .candidates import effect_parameters
 from .localise import STRUCTURE_RATIO, STRUCTURE_RHO, Finding, initial_pose_at_rest
+from .reference import reference_comparison
 from .selection import MIN_EXPLAINED, MIN_RELATIVE, DiagnoseStep, Diagnosis
 
 
@@ -349,9 +350,9 @@ def _remainder_lines(d: Diagnosis) -> list[str]:
         md += [f"Shape of the remaining residual: {d.shape.describe()}.", ""]
     md += [f"Generic reference model (output error of higher order, "
            "`identify/diagnose/reference.py`): wheel RMSE "
-           f"{_fmt(d.rmse_reference)} rpm; the named effects close "
-           f"{_fmt(100 * d.explained_share, 3)} % of the gap between the refitted model "
-           f"({d.rmse_baseline:.4g} rpm) and it.", "",
+           f"{_fmt(d.rmse_reference)} rpm, the refitted model {d.rmse_baseline:.4g} rpm; "
+           f"{reference_comparison(d.rmse_baseline, d.rmse_final, d.rmse_reference)} "
+           f"(explained share {_fmt(d.explained_share, 3)}).", "",
            f"Remaining wheel RMSE {c.rmse_rpm:.4g} rpm = {c.ratio:.3g} x the noise level; lag-1 "
            f"autocorrelation {c.lag1_autocorrelation:.3g} (white noise: about 0). Structured "
            f"means RMSE > {STRUCTURE_RATIO} x noise and autocorrelation > {STRUCTURE_RHO}: "
@@ -406,7 +407,7 @@ def _step_section(d: Diagnosis, recordings: Sequence[Recording], names: Sequence
         rows = step_rows(rec, curves, robot, d.noise_rpm)
         if not rows:
             continue
-        period = float(np.median(np.diff(rec.t_s))) if len(rec) > 1 else 0.0
+        period = rec.measured_period_s if len(rec) > 1 else 0.0
         png = plot_steps(rec, curves, rows, out / f"steps-{k}.png",
                          f"{name}: measured, fit alone, diagnosed, step by step")
         md += [f"### {name}", "", *step_table_lines(rows, list(curves), period, d.noise_rpm),

@@ -44,7 +44,7 @@ from .localise import (
     residual_shape,
     typical_step_s,
 )
-from .reference import explained_share, fit_reference
+from .reference import explained_share, fit_reference, reference_comparison
 
 #: A candidate must remove at least this fraction of the in-sample excess over the noise floor
 #: and lower the held-out score (a ceiling that one recording alone reaches may explain only a
@@ -708,9 +708,8 @@ def _compare_with_reference(ctx: _Context, baseline: Calibration, rmse_final: fl
     base_rm = _rmse_per_recording(ctx.ev, baseline)
     if ref is not None:
         ctx.say(f"reference model (output error, {ref.order[0]} + {ref.order[1]} coefficients, "
-                f"delay {ref.delay_samples} samples): wheel RMSE {rmse_ref:.3f} rpm; the named "
-                f"effects close {100 * explained_share(base_rm[0], rmse_final, rmse_ref):.0f} % "
-                "of the gap it can explain")
+                f"delay {ref.delay_samples} samples): wheel RMSE {rmse_ref:.3f} rpm; "
+                + reference_comparison(base_rm[0], rmse_final, rmse_ref))
     return rmse_ref, base_rm
 
 
