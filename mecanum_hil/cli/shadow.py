@@ -106,6 +106,7 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
             events: Path | None, no_events: bool, plot: Path | None) -> int:
     import json
 
+    from ..errors import MecanumHILError
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile
     from ..monitor import replay
@@ -120,8 +121,15 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
             "alarm", "recovered") else None)
     log = None
     if not no_events:
-        log = EventLog(events or event_log_path(path), cal, config,
-                       {"mode": "replay", "recording": str(path)})
+        try:
+            log = EventLog(events or event_log_path(path), cal, config,
+                           {"mode": "replay", "recording": str(path)})
+        except MecanumHILError as err:
+            if events is not None:
+                raise
+            # the default place is beside the recording, which may be read-only
+            raise MecanumHILError(f"{err}; write it elsewhere with --events PATH, or none "
+                                  "with --no-events") from err
         listeners.insert(0, log)
     try:
         result = replay(rec, cal, rob, config, listeners=listeners, source=str(path))

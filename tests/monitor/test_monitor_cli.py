@@ -60,6 +60,23 @@ def test_replay_text_output_names_the_alarm(runs):
     assert "ALARM" in r.stdout and "wheel3_rpm" in r.stdout
 
 
+def test_an_event_log_that_cannot_be_written_beside_the_recording_names_the_options(
+        runs, tmp_path):
+    # the default log goes beside the recording, which may be read-only (another lab's data):
+    # here its name is taken by a folder, which even root cannot open as a file
+    _, nominal = runs
+    rec = tmp_path / "run.csv"
+    rec.write_bytes(nominal.read_bytes())
+    (tmp_path / "run.shadow.jsonl").mkdir()
+    r = cli("shadow", "--replay", rec)
+    assert r.returncode == 1
+    assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, r.stderr
+    assert "cannot create the event log" in r.stderr
+    assert "--events PATH" in r.stderr and "--no-events" in r.stderr
+    r = cli("shadow", "--replay", rec, "--no-events")
+    assert r.returncode == 0, r.stderr
+
+
 @pytest.mark.parametrize("args, message", [
     (["--replay", "missing.csv"], "file not found"),
     ([], "exactly one of --replay"),
