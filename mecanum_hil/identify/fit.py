@@ -589,9 +589,12 @@ def _data_start_values(data: Sequence[_Prepared]) -> dict[str, float]:
     peak = float(np.max(np.abs(measured)))
     slopes = []
     for p in data:
-        dt = np.diff(p.t_s)[:, None]
-        d = np.abs(np.diff(p.wheel_rpm, axis=0)) / dt
-        slopes.append(d[np.isfinite(d)])
+        for i in range(4):
+            # between consecutive measurements of the wheel (a recorded run's command rows,
+            # without one, are skipped)
+            ok = np.flatnonzero(p.wheel_mask[:, i])
+            d = np.abs(np.diff(p.wheel_rpm[ok, i])) / np.diff(p.t_s[ok])
+            slopes.append(d[np.isfinite(d)])
     slope = float(np.percentile(np.concatenate(slopes), 95)) if any(s.size for s in slopes) else 1.0
     return {"top_speed_rpm": max(1.25 * peak, 1.0), "rate_limit_rpm_per_s": max(slope, 1.0)}
 
@@ -770,9 +773,15 @@ def finish(data, calibration, robot, free, x, method, *, J=None, r=None, pose_we
     for i, name in enumerate(free):
         if on_bound[i]:
             edge = lower[i] if x[i] <= lower[i] + tol[i] else upper[i]
+            why = ""
+            if name == "C" and edge == lower[i]:
+                # the commonest corner: the paper's model has no other way to settle short
+                why = ("; no integral action is how this model follows a level that settles "
+                       "short of the target (a ceiling, a proportional-only loop, a gain): "
+                       "`mecanum-hil diagnose` tells which")
             warnings.append(f"{name} = {x[i]:.4g} is at its bound {edge:g}: the data favour the "
                             "edge of the allowed range, and its interval (which assumes an "
-                            "interior optimum) is only indicative")
+                            f"interior optimum) is only indicative{why}")
     params = {n: float(v) for n, v in zip(free, x, strict=True)}
     cal = with_parameters(calibration, params)
     # without pose channels the search's last residual is the wheels' at x: no new simulation

@@ -1,5 +1,5 @@
-"""diagnose's candidates: start values read off recorded runs, and a fit never worse than the
-model without the effect."""
+"""Start values read off recorded runs (diagnose's candidates, fit's effects), and a candidate's
+fit never worse than the model without the effect."""
 
 from __future__ import annotations
 
@@ -45,6 +45,16 @@ def test_start_values_read_the_measurements_not_the_command_rows(recorded):
         "rate_limit_rpm_per_s"] > 1000.0
     assert candidates._start_values("saturation", with_rows, 0.25)[
         "top_speed_rpm"] == pytest.approx(1.02 * 110.0, abs=2.0)
+
+
+def test_fit_start_values_read_the_measurements_not_the_command_rows(recorded):
+    from mecanum_hil.identify.fit import _data_start_values, prepare
+
+    rec = recorded[0]
+    measured = rec.select(np.isfinite(rec.wheel_rpm).any(axis=1))
+    got = _data_start_values(prepare([rec], ROBOT))
+    assert got == pytest.approx(_data_start_values(prepare([measured], ROBOT)))
+    assert got["rate_limit_rpm_per_s"] > 100.0
 
 
 @pytest.mark.parametrize("effect", ["rate_limit", "breakaway"])

@@ -192,3 +192,13 @@ def test_no_convergence_is_a_fit_error(monkeypatch, effects):
         monkeypatch.setattr(module, name, starved)
     with pytest.raises(FitError, match="did not converge"):
         fit([measured(*step(), TRUE)], ROBOT, calibration=Calibration(effects=effects))
+
+
+def test_a_level_short_of_the_target_puts_c_at_its_bound_and_points_at_diagnose():
+    # a ceiling the paper's model lacks: its only way to settle short is no integral action
+    t, cmd = step(120.0, duration_s=2.0)
+    rec = measured(t, cmd, with_parameters(TRUE, {"top_speed_rpm": 100.0}), seed=2)
+    res = fit([rec], ROBOT)
+    assert res.calibration.C <= 1e-4, res.calibration
+    assert any(w.startswith("C = ") and "mecanum-hil diagnose" in w for w in res.warnings), \
+        res.warnings
