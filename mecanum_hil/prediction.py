@@ -98,25 +98,45 @@ def without_frozen_start(rec: Recording) -> Recording:
     return rec.with_values(wheel_rpm=w)
 
 
+def _reading_at_start(rec: Recording, rows: np.ndarray) -> bool:
+    """Whether a wheel's first reading (``rows``: its measured rows) may tell its speed at the
+    recording's start: it is on the first row; or the rows before it carry no reading of any
+    wheel (a recorded run's command rows), under the same command, within one of the wheel's
+    sampling periods (:func:`initial_wheel_rpm` then also asks that it is not accelerating)."""
+    first = int(rows[0])
+    if first == 0:
+        return True
+    if rows.size < 2 or np.isfinite(rec.wheel_rpm[:first]).any():
+        return False
+    period = float(np.median(np.diff(rec.t_s[rows[:20]])))
+    cmd = rec.commands[:first + 1]
+    same = bool(np.all((cmd == cmd[0]) | (np.isnan(cmd) & np.isnan(cmd[0]))))
+    return same and rec.t_s[first] - rec.t_s[0] <= period
+
+
 def initial_wheel_rpm(rec: Recording) -> np.ndarray:
     """Wheel speeds [rpm] the model starts from: 0 at rest, else the first measured reading,
     averaged with those of the next :data:`START_SAMPLES` - 1 that agree with it within four
     noise levels (a wheel already accelerating is not averaged away). A first reading below
     :data:`REST_RPM` or four noise levels (from the first differences) is rest; a frozen reading
-    is not motion (that wheel starts at rest); a wheel without a reading at the first sample
-    starts at rest."""
+    is not motion (that wheel starts at rest); a wheel without a reading at the start starts at
+    rest. The start is the first sample, or the first reading when only rows without any (a
+    recorded run's command rows) come before it, with the same command, within one of the
+    wheel's sampling periods, and the wheel is not accelerating there."""
     w = np.asarray(without_frozen_start(rec).wheel_rpm, dtype=float)
     out = np.zeros(4)
     frozen = frozen_start(rec).any(axis=0)
     for i in range(4):
         rows = np.flatnonzero(np.isfinite(w[:, i]))
-        if frozen[i] or rows.size == 0 or rows[0] > 0:
+        if frozen[i] or rows.size == 0 or not _reading_at_start(rec, rows):
             continue
         d = np.diff(w[rows[:20], i])
         sigma = float(1.4826 * np.median(np.abs(d)) / np.sqrt(2.0)) if d.size > 2 else 0.0
         first = w[rows[0], i]
         if abs(first) <= max(REST_RPM, 4.0 * sigma):
             continue
+        if rows[0] > 0 and abs(w[rows[1], i] - first) > max(4.0 * sigma, REST_RPM):
+            continue  # after command rows, a wheel accelerating: a step at the first row
         near = w[rows[:START_SAMPLES], i]
         near = near[np.abs(near - first) <= max(4.0 * sigma, REST_RPM)]
         out[i] = float(near.mean())

@@ -618,7 +618,9 @@ def _local_minima(sse: np.ndarray, count: int) -> np.ndarray:
 
 
 def _median_period_s(data: Sequence[_Prepared]) -> float:
-    steps = np.concatenate([np.diff(p.t_s) for p in data])
+    """Median period of the wheel measurements [s] (a recorded run's command rows, without
+    one, are not samples)."""
+    steps = np.concatenate([np.diff(p.t_s[p.wheel_mask.any(axis=1)]) for p in data])
     return float(np.median(steps)) if steps.size else 0.0
 
 

@@ -96,22 +96,31 @@ def _sd_from_differences(d: np.ndarray) -> float:
     return max(mad, trimmed) / float(np.sqrt(2.0))
 
 
+def measured_differences(residual: np.ndarray) -> np.ndarray:
+    """First differences of each column over its own measured (finite) samples, concatenated:
+    rows where a column is not measured (a recorded run's command rows, a camera's missing
+    frames) are skipped, not counted as breaks."""
+    r = np.asarray(residual, dtype=float)
+    r = r.reshape(r.shape[0], -1)
+    parts = [np.diff(r[np.isfinite(r[:, c]), c]) for c in range(r.shape[1])]
+    return np.concatenate(parts) if parts else np.empty(0)
+
+
 def noise_sd(residual: np.ndarray) -> float:
     """Noise level of residual samples from their first differences (module docstring).
 
     Parameters
     ----------
     residual : ndarray, shape (T,) or (T, k)
-        One recording's residual; columns are channels, NaN where not measured.
+        One recording's residual; columns are channels, NaN where not measured (differences
+        are taken between a column's consecutive measured samples).
     """
-    r = np.asarray(residual, dtype=float)
-    return _sd_from_differences(np.diff(r.reshape(r.shape[0], -1), axis=0).ravel())
+    return _sd_from_differences(measured_differences(residual))
 
 
 def pooled_noise_sd(residuals: Sequence[np.ndarray]) -> float:
     """:func:`noise_sd` over several recordings (differences never span two recordings)."""
-    parts = [np.diff(np.asarray(r, float).reshape(len(r), -1), axis=0).ravel()
-             for r in residuals]
+    parts = [measured_differences(r) for r in residuals]
     return _sd_from_differences(np.concatenate(parts) if parts else np.empty(0))
 
 

@@ -114,12 +114,15 @@ def test_demo_runs_the_whole_loop(tmp_path):
     # after the controller reads it from the pty, later still on a loaded machine. With the
     # noise the quick demo has, diagnose may name it (a CI run found 1.1 ms), as a dead time or
     # as its close substitutes on step responses, a short drive lag or a held controller output
-    # (docs/diagnose.md); nothing else, and nothing longer than a loaded link's latency.
+    # (docs/diagnose.md), or a steep ramp limit of the set-point (a CI run: 120 rpm spread
+    # over a few ms since the ramp limit's start is read off the measured slopes); nothing
+    # else, and nothing longer than a loaded link's latency.
     # Their parameters are not identifiable from these steps (a CI run named a 62 ms drive lag
     # with A, B, C 35 times the paper's: the same step response to 2 ms): the diagnosed
     # model's response below the ceiling is what must stay the robot's.
-    latency = {"dead_time", "drive_lag", "controller_period"}
+    latency = {"dead_time", "drive_lag", "controller_period", "rate_limit"}
     assert set(diagnosed.effects.active()) <= {"saturation", *latency}
+    assert diagnosed.effects.rate_limit_rpm_per_s >= 120.0 / 0.02  # a step in under 20 ms
     t = uniform_time(1.0, 1000.0)
     step60 = np.tile([60.0, 0.0, 90.0], (t.size, 1))
     truth, model = (simulate(step60, t, cal).wheel_rpm[0][:, 0]

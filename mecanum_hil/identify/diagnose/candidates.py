@@ -87,7 +87,8 @@ def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
     for r in ev.recs:
         tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
         w, t = r.wheel_rpm, r.t_s
-        dts.append(r.measured_period_s)
+        if math.isfinite(r.measured_period_s):
+            dts.append(r.measured_period_s)
         big = max(20.0 * noise_rpm, 5.0)
         for i in range(4):
             if not np.isfinite(w[:, i]).any():
@@ -104,7 +105,7 @@ def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
     if not lat:
         return 0.0
     # whole microseconds: differences of sample times carry rounding noise
-    return round(max(float(np.median(lat)) - float(np.nanmedian(dts)), 0.0), 6)
+    return round(max(float(np.median(lat)) - (float(np.median(dts)) if dts else 0.0), 0.0), 6)
 
 
 #: Residual evaluations of the refit at each point of a grid (controller period), and at each
@@ -116,8 +117,12 @@ MULTI_START: dict[str, tuple[float, ...]] = {"breakaway": (1.0, 2.0), "drive_lag
 
 
 def _sample_period_s(ev: _Evaluator) -> float:
-    """Median period of the measurements [s] (:attr:`Recording.measured_period_s`)."""
-    return float(np.nanmedian([r.measured_period_s for r in ev.recs]))
+    """Median period of the measurements [s] (:attr:`Recording.measured_period_s`; of all rows
+    where no recording has two measured ones)."""
+    periods = [p for p in (r.measured_period_s for r in ev.recs) if math.isfinite(p)]
+    if periods:
+        return float(np.median(periods))
+    return float(np.median(np.concatenate([np.diff(r.t_s) for r in ev.recs])))
 
 
 def _rise_time_s(ev: _Evaluator, noise_rpm: float) -> float:
@@ -263,6 +268,8 @@ class _Fitted:
     free: tuple[str, ...]
     ci95: dict[str, tuple[float, float]]
     warnings: tuple[str, ...]
+    #: Why the candidate is the model without the effect (no fit in its range did better).
+    absent: str = ""
 
 
 def _deadband_grid(ev: _Evaluator, cal: Calibration, values: np.ndarray
@@ -445,7 +452,7 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
     # start); and if that too ends worse, the candidate is the model without it
     ms = in_sample_ms(ev, fitted.calibration) if fitted is not None else math.inf
     ms_base = in_sample_ms(ev, base)
-    if ms <= ms_base:
+    if fitted is not None and ms <= ms_base:
         return fitted
     least = with_parameters(base, _least_values(effect, bounds))
     try:
@@ -463,8 +470,8 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
         return floor
     if fitted is None and floor is None:
         raise failure
-    return _Fitted(effect, base, tuple(free), {}, (
-        f"{effect}: no fit within its search range does better than the model without it",))
+    return _Fitted(effect, base, tuple(base_free), {}, (), absent=(
+        "no fit within its search range does better in sample than the model without it"))
 
 
 def _least_values(effect: str, bounds: Mapping[str, tuple[float, float]]

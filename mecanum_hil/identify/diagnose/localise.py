@@ -204,15 +204,16 @@ class ResidualCheck:
 
 
 def lag1_autocorrelation(residuals: Sequence[np.ndarray]) -> float:
-    """Pooled lag-1 autocorrelation of residual arrays (T, k), within recordings and columns."""
+    """Pooled lag-1 autocorrelation of residual arrays (T, k), within recordings and columns,
+    between each column's consecutive measured samples (rows without a measurement, a
+    recorded run's command rows, are skipped: counted as breaks they diluted it)."""
     num = den = 0.0
     for r in residuals:
         r2 = np.asarray(r, float).reshape(len(r), -1)
-        a, b = r2[:-1], r2[1:]
-        ok = np.isfinite(a) & np.isfinite(b)
-        num += float(np.sum(a[ok] * b[ok]))
-        fin = r2[np.isfinite(r2)]
-        den += float(np.sum(fin * fin))
+        for c in range(r2.shape[1]):
+            v = r2[np.isfinite(r2[:, c]), c]
+            num += float(v[:-1] @ v[1:])
+            den += float(v @ v)
     return num / den if den > 0 else 0.0
 
 
@@ -329,6 +330,8 @@ def residual_shape(recordings: Sequence[Recording], residuals: Sequence[np.ndarr
         if good.sum() < 32:
             continue
         dt = float(np.median(np.diff(t[good])))
+        if not dt > 0 or (t[good][-1] - t[good][0]) / dt > 20 * good.sum():
+            continue  # long pauses between samples: no spectrum on a grid mostly empty
         tu = np.arange(t[good][0], t[good][-1], dt)
         ru = np.interp(tu, t[good], rr[good])
         ru = ru - ru.mean()

@@ -198,12 +198,23 @@ def _max_delay(series) -> int:
     return int(np.clip(2 * lat, MIN_MAX_DELAY, MAX_MAX_DELAY))
 
 
+#: The reference model's uniform grid may hold at most this many points per measured sample.
+MAX_GRID_PER_SAMPLE = 20
+
+
 def fit_reference(recordings: Sequence[Recording], robot: RobotProfile) -> ReferenceFit | None:
     """Fit the reference output-error model (module docstring); ``None`` when the data are too
-    short for it."""
+    short for it, or when their uniform grid would be far longer than the data (a pause of
+    minutes between samples: :data:`MAX_GRID_PER_SAMPLE`)."""
     # the measurements' period (a recorded run's command rows are not samples)
-    dt = float(np.median(np.concatenate([
-        np.diff(r.t_s[np.isfinite(r.wheel_rpm).any(axis=1)]) for r in recordings])))
+    steps = np.concatenate([np.diff(r.t_s[np.isfinite(r.wheel_rpm).any(axis=1)])
+                            for r in recordings])
+    if steps.size == 0 or not np.median(steps) > 0:
+        return None
+    dt = float(np.median(steps))
+    span = sum(float(r.t_s[-1] - r.t_s[0]) for r in recordings if len(r))
+    if span / dt > MAX_GRID_PER_SAMPLE * (steps.size + len(recordings)):
+        return None
     series = _series(recordings, robot, dt)
     if not series:
         return None
@@ -284,17 +295,19 @@ def explained_share(rmse_fit: float, rmse_named: float, rmse_reference: float) -
 
 
 def reference_comparison(rmse_fit: float, rmse_named: float, rmse_reference: float) -> str:
-    """The named model against the reference, in words: the share of the explainable gap it
-    closes, or, where it does better than the reference (a limit, a delay or a deadband that no
-    linear model follows), that it does, rather than a share beyond 100 %."""
-    share = explained_share(rmse_fit, rmse_named, rmse_reference)
+    """The final model against the reference, in words: the share of the explainable gap the
+    named effects close, or, where the final model does better than the reference (a limit, a
+    delay or a deadband that no linear model follows), that it does, rather than a share
+    beyond 100 %."""
     if not math.isfinite(rmse_reference):
         return "no reference model could be fitted"
+    if not math.isfinite(rmse_named):
+        return "the final model could not be evaluated"
     if rmse_named < rmse_reference:
-        return (f"the named model does better than it ({rmse_named:.4g} against "
+        return (f"the final model does better than it ({rmse_named:.4g} against "
                 f"{rmse_reference:.4g} rpm): it captures what a linear model of that order "
                 "cannot")
+    share = explained_share(rmse_fit, rmse_named, rmse_reference)
     if not math.isfinite(share):
         return "it explains nothing beyond the refitted model"
     return f"the named effects close {100 * share:.0f} % of the gap it can explain"
-

@@ -407,7 +407,7 @@ def _step_section(d: Diagnosis, recordings: Sequence[Recording], names: Sequence
         rows = step_rows(rec, curves, robot, d.noise_rpm)
         if not rows:
             continue
-        period = rec.measured_period_s if len(rec) > 1 else 0.0
+        period = rec.measured_period_s if math.isfinite(rec.measured_period_s) else 0.0
         png = plot_steps(rec, curves, rows, out / f"steps-{k}.png",
                          f"{name}: measured, fit alone, diagnosed, step by step")
         md += [f"### {name}", "", *step_table_lines(rows, list(curves), period, d.noise_rpm),

@@ -598,6 +598,12 @@ def _score_candidate(ctx: _Context, model: _Model, effect: str, channel: str, no
         ctx.say(f"  {effect:11s} failed: {err}")
         return score, None, None
     ci = {n: f.ci95[n] for n in (*effect_parameters(effect),) if n in f.ci95}
+    if f.absent:
+        score = CandidateScore(effect, {}, {}, math.sqrt(f1 * scale2), math.nan, math.nan,
+                               math.nan,
+                               note=f.absent, in_sample=0.0)
+        ctx.say(f"  {effect:11s} explains    0.0 %: {f.absent}")
+        return score, f, None
     if h1 is None:
         score = CandidateScore(effect, _effect_values(f.calibration, effect), ci,
                                math.sqrt(f1 * scale2), math.nan, math.nan, math.nan,

@@ -1,5 +1,6 @@
-"""Start values read off recorded runs (diagnose's candidates, fit's effects), and a candidate's
-fit never worse than the model without the effect."""
+"""Recorded runs as ``record`` writes them: command rows (no measurement) between the telemetry
+rows. Start values, noise, autocorrelation and the initial state read the measured samples; and
+a candidate's fit is never worse than the model without the effect."""
 
 from __future__ import annotations
 
@@ -9,10 +10,12 @@ import pytest
 from mecanum_hil.identify.campaign import paper_campaign
 from mecanum_hil.identify.diagnose import candidates
 from mecanum_hil.identify.diagnose.heldout import in_sample_ms
-from mecanum_hil.identify.diagnose.localise import _Evaluator
+from mecanum_hil.identify.diagnose.localise import _Evaluator, lag1_autocorrelation
 from mecanum_hil.identify.fit import with_parameters
+from mecanum_hil.identify.regimes import noise_sd, pooled_noise_sd
 from mecanum_hil.link.effects_file import sim_effects_for
 from mecanum_hil.model import Calibration, Effects, RobotProfile
+from mecanum_hil.prediction import initial_wheel_rpm, predict
 from mecanum_hil.profiles import step
 
 ROBOT = RobotProfile()
@@ -76,3 +79,54 @@ def test_a_candidate_never_ends_worse_than_the_model_without_it(recorded, monkey
                                  ["step"], 0.25)
     assert in_sample_ms(ev, with_parameters(base, harmful)) > 2.0 * in_sample_ms(ev, base)
     assert in_sample_ms(ev, f.calibration) <= in_sample_ms(ev, base) * (1.0 + 1e-9)
+
+
+def _measured(rec):
+    return rec.select(np.isfinite(rec.wheel_rpm).any(axis=1))
+
+
+def test_noise_and_autocorrelation_skip_the_command_rows(recorded):
+    """A residual 30 x the noise (the model without the ceiling) is structured whatever rows
+    lie between its samples; the noise level comes from all of them."""
+    rec = recorded[0]
+    wrong = Calibration()  # no ceiling: a large, smooth residual at 110 rpm
+    res = rec.wheel_rpm - predict(rec, wrong, ROBOT).wheel_rpm
+    only = _measured(rec)
+    res_only = only.wheel_rpm - predict(only, wrong, ROBOT).wheel_rpm
+    assert lag1_autocorrelation([res]) == pytest.approx(lag1_autocorrelation([res_only]),
+                                                         abs=0.02)
+    assert lag1_autocorrelation([res]) > 0.9
+    truth = with_parameters(Calibration(), {"top_speed_rpm": 110.0})
+    noise = rec.wheel_rpm - predict(rec, truth, ROBOT).wheel_rpm
+    assert noise_sd(noise) == pooled_noise_sd([noise])
+    assert noise_sd(noise) == pytest.approx(0.25, rel=0.15)
+
+
+def test_a_recording_that_starts_on_a_command_row_in_motion(recorded):
+    """Cut in mid-run at 110 rpm so that the first row is a command row: the model starts
+    from the first reading, as it does when the first row is a reading."""
+    rec = recorded[0]
+    cmd_rows = np.flatnonzero(np.isnan(rec.wheel_rpm).all(axis=1) & (rec.t_s > 0.8))
+    cut = rec.select(np.arange(len(rec)) >= cmd_rows[0])
+    assert np.isnan(cut.wheel_rpm[0]).all()
+    start = initial_wheel_rpm(cut)
+    np.testing.assert_allclose(start, 110.0, atol=1.5)
+    np.testing.assert_allclose(start, initial_wheel_rpm(_measured(cut)), atol=0.5)
+
+
+def test_an_hour_long_pause_skips_the_reference_grid_instead_of_filling_it(recorded):
+    """A recording with a pause of an hour between two samples: the uniform grids of the
+    reference model and of the residual's spectrum would hold 360,000 points per hour (a
+    MemoryError for a clock that jumps by years); they are skipped."""
+    from mecanum_hil.identify.diagnose.localise import residual_shape
+    from mecanum_hil.identify.diagnose.reference import fit_reference
+
+    rec = recorded[0]
+    t = rec.t_s.copy()
+    t[len(t) // 2:] += 3600.0
+    paused = rec.with_values(t_s=t)
+    assert fit_reference([paused], ROBOT) is None
+    assert fit_reference([rec], ROBOT) is not None
+    res = paused.wheel_rpm - predict(paused, Calibration(), ROBOT).wheel_rpm
+    shape = residual_shape([paused], [res], ROBOT)
+    assert sum(shape.shares.values()) == pytest.approx(1.0)
