@@ -52,3 +52,47 @@ BitrateOpt = Annotated[int | None, typer.Option(
 LinkOptionOpt = Annotated[list[str] | None, typer.Option(
     "--link-option", metavar="KEY=VALUE",
     help="Extra transport option, repeatable (e.g. sleep_after_open=0 for slcan).")]
+
+
+def refuse_overwriting(inputs, outputs) -> None:
+    """One-line error when an output names an input: writing it would destroy data already
+    recorded (``fit -o run.csv run.csv``, ``import log.csv -o log.csv``).
+
+    Parameters
+    ----------
+    inputs : iterable of (Path or None, str)
+        Files read, with how the user gave them (``"the recording"``).
+    outputs : iterable of (Path or None, str)
+        Files to be written, with their option (``"--out"``). A CSV output also writes its
+        JSON sidecar, which must not be an input's either.
+    """
+    from ..errors import ConfigError
+
+    def same(a: Path, b: Path) -> bool:
+        try:
+            return a.resolve() == b.resolve() or (a.exists() and b.exists()
+                                                   and a.samefile(b))
+        except OSError:
+            return False
+
+    given = [(Path(p), what) for p, what in inputs if p is not None]
+    for out, option in outputs:
+        if out is None:
+            continue
+        out = Path(out)
+        written = [out] + ([out.with_suffix(".json")] if out.suffix.lower() == ".csv" else [])
+        for target in written:
+            for path, what in given:
+                hits = [path] + ([path.with_suffix(".json")]
+                                 if path.suffix.lower() == ".csv" else [])
+                if any(same(target, h) for h in hits):
+                    raise ConfigError(f"{out}: {option} would overwrite {what} ({path}); "
+                                      "write to another file")
+
+
+def shipped_or_file(name: str | None) -> Path | None:
+    """A calibration or robot given as a file (for :func:`refuse_overwriting`); ``None`` for a
+    shipped name (``paper``) or nothing."""
+    if name is None or not name.lower().endswith(".toml"):
+        return None
+    return Path(name)

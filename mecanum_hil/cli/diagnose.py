@@ -41,7 +41,10 @@ def command(
     from ..identify.diagnose.reference import reference_comparison
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile, save_calibration
+    from ._options import refuse_overwriting, shipped_or_file
 
+    refuse_overwriting([*((p, "a recording") for p in recordings),
+                        (shipped_or_file(calibration), "the calibration")], [(out, "--out")])
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
     recs = [read_for_analysis(p) for p in recordings]

@@ -36,9 +36,12 @@ def command(
     from ..io.recording import read_recording
     from ..monitor.eventlog import event_log_path
     from ..monitor.foxglove import read_event_log
+    from ._options import refuse_overwriting
 
     if events is not None and no_events:
         raise ConfigError("give --events or --no-events, not both")
+    refuse_overwriting([(recording, "the recording"), (events, "the event log")],
+                       [(out, "--out")])
     rec = read_recording(recording)
     predicted = None
     if calibration is not None:

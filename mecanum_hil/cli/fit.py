@@ -64,6 +64,7 @@ def command(
     from ..errors import FitError
     from ..identify.files import fit_files
     from ..model import load_calibration, load_robot_profile
+    from ._options import refuse_overwriting, shipped_or_file
 
     if method not in ("lsq", "paper-grid"):
         raise FitError(f"--method must be lsq or paper-grid, got {method!r}")
@@ -73,9 +74,12 @@ def command(
                                       ("b_start", b_start)) if v is not None}
     if grid_options and method != "paper-grid":
         raise FitError("--a-grid, --b-grid, --c-grid and --b-start apply to --method paper-grid")
+    png = None if no_report else (report or out.with_suffix(".png"))
+    refuse_overwriting([*((p, "a recording") for p in recordings),
+                        (shipped_or_file(calibration), "the calibration")],
+                       [(out, "--out"), (png, "--report")])
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
-    png = None if no_report else (report or out.with_suffix(".png"))
     output = fit_files(recordings, out, rob, method, cal, png, **grid_options)
     res = output.result
     for w in res.warnings:

@@ -60,9 +60,13 @@ def command(
     from ..errors import ConfigError
     from ..importers import import_source, with_notes
     from ..io.recording import format_rows, write_recording
+    from ._options import refuse_overwriting
 
     if out is None and not dry_run:
         raise ConfigError("give --out REC.csv (or --dry-run)")
+    if not dry_run:
+        refuse_overwriting([(source, "the log"), (map_path, "the map"), (dbc_path, "the DBC"),
+                            (recording, "the --recording")], [(out, "--out")])
     options = {}
     if map_path is not None:
         options["map_path"] = map_path

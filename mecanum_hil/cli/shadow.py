@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from ._options import CalibrationOpt, FoxgloveOpt, JsonOpt, RobotOpt
+from ._options import CalibrationOpt, FoxgloveOpt, JsonOpt, RobotOpt, refuse_overwriting
 
 #: Exit code when the monitor raised at least one alarm.
 EXIT_ALARM = 3
@@ -86,6 +86,8 @@ def command(
         raise ConfigError("--foxglove serves a live run (--transport can); for a recording, "
                           "export it: mecanum-hil export REC.csv --out RUN.mcap")
     if replay_path is not None:
+        refuse_overwriting([(replay_path, "the recording")],
+                           [(None if no_events else events, "--events"), (plot, "--plot")])
         n_alarms = _replay(replay_path, calibration, robot, config, json_out,
                            None if no_events else events, no_events, plot)
     else:
@@ -136,6 +138,13 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
     finally:
         if log is not None:
             log.close()
+    if not result.noise and result.samples:
+        # nothing was checked: "0 alarms" would read as a robot that matched its model
+        raise MecanumHILError(
+            f"{path}: the monitor never armed: its warm-up (at least {config.warmup_s:g} s and "
+            f"{config.min_warmup_samples} samples of each channel) did not complete, so no "
+            "divergence could be flagged; give the noise level with --noise-rpm, or a longer "
+            "recording")
     if json_out:
         typer.echo(json.dumps(result.summary()))
     else:

@@ -27,9 +27,13 @@ def command(
     from ..model import load_calibration, load_robot_profile
     from ..prediction import predict
     from ..profiles import resolve_profile
+    from ._options import refuse_overwriting, shipped_or_file
 
     if (commands is None) == (profile is None):
         raise ConfigError("give exactly one of --commands REC.csv and --profile NAME_OR_FILE")
+    refuse_overwriting([(commands, "the --commands recording"),
+                        (shipped_or_file(calibration), "the calibration")],
+                       [(out, "--out"), (plot, "--plot")])
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
     if commands is not None:

@@ -30,6 +30,8 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
         fig.savefig(p, dpi=dpi)
     except OSError as err:
         raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
+    except ValueError as err:  # an extension matplotlib has no writer for
+        raise MecanumHILError(f"{p}: cannot write plot: {err}; use .png") from err
     finally:
         plt.close(fig)
     return p

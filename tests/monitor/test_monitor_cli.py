@@ -77,6 +77,24 @@ def test_an_event_log_that_cannot_be_written_beside_the_recording_names_the_opti
     assert r.returncode == 0, r.stderr
 
 
+def test_a_recording_shorter_than_the_warm_up_is_refused_not_passed(runs, tmp_path):
+    # 1.5 s: the noise estimate never completes, nothing is checked; "0 alarms" and exit 0
+    # would read as a robot that matched its model
+    _, nominal = runs
+    from mecanum_hil.io.recording import read_recording
+
+    rec = read_recording(nominal)
+    short = write_recording(rec.select(rec.t_s < 1.5), tmp_path / "short.csv")
+    r = cli("shadow", "--replay", short, "--no-events")
+    assert r.returncode == 1
+    assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, r.stderr
+    assert "never armed" in r.stderr and "--noise-rpm" in r.stderr
+    # given the noise level, it is checked from the first sample
+    r = cli("shadow", "--replay", short, "--no-events", "--noise-rpm", "2.0", "--json")
+    assert r.returncode in (0, 3), r.stderr
+    assert list(json.loads(r.stdout)) == ["alarms", "first_alarm_t_s"]
+
+
 @pytest.mark.parametrize("args, message", [
     (["--replay", "missing.csv"], "file not found"),
     ([], "exactly one of --replay"),
