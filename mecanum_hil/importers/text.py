@@ -8,11 +8,13 @@ the whole file (no per-row Python), so an hour at 1 kHz imports in seconds (benc
 
 from __future__ import annotations
 
+import codecs
 import csv
 import io
 import math
 import re
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -585,6 +587,43 @@ def read(path: Path, *, map_path: Path | None = None) -> ImportResult:
     return ImportResult(rec, tuple(notes))
 
 
+#: Names a map may give for a delimiter that is not one printable character.
+_DELIMITER_NAMES = {"tab": "\t", "\\t": "\t", "space": "whitespace"}
+
+
+def _file_options(f: Mapping[str, Any], where: str) -> tuple[str, str | None, Any, list, int]:
+    """The map's ``[file]`` table checked: ``(encoding, delimiter, header, comments,
+    skip_lines)``; a wrong value is a :class:`ConfigError` naming the map and the key."""
+    encoding = f.get("encoding", "utf-8-sig")
+    try:
+        if not isinstance(encoding, str):
+            raise LookupError
+        codecs.lookup(encoding)
+    except LookupError:
+        raise ConfigError(f"{where}: file.encoding: unknown encoding {encoding!r} (for example "
+                          "'utf-8', 'latin-1', 'cp1252')") from None
+    delimiter = f.get("delimiter", "auto")
+    if isinstance(delimiter, str):
+        delimiter = _DELIMITER_NAMES.get(delimiter.lower(), delimiter)
+    if not (delimiter in ("auto", "whitespace")
+            or (isinstance(delimiter, str) and len(delimiter) == 1
+                and delimiter not in "\"\r\n")):
+        raise ConfigError(f"{where}: file.delimiter must be one character (',', ';', '|'), "
+                          f"'tab', 'whitespace' or 'auto', got {delimiter!r}")
+    header = f.get("header", "auto")
+    if not (isinstance(header, bool) or header == "auto"):
+        raise ConfigError(f"{where}: file.header must be true, false or 'auto', got {header!r}")
+    skip = f.get("skip_lines", 0)
+    if isinstance(skip, bool) or not isinstance(skip, int) or skip < 0:
+        raise ConfigError(f"{where}: file.skip_lines must be a whole number >= 0, got {skip!r}")
+    comments = f.get("comments", list(DEFAULT_COMMENTS))
+    if isinstance(comments, str):
+        comments = [comments]
+    if not (isinstance(comments, list) and all(isinstance(c, str) and c for c in comments)):
+        raise ConfigError(f"{where}: file.comments must be a string or a list of strings")
+    return encoding, delimiter, header, comments, skip
+
+
 @dataclass
 class _MappedTable:
     """The mapped columns of a text log, read as numbers, and where each row came from."""
@@ -601,11 +640,7 @@ class _MappedTable:
     @classmethod
     def load(cls, path: Path, m: TextMap, where: str) -> _MappedTable:
         """Read the columns ``m`` maps from ``path`` (``where``: the map, for errors)."""
-        f = m.file
-        encoding = f.get("encoding", "utf-8-sig")
-        comments = f.get("comments", list(DEFAULT_COMMENTS))
-        if isinstance(comments, str):
-            comments = [comments]
+        encoding, delimiter, header, comments, skip_lines = _file_options(m.file, where)
         try:
             with path.open("rb") as fh:
                 head = fh.read(1 << 20)
@@ -619,9 +654,8 @@ class _MappedTable:
             lines = lines[:-1]
         cols: list[Column] = ([m.time] if m.time else []) + list(m.wheels.values()) + list(
             m.commands.values())
-        layout = detect_layout(lines, delimiter=f.get("delimiter", "auto"),
-                               header=f.get("header", "auto"), comments=comments,
-                               skip_lines=int(f.get("skip_lines", 0)), where=str(path),
+        layout = detect_layout(lines, delimiter=delimiter, header=header, comments=comments,
+                               skip_lines=skip_lines, where=str(path),
                                wanted=tuple({c.column for c in cols
                                              if isinstance(c.column, str)}))
         used = sorted({_index(c, layout, where) for c in cols if c.column is not None})

@@ -270,8 +270,8 @@ def read_recording(path: str | Path) -> Recording:
     side = sidecar_path(p)
     if side.exists():
         try:
-            metadata = json.loads(side.read_text())
-        except (OSError, json.JSONDecodeError) as err:
+            metadata = json.loads(side.read_text(encoding="utf-8-sig"))
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
             raise RecordingError(f"{side}: bad JSON sidecar: {err}") from err
         if not isinstance(metadata, dict):
             raise RecordingError(f"{side}: the sidecar must hold a JSON object")

@@ -14,8 +14,11 @@ row then gets the command in force at its new time.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
+from ..errors import MecanumHILWarning
 from .recording import Recording, read_recording
 
 CONTROLLER_TIME = "controller_time_s"
@@ -43,17 +46,53 @@ def controller_offset(receive_s: np.ndarray, controller_s: np.ndarray,
     return float(a), float(b)
 
 
-def retime_telemetry(rec: Recording) -> Recording:
+class ClockWarning(MecanumHILWarning):
+    """The controller's clock column cannot be trusted and is not used."""
+
+
+#: How far the controller's clock may run fast or slow against the host's before it is not
+#: trusted (crystals differ by parts per million; a factor this far off is a wrong column or
+#: unit) [-].
+MAX_CLOCK_RATE_ERROR = 0.1
+
+
+def clock_doubt(receive_s: np.ndarray, controller_s: np.ndarray) -> str:
+    """Why a controller clock cannot time its telemetry ("" when it can): it must run strictly
+    forward (a reset, a wrap or a frozen clock does not) at the host's rate within
+    :data:`MAX_CLOCK_RATE_ERROR` over the recording."""
+    d = np.diff(controller_s)
+    if not (d > 0).all():
+        k = int(np.flatnonzero(~(d > 0))[0])
+        how = "runs back" if d[k] < 0 else "stands still"
+        why = "a reset?" if d[k] < 0 else "a frozen clock?"
+        return (f"it {how} from telemetry sample {k + 1} to {k + 2}, {controller_s[k]:.6g} -> "
+                f"{controller_s[k + 1]:.6g} s, {why}")
+    span_c = float(controller_s[-1] - controller_s[0])
+    span_r = float(receive_s[-1] - receive_s[0])
+    if span_r > 0 and not abs(span_c / span_r - 1.0) <= MAX_CLOCK_RATE_ERROR:
+        return (f"it spans {span_c:.6g} s while the host received for {span_r:.6g} s: a "
+                "wrong unit or column, or a jump of the host's clock?")
+    return ""
+
+
+def retime_telemetry(rec: Recording, source: str = "recording") -> Recording:
     """Telemetry rows timed by the controller's clock (see the module docstring).
 
     A recording without a ``controller_time_s`` column (or with fewer than two values in it) is
-    returned unchanged.
+    returned unchanged; so is one whose clock cannot be trusted (:func:`clock_doubt`), with a
+    :class:`ClockWarning` naming ``source``.
     """
     if CONTROLLER_TIME not in rec.extra:
         return rec
     ct = rec.extra_numeric(CONTROLLER_TIME)
     tlm = np.isfinite(ct)
     if tlm.sum() < 2:
+        return rec
+    doubt = clock_doubt(rec.t_s[tlm], ct[tlm])
+    if doubt:
+        warnings.warn(f"{source}: {CONTROLLER_TIME} not used: {doubt}; telemetry timed by the "
+                      "host's receive times",
+                      ClockWarning, stacklevel=2)
         return rec
     a, b = controller_offset(rec.t_s[tlm], ct[tlm])
     t_new = rec.t_s.copy()
@@ -81,4 +120,4 @@ def read_for_analysis(path) -> Recording:
 
     What ``fit``, ``diagnose`` and ``shadow --replay`` read: the file itself is not changed.
     """
-    return retime_telemetry(read_recording(path))
+    return retime_telemetry(read_recording(path), str(path))

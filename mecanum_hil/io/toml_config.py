@@ -12,13 +12,16 @@ from ..errors import ConfigError
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """Parse a TOML file, turning every failure into a :class:`ConfigError` naming the file."""
+    """Parse a TOML file, turning every failure into a :class:`ConfigError` naming the file.
+    TOML is UTF-8; a byte-order mark (as some Windows editors save) is accepted."""
     p = Path(path)
     try:
-        with p.open("rb") as fh:
-            return tomllib.load(fh)
+        text = p.read_bytes().decode("utf-8-sig")
+        return tomllib.loads(text)
     except FileNotFoundError as err:
         raise ConfigError(f"{p}: file not found") from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{p}: not valid TOML: not UTF-8 text (byte {err.start})") from err
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{p}: not valid TOML: {err}") from err
     except OSError as err:

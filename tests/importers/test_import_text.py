@@ -211,6 +211,18 @@ def test_wheel_setpoints_off_the_image_warn_or_fail_with_the_residual(tmp_path):
          "line 3: time 0.0005 s does not increase: it runs back"),
         ("% t w\n0 1\n0.001 inf\n", "[time]\ncolumn = 0\n[wheels]\nwheel1 = {column = \"w\", "
          "unit = \"rpm\"}\n", "line 3, column w: infinite value"),
+        ("1 2\n", "[file]\ndelimiter = \",,\"\n[time]\nperiod_s = 0.001\n",
+         "file.delimiter must be one character"),
+        ("1 2\n", "[file]\ndelimiter = \"\"\n[time]\nperiod_s = 0.001\n",
+         "file.delimiter must be one character"),
+        ("1 2\n", "[file]\nencoding = \"ANSI\"\n[time]\nperiod_s = 0.001\n",
+         "file.encoding: unknown encoding 'ANSI'"),
+        ("1 2\n", "[file]\nencoding = 5\n[time]\nperiod_s = 0.001\n",
+         "file.encoding: unknown encoding 5"),
+        ("1 2\n", "[file]\nskip_lines = -1\n[time]\nperiod_s = 0.001\n",
+         "file.skip_lines must be a whole number >= 0"),
+        ("1 2\n", "[file]\nheader = \"yes\"\n[time]\nperiod_s = 0.001\n",
+         "file.header must be true, false or 'auto'"),
     ],
 )
 def test_malformed_logs_and_maps_are_one_clear_error(tmp_path, log, map_text, fragment):
@@ -220,6 +232,17 @@ def test_malformed_logs_and_maps_are_one_clear_error(tmp_path, log, map_text, fr
         import_source(p, "text", map_path=write_map(tmp_path, map_text))
     assert fragment in str(err.value)
     assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("spelling", ["\\t", "tab", "TAB", "\t"])
+def test_a_tab_delimiter_as_a_map_may_spell_it(tmp_path, spelling):
+    # a TOML literal string '\t' is two characters: backslash, t
+    p = tmp_path / "log.txt"
+    p.write_text("t\tw\n0\t1\n0.001\t2\n0.002\t3\n")
+    m = write_map(tmp_path, f"[file]\ndelimiter = '{spelling}'\n[time]\ncolumn = \"t\"\n"
+                  "[wheels]\nwheel1 = {column = \"w\", unit = \"rpm\"}\n")
+    rec = import_source(p, "text", map_path=m).recording
+    np.testing.assert_allclose(rec.wheel_rpm[:, 0], [1.0, 2.0, 3.0])
 
 
 def test_unknown_format_options_and_binary_files_are_refused(tmp_path):

@@ -45,6 +45,16 @@ def test_round_trip_with_missing_values_extras_and_sidecar(tmp_path):
     np.testing.assert_array_equal(back.extra_numeric("controller_t_s"), [1.0, 1.01, np.nan])
 
 
+def test_a_sidecar_not_in_utf8_is_one_error_and_one_with_a_bom_is_read(tmp_path):
+    p = tmp_path / "r.csv"
+    p.write_text(HEADER + "\n0,1,2,3,,,,,,,\n")
+    (tmp_path / "r.json").write_bytes(b'\xef\xbb\xbf{"notes": "ok"}')
+    assert read_recording(p).metadata == {"notes": "ok"}
+    (tmp_path / "r.json").write_bytes(b'{"notes": "caf\xe9"}')  # Latin-1
+    with pytest.raises(RecordingError, match=r"r.json: bad JSON sidecar"):
+        read_recording(p)
+
+
 def test_recording_without_sidecar_is_valid(tmp_path):
     p = tmp_path / "r.csv"
     p.write_text(HEADER + "\n0,1,2,3,,,,,,,\n")

@@ -58,3 +58,23 @@ def test_a_stall_no_longer_shifts_the_samples():
 def test_without_controller_time_nothing_changes():
     rec = Recording(np.arange(3.0), np.zeros((3, 3)), np.ones((3, 4)), np.full((3, 3), np.nan))
     assert retime_telemetry(rec) is rec
+
+
+@pytest.mark.parametrize(("change", "fragment"), [
+    (lambda c: np.where(c > 1.0, c - 3.0, c), "runs back"),            # a controller reset
+    (lambda c: np.full_like(c, 5.0), "stands still"),                 # a frozen clock
+    (lambda c: c * 1000.0, "a wrong unit or column"),                 # ms in a seconds column
+    (lambda c: np.full_like(c, 1e300) + np.arange(c.size), "stands still"),  # nonsense
+])
+def test_a_controller_clock_that_cannot_be_trusted_is_not_used(change, fragment):
+    from mecanum_hil.io.timing import ClockWarning
+
+    rec, _ = recording_with_a_stall()
+    ct = rec.extra_numeric("controller_time_s")
+    tlm = np.isfinite(ct)
+    ct[tlm] = change(ct[tlm])
+    bad = rec.with_values(extra={"controller_time_s": [
+        "" if np.isnan(c) else repr(float(c)) for c in ct]})
+    with pytest.warns(ClockWarning, match=fragment):
+        out = retime_telemetry(bad, "run.csv")
+    assert out is bad  # timed by the host's receive times, as without the column

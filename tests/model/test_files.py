@@ -69,6 +69,15 @@ def test_bad_calibration_names_file_and_key(tmp_path, text, fragment):
     assert fragment in str(err.value) and str(p) in str(err.value)
 
 
+def test_a_calibration_saved_with_a_bom_is_read_and_one_not_in_utf8_is_one_error(tmp_path):
+    p = tmp_path / "bom.toml"
+    p.write_bytes(b"\xef\xbb\xbf[motor]\nA = 1\nB = 2\nC = 3\n")  # as Notepad saves it
+    assert load_calibration(p).C == 3.0
+    p.write_bytes(b"# caf\xe9\n[motor]\nA = 1\nB = 2\nC = 3\n")  # Latin-1
+    with pytest.raises(ConfigError, match=r"bom.toml: not valid TOML: not UTF-8 text"):
+        load_calibration(p)
+
+
 def test_bad_robot_profile_names_file_and_key(tmp_path, repo):
     text = (repo / "drivers" / "tdam-stm.toml").read_text().replace(
         "wheel_radius_m = 0.102", "wheel_radius_m = -0.1")
