@@ -82,7 +82,7 @@ def command(
     summary = {**result.summary, "out": str(out),
                "merged": None if merged_path is None else str(merged_path)}
     for w in result.warnings:
-        err_console.print(f"warning: {w}", markup=False, highlight=False)
+        err_console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
     if as_json:
         typer.echo(json.dumps(summary, indent=2))
         return
@@ -114,7 +114,8 @@ def _measure_with_progress(video: Path, opts, err_console):
 
     with Progress(TextColumn("measuring {task.fields[name]}"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} frames"), TimeRemainingColumn(),
-                  console=err_console, transient=True) as bar:
+                  console=err_console, transient=True,
+                  disable=not err_console.is_terminal) as bar:
         task = bar.add_task("measure", total=None, name=video.name)
 
         def progress(done: int, total: int) -> None:

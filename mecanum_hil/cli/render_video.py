@@ -139,9 +139,10 @@ def _with_progress_bar(render):
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn
 
+    console = Console(stderr=True)
     with Progress(TextColumn("rendering"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} frames"),
-                  console=Console(stderr=True), transient=True) as bar:
+                  console=console, transient=True, disable=not console.is_terminal) as bar:
         task = bar.add_task("render", total=None)
         return render(lambda d, t: bar.update(task, completed=d, total=t))
 

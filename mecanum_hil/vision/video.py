@@ -7,9 +7,11 @@ has usable ones, else from the nominal frame rate. ``cv2`` errors and failures b
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import queue
+import sys
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -55,6 +57,37 @@ class VideoInfo:
     height_px: int
 
 
+@contextlib.contextmanager
+def _stderr_silenced():
+    """Process-wide stderr (file descriptor 2) to /dev/null for the block: native code that
+    prints there directly; Python's own ``sys.stderr`` writes are flushed first."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no real descriptor 2 (embedded, captured)
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _capture(cv2, p: Path, decoder_threads: int | None):
+    """``cv2.VideoCapture`` of ``p``: FFmpeg with ``decoder_threads`` when given and it opens,
+    else whatever backend OpenCV picks."""
+    if decoder_threads is not None:
+        cap = cv2.VideoCapture(str(p), cv2.CAP_FFMPEG,
+                               [cv2.CAP_PROP_N_THREADS, int(decoder_threads)])
+        if cap.isOpened():
+            return cap
+        cap.release()
+    return cv2.VideoCapture(str(p))
+
+
 def open_video(path: str | Path, decoder_threads: int | None = None):
     """Open a video for reading; return ``(capture, VideoInfo)``.
 
@@ -78,18 +111,20 @@ def open_video(path: str | Path, decoder_threads: int | None = None):
         raise VideoError(f"{p}: file not found")
     if p.is_dir():
         raise VideoError(f"{p}: is a folder, not a video")
+    # and OpenCV's own warnings while it tries its backends ("backend is generally available
+    # but can't be used to capture by name", "Unexpected element"): the error below says it
+    quiet = getattr(getattr(cv2, "utils", None), "logging", None)
+    level = quiet.getLogLevel() if quiet is not None else None
     try:
-        cap = None
-        if decoder_threads is not None:
-            cap = cv2.VideoCapture(str(p), cv2.CAP_FFMPEG,
-                                   [cv2.CAP_PROP_N_THREADS, int(decoder_threads)])
-            if not cap.isOpened():  # not FFmpeg's: whatever backend OpenCV picks
-                cap.release()
-                cap = None
-        if cap is None:
-            cap = cv2.VideoCapture(str(p))
+        if quiet is not None:
+            quiet.setLogLevel(quiet.LOG_LEVEL_SILENT)
+        with _stderr_silenced():  # its AVI parser writes to the C stream directly
+            cap = _capture(cv2, p, decoder_threads)
     except cv2.error as err:
         raise VideoError(f"{p}: OpenCV cannot open it: {err}") from err
+    finally:
+        if level is not None:
+            quiet.setLogLevel(level)
     if not cap.isOpened():
         raise VideoError(f"{p}: not a video OpenCV can decode (corrupt, truncated or unknown "
                          "format)")
@@ -304,7 +339,11 @@ class VideoWriter:
 
         self.path = Path(path)
         fourcc = fourcc_for(self.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise VideoError(f"{self.path}: cannot create the folder {self.path.parent}: "
+                             f"{err.strerror or err}") from err
         self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*fourcc),
                                        float(fps), (int(size_px[0]), int(size_px[1])))
         if not self._writer.isOpened():

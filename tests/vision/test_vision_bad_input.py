@@ -64,6 +64,29 @@ def test_truncated_mp4_is_refused(tmp_path, capsys):
     one_error_line(err)
 
 
+def test_what_the_whole_process_prints_on_a_broken_video_is_one_line(tmp_path, good_video):
+    """Native code (OpenCV trying its backends, its AVI parser) printed to the process's
+    stderr beside the error; and a warning must not be wrapped at 80 columns in a pipe."""
+    import subprocess
+    import sys
+
+    def stderr_of(video):
+        r = subprocess.run([sys.executable, "-m", "mecanum_hil", "measure-video", str(video),
+                            "--out", str(tmp_path / "o.csv")], capture_output=True, text=True,
+                           timeout=120)
+        return r.returncode, r.stderr
+
+    data = good_video.path.read_bytes()
+    for name, content in (("zero.mp4", b""), ("head.avi", data[:500])):
+        (tmp_path / name).write_bytes(content)
+        code, err = stderr_of(tmp_path / name)
+        assert code == 1 and err.count("\n") == 1 and err.startswith("error: "), err
+    (tmp_path / "cut.avi").write_bytes(data[: int(len(data) * 0.6)])
+    code, err = stderr_of(tmp_path / "cut.avi")
+    assert code == 0 and err.count("\n") == 1 and err.startswith("warning: "), err
+    assert "truncated?" in err
+
+
 def test_truncated_avi_measures_what_is_there_and_warns(tmp_path, good_video):
     data = good_video.path.read_bytes()
     cut = tmp_path / "cut.avi"
