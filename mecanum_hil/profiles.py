@@ -24,6 +24,7 @@ Commands not named in a segment keep their value. Profile files (TOML)::
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +32,9 @@ import numpy as np
 
 from .errors import ConfigError
 from .io.toml_config import TableReader, load_toml
+
+#: The most samples a profile is sampled into (an hour at 10 kHz is 3.6e7) [-].
+MAX_SAMPLES = 1e8
 
 _KINDS = ("step", "ramp", "hold")
 _FIELDS = ("n_rpm", "omega_dps", "theta_deg")
@@ -113,9 +117,13 @@ class CommandProfile:
 
     def sample(self, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
         """Sample times and commands at ``rate_hz``, from 0 to the profile's end inclusive."""
-        if not rate_hz > 0:
-            raise ConfigError(f"sample rate must be > 0 Hz, got {rate_hz}")
-        n = int(np.floor(self.duration_s * rate_hz + 1e-9))
+        if not (rate_hz > 0 and math.isfinite(rate_hz)):
+            raise ConfigError(f"sample rate must be a finite number > 0 Hz, got {rate_hz}")
+        samples = self.duration_s * rate_hz
+        if not samples <= MAX_SAMPLES:
+            raise ConfigError(f"{self.name}: {self.duration_s:g} s at {rate_hz:g} Hz would be "
+                              f"{samples:.3g} samples (at most {MAX_SAMPLES:.0e}): lower the rate")
+        n = int(np.floor(samples + 1e-9))
         t = np.arange(n + 1) / float(rate_hz)
         return t, self.command_at(t)
 

@@ -37,6 +37,7 @@ def command(
     """
     import json
 
+    from ..errors import ConfigError
     from ..identify.diagnose import CANDIDATES, diagnose
     from ..identify.diagnose.reference import reference_comparison
     from ..io.timing import read_for_analysis
@@ -53,6 +54,8 @@ def command(
         names = [str(p) for p in recordings]
     pool = CANDIDATES if candidates is None else tuple(
         c.strip() for c in candidates.split(",") if c.strip())
+    if not pool:
+        raise ConfigError(f"--candidates names no effect; the library: {', '.join(CANDIDATES)}")
     echo = None if json_out else typer.echo
     diag = diagnose(recs, cal, rob, names=names, candidates=pool, echo=echo)
     if out is not None:

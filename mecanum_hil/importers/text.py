@@ -272,12 +272,19 @@ class TextMap:
     residual_tolerance_rpm: float | None
 
 
+#: The largest ``time.start_s`` a map may give [s] (Unix time is about 1.8e9 s; at 1e10 s a
+#: double still resolves about 2 us).
+MAX_START_S = 1e10
+
+
 def _number(table: dict, key: str, where: str, *, positive: bool = True) -> float | None:
     v = table.get(key)
     if v is None:
         return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or (positive and not v > 0):
-        raise ConfigError(f"{where}: '{key}' must be a {'positive ' if positive else ''}number")
+    if (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+            or (positive and not v > 0)):
+        raise ConfigError(f"{where}: '{key}' must be a finite {'positive ' if positive else ''}"
+                          "number")
     return float(v)
 
 
@@ -346,7 +353,11 @@ def load_map(path: str | Path) -> TextMap:
     robot = ct.get("robot")
     if robot is not None and not isinstance(robot, str):
         raise ConfigError(f"{cw}: 'robot' must be a profile name or file")
-    return TextMap(tables["file"], time_col, period, float(tt.get("start_s", 0.0)),
+    start = _number(tt, "start_s", f"{where}: [time]", positive=False) or 0.0
+    if abs(start) > MAX_START_S:
+        raise ConfigError(f"{where}: [time] 'start_s' = {start:g} s: beyond {MAX_START_S:g} s "
+                          "a time stamp loses its microseconds")
+    return TextMap(tables["file"], time_col, period, start,
                    _number(tt, "resolution", f"{where}: [time]"),
                    _number(tt, "wrap", f"{where}: [time]"),
                    _number(tt, "max_gap_s", f"{where}: [time]"), wheels, mode, commands,

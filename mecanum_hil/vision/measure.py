@@ -70,6 +70,12 @@ PARTIAL_AREA = 0.93
 PARTIAL_REF_FRAMES = 121
 
 
+#: Bounds of the options that size the work: a speed window beyond a minute and a frame rate
+#: beyond any high-speed camera are typing errors (they ran for minutes or overflowed).
+MAX_WINDOW_S = 60.0
+MAX_FPS = 100_000.0
+
+
 @dataclass(frozen=True)
 class MeasureOptions:
     """How to measure.
@@ -118,8 +124,12 @@ class MeasureOptions:
             raise VideoError("give each wheel at most one --roi")
         if not 0.0 <= self.min_found <= 1.0:
             raise VideoError(f"--min-found must be within 0..1, got {self.min_found}")
-        if not self.window_s > 0:
-            raise VideoError(f"--window must be > 0 s, got {self.window_s}")
+        if not 0 < self.window_s <= MAX_WINDOW_S:
+            raise VideoError(f"--window must be > 0 s and at most {MAX_WINDOW_S:g} s, got "
+                             f"{self.window_s}")
+        if self.fps is not None and not 0 < self.fps <= MAX_FPS:
+            raise VideoError(f"--fps must be > 0 and at most {MAX_FPS:g} frames per second, got "
+                             f"{self.fps}")
         if self.expected_rpm is not None:
             lo, hi = self.expected_rpm
             if math.isnan(lo) or math.isnan(hi) or not lo < hi:

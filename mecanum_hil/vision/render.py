@@ -418,10 +418,16 @@ class _Scene:
 def frame_schedule(rec: Recording, settings: RenderSettings) -> tuple[np.ndarray, np.ndarray]:
     """Video times and recording times of the frames to render [s]."""
     t0 = float(rec.t_s[0]) + settings.camera_start_s
-    end = float(rec.t_s[-1]) if settings.duration_s is None else t0 + settings.duration_s
+    last = float(rec.t_s[-1])
+    if settings.duration_s is not None and not settings.duration_s > 0:
+        raise VideoError(f"--duration must be > 0 s, got {settings.duration_s:g}")
+    if not t0 < last:
+        raise VideoError(f"nothing to render: the recording ends at {last - rec.t_s[0]:.3f} s, "
+                         f"before the camera starts (--start {settings.camera_start_s:g} s)")
+    end = last if settings.duration_s is None else t0 + settings.duration_s
     n = math.floor((end - t0) * settings.fps + 1e-9) + 1
     if n < 2:
-        raise VideoError("nothing to render: the recording ends before the camera starts")
+        raise VideoError("nothing to render: less than two frames between --start and the end")
     tv = np.arange(n) / settings.fps
     return tv, t0 + tv
 

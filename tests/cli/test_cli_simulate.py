@@ -49,6 +49,10 @@ def test_simulate_profile_then_commands_of_a_recording(tmp_path):
          "missing.csv: file not found"),
         (["simulate", "--profile", "paper-step-60", "--calibration", "bad.toml", "--out", "x.csv"],
          "bad.toml: key 'motor.C' must be > 0"),
+        (["simulate", "--profile", "paper-step-60", "--rate", "inf", "--out", "x.csv"],
+         "sample rate must be a finite number > 0 Hz"),
+        (["simulate", "--profile", "paper-step-60", "--rate", "1e9", "--out", "x.csv"],
+         "would be 5e+09 samples"),
     ],
 )
 def test_errors_are_one_line_and_non_zero(tmp_path, args, fragment):

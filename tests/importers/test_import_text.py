@@ -223,6 +223,10 @@ def test_wheel_setpoints_off_the_image_warn_or_fail_with_the_residual(tmp_path):
          "file.skip_lines must be a whole number >= 0"),
         ("1 2\n", "[file]\nheader = \"yes\"\n[time]\nperiod_s = 0.001\n",
          "file.header must be true, false or 'auto'"),
+        ("1 2\n", "[time]\nperiod_s = 0.001\nstart_s = nan\n",
+         "'start_s' must be a finite number"),
+        ("1 2\n", "[time]\nperiod_s = 0.001\nstart_s = 1e300\n",
+         "a time stamp loses its microseconds"),
     ],
 )
 def test_malformed_logs_and_maps_are_one_clear_error(tmp_path, log, map_text, fragment):

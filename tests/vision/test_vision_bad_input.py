@@ -293,3 +293,27 @@ def test_a_marker_really_lost_fails_in_one_line_at_the_lower_default(tmp_path, r
     line = one_error_line(err)
     assert code == 1 and "marker found in only" in line and "need 30%" in line
     assert not out.exists()
+
+
+@pytest.mark.parametrize(("option", "value", "fragment"), [
+    ("--fps", "inf", "--fps must be > 0 and at most 100000"),
+    ("--fps", "1e9", "--fps must be > 0 and at most 100000"),
+    ("--window", "1e6", "--window must be > 0 s and at most 60 s"),
+])
+def test_options_that_size_the_work_are_bounded_before_decoding(tmp_path, capsys, good_video,
+                                                                 option, value, fragment):
+    # they overflowed or ran for minutes; checked before a frame is decoded
+    code, _, err = run_cli(["measure-video", str(good_video.path), "--out",
+                            str(tmp_path / "o.csv"), option, value], capsys)
+    assert code == 1 and fragment in one_error_line(err)
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_render_video_refuses_a_camera_that_starts_after_the_recording(tmp_path, capsys, paper):
+    rec_path = write_recording(paper("paper-step-60"), tmp_path / "r.csv")
+    for extra, fragment in ((["--start", "100", "--duration", "1"], "before the camera starts"),
+                            (["--duration", "-1"], "--duration must be > 0 s")):
+        code, _, err = run_cli(["render-video", "--recording", str(rec_path), "--out",
+                                str(tmp_path / "v.mp4"), *extra], capsys)
+        assert code == 1 and fragment in one_error_line(err)
+        assert not (tmp_path / "v.mp4").exists()
