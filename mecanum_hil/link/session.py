@@ -606,13 +606,21 @@ class _Session:
         return now
 
     def stop(self, keep_receiving_s: float) -> None:
-        """Send STOP (best effort, never raises) and record it, then keep the tail."""
+        """Send STOP (best effort) and record it, then keep the tail.
+
+        A Ctrl-C or SIGTERM while STOP is being sent (a link slow to take it) does not skip
+        the STOP: it is sent again, recorded, and the interrupt is raised after that (it used
+        to be swallowed, and the run went on: the next episode of ``record --policy``). Other
+        failures to send are not raised (best effort)."""
         sent = None
-        for _ in range(2):
+        interrupt: BaseException | None = None
+        for _ in range(3):
             try:
                 sent = self.tr.send(Stop())
                 break
-            except BaseException:  # best effort; a second Ctrl-C must not skip the STOP
+            except (KeyboardInterrupt, SessionTerminated) as err:
+                interrupt = interrupt or err
+            except Exception:
                 continue
         if self.t0 is not None:
             now = time.perf_counter()
@@ -623,10 +631,12 @@ class _Session:
                 self.writer.write(t_row, self.cmd_in_force,
                                   extra=("stop", "" if sent is None else sent.seq, "", ""))
                 self.pump.push_command(t_row, self.cmd_in_force.copy())
-                if keep_receiving_s > 0 and sent is not None:
+                if keep_receiving_s > 0 and sent is not None and interrupt is None:
                     self.pump_until(now + keep_receiving_s)
             except Exception:  # the tail is a courtesy; the recording is already complete
                 pass
+        if interrupt is not None:
+            raise interrupt
 
 
 class _ObserverStopError(Exception):

@@ -20,6 +20,7 @@ from mecanum_hil.envs import DodgeTask, ReachTask
 from mecanum_hil.io.recording import read_recording
 from mecanum_hil.link.policy_session import run_policy_episodes, run_policy_lockstep
 from mecanum_hil.link.serial_link import SerialTransport
+from mecanum_hil.link.session import EXIT_CODES, SessionTerminated
 from mecanum_hil.link.sim_process import SINGLE_THREAD_ENV, spawn_sim_robot
 from mecanum_hil.model import Calibration, load_robot_profile
 from mecanum_hil.policy import ScriptedPolicy, episode_draw, evaluate
@@ -146,6 +147,44 @@ def test_an_exception_in_the_loop_stops_the_robot(tmp_path):
     assert _stops(log) == 1 and len(run.results) == 1
     rec = read_recording(tmp_path / "run" / "episode_000.csv")
     assert rec.extra["event"].count("cmd") == 9 and "stop" in rec.extra["event"]
+
+
+@pytest.mark.parametrize("interrupt", [KeyboardInterrupt, SessionTerminated])
+def test_ctrl_c_while_stop_is_being_sent_still_ends_the_run(tmp_path, interrupt):
+    """A Ctrl-C (or SIGTERM) that lands while STOP is being sent at an episode's end (a link
+    slow to take it, as on a loaded machine) was swallowed by the STOP's retry: the run went on
+    with the next episode (CI saw it run 30 s past the signal). Now the STOP is sent again and
+    recorded, then the interrupt ends the run."""
+    from mecanum_hil.link.protocol import Stop
+
+    with spawn_sim_robot("--serial") as sim:
+        link = SerialTransport.from_options(port=sim.path)
+        send = link.send
+        hits = []
+
+        def interrupted_once(msg):
+            if isinstance(msg, Stop) and not hits:
+                hits.append(1)
+                raise interrupt()
+            return send(msg)
+
+        link.send = interrupted_once
+        try:
+            run = run_policy_episodes(link, ScriptedPolicy(ROBOT, ReachTask()), ROBOT,
+                                      Calibration(), episodes=3, seed=0,
+                                      out_dir=tmp_path / "run")
+        finally:
+            link.close()
+        time.sleep(0.1)
+        log = sim.log()
+    assert hits and len(run.results) == 1
+    # while an episode settles, a Ctrl-C or SIGTERM ends the run as interrupted (docs/link.md)
+    assert run.exit_code == EXIT_CODES["interrupted"] == 130
+    assert run.results[0].reason == "interrupted"
+    assert _stops(log) >= 1  # the STOP was sent after all
+    rec = read_recording(tmp_path / "run" / "episode_000.csv")
+    assert "stop" in rec.extra["event"]
+    assert not (tmp_path / "run" / "episode_001.csv").exists()
 
 
 def test_closed_loop_in_simulated_time_equals_the_simulation():
