@@ -829,7 +829,11 @@ def _start_metadata(transport: Transport, robot: RobotProfile,
 
 
 def _end_on_hangup(config: SessionConfig) -> tuple | None:
-    """Make SIGTERM and SIGHUP end the stream; return the handlers to put back, if any."""
+    """Make SIGTERM and SIGHUP end the stream, and SIGINT raise ``KeyboardInterrupt`` even
+    where the process was started with it ignored (Python then installs no handler: a parent
+    that ignores SIGINT, such as a background job of a script, or a test runner's worker, left
+    Ctrl-C and ``kill -INT`` without effect while the robot drove on); return the handlers to
+    put back, if any."""
     if not (config.handle_sigterm and threading.current_thread() is threading.main_thread()):
         return None
 
@@ -838,13 +842,15 @@ def _end_on_hangup(config: SessionConfig) -> tuple | None:
     old_term = signal.signal(signal.SIGTERM, _on_sigterm)
     # a closed terminal or dropped SSH session (SIGHUP) ends the run the same way
     old_hup = signal.signal(signal.SIGHUP, _on_sigterm)
-    return old_term, old_hup
+    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+    return old_term, old_hup, old_int
 
 
 def _restore_handlers(saved: tuple | None) -> None:
     if saved is not None:
         signal.signal(signal.SIGTERM, saved[0])
         signal.signal(signal.SIGHUP, saved[1])
+        signal.signal(signal.SIGINT, saved[2])
 
 
 def _stream_until_end(sess: _Session, config: SessionConfig

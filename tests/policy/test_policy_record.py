@@ -69,7 +69,11 @@ def _run_cli_in_subprocess(sim_path, out, episodes: int):
         [sys.executable, "-m", "mecanum_hil", "record", "--port", sim_path, "--policy",
          "scripted", "--task", "reach", "--episodes", str(episodes), "--out", str(out),
          "--no-progress"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, **SINGLE_THREAD_ENV})
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, **SINGLE_THREAD_ENV},
+        # started with SIGINT ignored, as a background job of a script is (and as a test
+        # runner's worker left it in CI): Python then installs no handler, and Ctrl-C did
+        # nothing while the robot drove on; record installs its own
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
 
 
 def _wait_for_rows(path, rows=30, timeout_s=60.0):
