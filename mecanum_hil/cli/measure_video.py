@@ -92,18 +92,16 @@ def command(
 def _refuse_overwriting_inputs(video: Path, recording: Path | None, out: Path,
                                merged: Path | None) -> None:
     from ..errors import VideoError
+    from ._options import refuse_overwriting
 
-    targets = [out]
+    merged_path = None
     if recording is not None:
-        targets.append(merged or out.with_name(out.stem + ".merged.csv"))
-        if targets[1].resolve() == out.resolve():
+        merged_path = merged or out.with_name(out.stem + ".merged.csv")
+        if merged_path.resolve() == out.resolve():
             raise VideoError(f"{out}: --merged and --out name the same file")
-    for target in targets:
-        for given, what in ((recording, "the recording given with --recording"),
-                            (video, "the video being measured")):
-            if given is not None and target.resolve() == given.resolve():
-                raise VideoError(f"{target}: would overwrite {what}; write the measurement "
-                                 "to another file")
+    refuse_overwriting([(recording, "the recording given with --recording"),
+                        (video, "the video being measured")],
+                       [(out, "--out"), (merged_path, "--merged")])
 
 
 def _measure_with_progress(video: Path, opts, err_console):

@@ -125,13 +125,11 @@ def command(
 
 
 def _check_truth_overwrites_nothing(truth: Path, out: Path, recording: Path) -> None:
-    from ..errors import VideoError
+    from ._options import refuse_overwriting
 
     source = None if str(recording).startswith("scenario:") else Path(recording)
-    for given, what in ((out, "the video (--out)"),
-                        (source, "the recording given with --recording")):
-        if given is not None and Path(truth).resolve() == given.resolve():
-            raise VideoError(f"{truth}: --truth would overwrite {what}")
+    refuse_overwriting([(out, "the video (--out)"),
+                        (source, "the recording given with --recording")], [(truth, "--truth")])
 
 
 def _with_progress_bar(render):

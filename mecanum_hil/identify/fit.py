@@ -587,14 +587,14 @@ def _data_start_values(data: Sequence[_Prepared]) -> dict[str, float]:
     """Starting values of effect parameters whose "absent" value cannot start a search."""
     measured = np.concatenate([p.wheel_rpm[p.wheel_mask] for p in data])
     peak = float(np.max(np.abs(measured)))
+    from .regimes import measured_differences
+
     slopes = []
     for p in data:
-        for i in range(4):
-            # between consecutive measurements of the wheel (a recorded run's command rows,
-            # without one, are skipped)
-            ok = np.flatnonzero(p.wheel_mask[:, i])
-            d = np.abs(np.diff(p.wheel_rpm[ok, i])) / np.diff(p.t_s[ok])
-            slopes.append(d[np.isfinite(d)])
+        # between consecutive measurements of each wheel (a recorded run's command rows,
+        # without one, are skipped)
+        d = np.abs(measured_differences(p.wheel_rpm, p.t_s))
+        slopes.append(d[np.isfinite(d)])
     slope = float(np.percentile(np.concatenate(slopes), 95)) if any(s.size for s in slopes) else 1.0
     return {"top_speed_rpm": max(1.25 * peak, 1.0), "rate_limit_rpm_per_s": max(slope, 1.0)}
 

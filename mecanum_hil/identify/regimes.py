@@ -96,13 +96,18 @@ def _sd_from_differences(d: np.ndarray) -> float:
     return max(mad, trimmed) / float(np.sqrt(2.0))
 
 
-def measured_differences(residual: np.ndarray) -> np.ndarray:
+def measured_differences(values: np.ndarray, t_s: np.ndarray | None = None) -> np.ndarray:
     """First differences of each column over its own measured (finite) samples, concatenated:
     rows where a column is not measured (a recorded run's command rows, a camera's missing
-    frames) are skipped, not counted as breaks."""
-    r = np.asarray(residual, dtype=float)
+    frames) are skipped, not counted as breaks. With the sample times ``t_s`` [s], the
+    differences are divided by the time between those samples (slopes, per second)."""
+    r = np.asarray(values, dtype=float)
     r = r.reshape(r.shape[0], -1)
-    parts = [np.diff(r[np.isfinite(r[:, c]), c]) for c in range(r.shape[1])]
+    parts = []
+    for c in range(r.shape[1]):
+        ok = np.isfinite(r[:, c])
+        d = np.diff(r[ok, c])
+        parts.append(d if t_s is None else d / np.diff(np.asarray(t_s, dtype=float)[ok]))
     return np.concatenate(parts) if parts else np.empty(0)
 
 

@@ -18,6 +18,7 @@ from ..fit import (
     parameter_value,
     with_parameters,
 )
+from ..regimes import measured_differences
 from .heldout import in_sample_ms
 from .localise import _Evaluator
 
@@ -68,16 +69,9 @@ def _smoothed(w: np.ndarray) -> np.ndarray:
 def _steepest_rpm_per_s(t: np.ndarray, w: np.ndarray) -> float:
     """The largest absolute slope of the smoothed wheel speeds between consecutive measured
     samples [rpm/s] (0 without two)."""
-    sm = _smoothed(w)
-    best = 0.0
-    for i in range(w.shape[1]):
-        ok = np.flatnonzero(np.isfinite(sm[:, i]))
-        if ok.size >= 2:
-            d = np.abs(np.diff(sm[ok, i])) / np.diff(t[ok])
-            d = d[np.isfinite(d)]
-            if d.size:
-                best = max(best, float(d.max()))
-    return best
+    d = np.abs(measured_differences(_smoothed(w), t))
+    d = d[np.isfinite(d)]
+    return float(d.max()) if d.size else 0.0
 
 
 def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
@@ -87,8 +81,9 @@ def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
     for r in ev.recs:
         tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
         w, t = r.wheel_rpm, r.t_s
-        if math.isfinite(r.measured_period_s):
-            dts.append(r.measured_period_s)
+        period = r.measured_period_s
+        if math.isfinite(period):
+            dts.append(period)
         big = max(20.0 * noise_rpm, 5.0)
         for i in range(4):
             if not np.isfinite(w[:, i]).any():

@@ -289,6 +289,11 @@ class ResidualShape:
         return text
 
 
+#: A uniform grid laid over samples (the reference model's, the residual's spectrum) may hold
+#: at most this many points per measured sample: more means pauses of minutes between samples.
+MAX_GRID_PER_SAMPLE = 20
+
+
 def residual_shape(recordings: Sequence[Recording], residuals: Sequence[np.ndarray],
                    robot: RobotProfile) -> ResidualShape:
     """:class:`ResidualShape` of wheel residual arrays (T, 4), one per recording."""
@@ -299,6 +304,7 @@ def residual_shape(recordings: Sequence[Recording], residuals: Sequence[np.ndarr
                                robot.k)
         t = rec.t_s
         phase = np.full((len(rec), 4), "steady", dtype=object)
+        period = rec.measured_period_s
         for w in range(4):
             y = rec.wheel_rpm[:, w]
             if not np.isfinite(y).any():
@@ -313,7 +319,7 @@ def residual_shape(recordings: Sequence[Recording], residuals: Sequence[np.ndarr
                 sgn = np.sign(tg[j, w] - before)
                 after = np.flatnonzero((np.arange(len(rec)) >= j) & (sgn * (y - half) >= 0))
                 t50 = t[after[0]] if after.size else t[j] + 0.1
-                rise = max(t50 - t[j], rec.measured_period_s)
+                rise = max(t50 - t[j], period)
                 dt = t - t[j]
                 sel = dt >= 0
                 phase[sel & (dt < 1.0), w] = "settling"
@@ -330,7 +336,7 @@ def residual_shape(recordings: Sequence[Recording], residuals: Sequence[np.ndarr
         if good.sum() < 32:
             continue
         dt = float(np.median(np.diff(t[good])))
-        if not dt > 0 or (t[good][-1] - t[good][0]) / dt > 20 * good.sum():
+        if not dt > 0 or (t[good][-1] - t[good][0]) / dt > MAX_GRID_PER_SAMPLE * good.sum():
             continue  # long pauses between samples: no spectrum on a grid mostly empty
         tu = np.arange(t[good][0], t[good][-1], dt)
         ru = np.interp(tu, t[good], rr[good])

@@ -35,6 +35,7 @@ from ..._jit import Kernel, njit
 from ...io.recording import Recording
 from ...model.kinematics import command_to_wheels
 from ...model.robot import RobotProfile
+from .localise import MAX_GRID_PER_SAMPLE
 
 #: Orders of the output-error model: past outputs and input taps.
 NA = 4
@@ -196,10 +197,6 @@ def _max_delay(series) -> int:
         if dep.size:
             lat = max(lat, int(dep[0]))
     return int(np.clip(2 * lat, MIN_MAX_DELAY, MAX_MAX_DELAY))
-
-
-#: The reference model's uniform grid may hold at most this many points per measured sample.
-MAX_GRID_PER_SAMPLE = 20
 
 
 def fit_reference(recordings: Sequence[Recording], robot: RobotProfile) -> ReferenceFit | None:
