@@ -104,7 +104,7 @@ def _with_robot(source: Path, fmt: str, robot: str | None, options: dict) -> str
     from ..errors import ConfigError
     from ..importers import detect_format, format_module
 
-    name = detect_format(source) if fmt == "auto" else fmt
+    name = detect_format(source, options.get("map_path")) if fmt == "auto" else fmt
     if "wheel_radius_m" in inspect.signature(format_module(name).read).parameters:
         from ..model import load_robot_profile
 

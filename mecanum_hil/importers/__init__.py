@@ -7,7 +7,8 @@ needed (a format's own libraries are imported inside its functions). A format mo
     The format's name (the key in :data:`FORMATS`).
 ``sniff(path: Path, head: bytes) -> bool``
     Whether the file is of this format, judged by its content (``head`` is the file's first
-    :data:`HEAD_BYTES` bytes) and, where that helps, its name.
+    :data:`HEAD_BYTES` bytes) and, where that helps, its name. A text format's ``sniff`` may
+    also take ``encoding`` (the map's ``file.encoding``, given to ``auto`` detection).
 ``read(path: Path, **options) -> ImportResult``
     The recording; keyword options only (``map_path``, ``cmd_topic``, ``dbc_path`` ...). The
     result's notes are also the sidecar's ``notes`` (:func:`import_source` puts them there
@@ -25,8 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
+
 from ..errors import ConfigError, RecordingError
-from ..io.recording import Recording
+from ..io.recording import Recording, refuse_absurd_values
 
 #: Format name -> module path; one line per format, added by whoever writes the module.
 FORMATS: dict[str, str] = {
@@ -76,8 +79,16 @@ def _head(path: Path) -> bytes:
         raise RecordingError(f"{path}: cannot read: {err.strerror or err}") from err
 
 
-def detect_format(path: str | Path) -> str:
+def detect_format(path: str | Path, map_path: str | Path | None = None) -> str:
     """The format of a file, asked of every format's ``sniff``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The log.
+    map_path : str or Path, optional
+        The user's map: the text encoding it states (``[file] encoding``) is given to formats
+        whose ``sniff`` reads text.
 
     Raises
     ------
@@ -88,6 +99,7 @@ def detect_format(path: str | Path) -> str:
     if not p.exists():
         raise RecordingError(f"{p}: file not found")
     head = _head(p)
+    encoding = _map_encoding(map_path)
     specific: list[str] = []
     generic: list[str] = []
     for name in FORMATS:
@@ -95,7 +107,9 @@ def detect_format(path: str | Path) -> str:
             mod = format_module(name)
         except ImportError:  # a format whose module needs a missing extra cannot claim files
             continue
-        if mod.sniff(p, head):
+        kw = ({"encoding": encoding} if encoding is not None
+              and "encoding" in inspect.signature(mod.sniff).parameters else {})
+        if mod.sniff(p, head, **kw):
             (generic if getattr(mod, "GENERIC", False) else specific).append(name)
     found = specific or generic
     if not found:
@@ -127,7 +141,7 @@ def import_source(path: str | Path, fmt: str = "auto", **options) -> ImportResul
         Keyword options of the format's ``read``; one it does not take is refused.
     """
     p = Path(path)
-    name = detect_format(p) if fmt == "auto" else fmt
+    name = detect_format(p, options.get("map_path")) if fmt == "auto" else fmt
     mod = format_module(name)
     params = inspect.signature(mod.read).parameters
     takes = [k for k, v in params.items()
@@ -138,10 +152,28 @@ def import_source(path: str | Path, fmt: str = "auto", **options) -> ImportResul
             raise ConfigError(f"format '{name}' does not take {_flag(key)} (it takes: {known})")
     if not p.exists():
         raise RecordingError(f"{p}: file not found")
-    res = mod.read(p, **options)
+    with np.errstate(over="ignore"):  # a unit conversion overflowing: refused just below
+        res = mod.read(p, **options)
+    rec = res.recording
+    refuse_absurd_values(np.column_stack([rec.t_s, rec.commands, rec.wheel_rpm, rec.pose]),
+                         lambda i: f"{p}: imported row {i + 1} (t = {rec.t_s[i]:.6g} s)")
     if "notes" not in res.recording.metadata:  # a format that keeps them only in the result
         res = with_notes(res)
     return res
+
+
+def _map_encoding(map_path) -> str | None:
+    """The ``[file] encoding`` a map states, for detection (``None`` without one; a map that
+    cannot be read is reported by the format that reads it)."""
+    if map_path is None:
+        return None
+    from ..io.toml_config import load_toml
+
+    try:
+        enc = load_toml(map_path).get("file", {}).get("encoding")
+    except (ConfigError, AttributeError):
+        return None
+    return enc if isinstance(enc, str) else None
 
 
 def with_notes(res: ImportResult, *notes: str) -> ImportResult:

@@ -184,9 +184,13 @@ def detect_layout(lines: list[str], *, delimiter: str | None = "auto", header: A
     return Layout(delim, names, n_columns, data_line, comments)
 
 
-def sniff(path: Path, head: bytes) -> bool:
-    """Whether the file is numeric text: some line, not a comment, of numbers only."""
-    text = _decode(head)
+def sniff(path: Path, head: bytes, encoding: str = "utf-8-sig") -> bool:
+    """Whether the file is numeric text (in ``encoding``, the map's ``file.encoding``): some
+    line, not a comment, of numbers only."""
+    try:
+        text = _decode(head, encoding)
+    except LookupError:
+        return False
     if text is None or "\x00" in text:
         return False
     lines = text.splitlines()
@@ -483,6 +487,41 @@ def _parse_block(raw: bytes, layout: Layout, encoding: str) -> np.ndarray:
     return table
 
 
+def ascii_compatible(encoding: str) -> bool:
+    """Whether numbers, delimiters, comment marks and newlines are the same bytes in
+    ``encoding`` as in ASCII (UTF-8, Latin-1, cp1252 ...; not UTF-16 or UTF-32), so that the
+    file can be parsed as bytes."""
+    probe = "0123456789+-.eEnaNA,;|\t \r\n#%"
+    try:
+        return probe.encode(encoding) == probe.encode("ascii")
+    except (UnicodeError, LookupError):
+        return False
+
+
+def _byte_blocks(path: Path, data_line: int, utf8: bool):
+    """The file's data lines as raw byte blocks of about :data:`CHUNK_BYTES`."""
+    with path.open("rb") as fh:
+        for _ in range(data_line):
+            fh.readline()
+        first = data_line == 0
+        while block := fh.read(CHUNK_BYTES):
+            if first and utf8:
+                block = block.removeprefix(b"\xef\xbb\xbf")
+            first = False
+            yield block
+
+
+def _transcoded_blocks(path: Path, data_line: int, encoding: str):
+    """The file's data lines decoded from ``encoding`` and encoded as UTF-8, in blocks: a
+    text in an encoding whose bytes are not ASCII's (UTF-16 from a Windows logger) is parsed
+    as UTF-8, streamed as the byte path is."""
+    with path.open(encoding=encoding, newline="") as fh:
+        for _ in range(data_line):
+            fh.readline()
+        while text := fh.read(CHUNK_BYTES // 4):
+            yield text.removeprefix("\ufeff").encode("utf-8")
+
+
 def read_table(path: Path, layout: Layout, usecols: list[int],
                encoding: str = "utf-8-sig") -> tuple[np.ndarray, str]:
     """The used columns of every data row, shape ``(T, len(usecols))``; empty fields are NaN.
@@ -491,29 +530,25 @@ def read_table(path: Path, layout: Layout, usecols: list[int],
     mid-row (:func:`_is_cut`) is dropped and returned (else "") for the caller's note.
     """
     utf8 = encoding.lower().replace("_", "-") in ("utf-8-sig", "utf-8", "utf8")
+    as_bytes = ascii_compatible(encoding)
     # numpy decodes UTF-8 itself; the -sig codec would go line by line through Python
-    enc = "utf-8" if utf8 else encoding
+    enc = "utf-8" if utf8 or not as_bytes else encoding
     parts: list[np.ndarray] = []
     cut = ""
     try:
-        with path.open("rb") as fh:
-            for _ in range(layout.data_line):
-                fh.readline()
-            pending = b""
-            first = layout.data_line == 0
-            while block := fh.read(CHUNK_BYTES):
-                if first and utf8:
-                    block = block.removeprefix(b"\xef\xbb\xbf")
-                first = False
-                data = pending + block
-                end = data.rfind(b"\n") + 1
-                data, pending = data[:end], data[end:]
-                if data:
-                    parts.append(_parse_block(data, layout, enc)[:, usecols])
-            if pending and _is_cut(pending, layout, enc):
-                cut = pending.decode(enc, "replace").strip()
-            elif pending:
-                parts.append(_parse_block(pending, layout, enc)[:, usecols])
+        blocks = (_byte_blocks(path, layout.data_line, utf8) if as_bytes
+                  else _transcoded_blocks(path, layout.data_line, encoding))
+        pending = b""
+        for block in blocks:
+            data = pending + block
+            end = data.rfind(b"\n") + 1
+            data, pending = data[:end], data[end:]
+            if data:
+                parts.append(_parse_block(data, layout, enc)[:, usecols])
+        if pending and _is_cut(pending, layout, enc):
+            cut = pending.decode(enc, "replace").strip()
+        elif pending:
+            parts.append(_parse_block(pending, layout, enc)[:, usecols])
     except OSError as err:
         raise RecordingError(f"{path}: cannot read: {err.strerror or err}") from err
     except UnicodeDecodeError as err:  # before ValueError, its base class

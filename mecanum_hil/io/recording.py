@@ -36,6 +36,12 @@ COMMAND_COLUMNS = COLUMNS[1:4]
 WHEEL_COLUMNS = COLUMNS[4:8]
 POSE_COLUMNS = COLUMNS[8:11]
 
+#: The largest magnitude a value of each column may have: far beyond any robot (a million rpm,
+#: deg/s or m; 1e10 s of time, as an import map's start; a heading unwrapped over a million
+#: turns), but where sums of squares stay finite. A value beyond it is a corrupt field, not a
+#: measurement, and the reader refuses it naming the line (it would overflow every fit).
+MAX_ABS_VALUE = dict.fromkeys(COLUMNS, 1e6) | {"t_s": 1e10, "phi_deg": 1e9}
+
 
 class TimeRepairWarning(MecanumHILWarning):
     """Logged time was repaired on reading (repeated stamps, jitter, a wrapping counter)."""
@@ -133,6 +139,8 @@ def _parse_float(text: str, where: str) -> float:
     if s == "":
         return math.nan
     try:
+        if "_" in s:  # Python's float() reads "1_0" as 10; no logger writes that
+            raise ValueError
         value = float(s)
     except ValueError:
         raise RecordingError(f"{where}: not a number: {text!r}") from None
@@ -178,7 +186,7 @@ def _numeric_body(text: str) -> np.ndarray | None:
     body = text.partition("\n")[2]
     if not body or "\n\n" in body or '"' in body or "\r" in body:
         return None
-    if any(c in body for c in "nNiI"):  # nan, inf, infinity (or any other word)
+    if any(c in body for c in "nNiI_"):  # nan, inf, infinity (or any other word); 1_000
         return None
     if body.startswith(",") or "\n," in body:
         return None  # a missing time
@@ -237,8 +245,9 @@ def read_recording(path: str | Path) -> Recording:
                 f"{p}, line 1, column {i + 1}: expected '{name}', found '{header[i]}' "
                 f"(the first columns must be: {', '.join(COLUMNS)})")
     extra_names = header[len(COLUMNS):]
-    if len(set(extra_names)) != len(extra_names) or set(extra_names) & set(COLUMNS):
-        raise RecordingError(f"{p}, line 1: duplicate column names")
+    twice = sorted({n for n in extra_names if extra_names.count(n) > 1 or n in COLUMNS})
+    if twice:
+        raise RecordingError(f"{p}, line 1: duplicate column name(s): {', '.join(twice)}")
     values: list[list[float]] = []
     extra: list[list[str]] = [[] for _ in extra_names]
     lines: list[int] = []
@@ -266,6 +275,7 @@ def read_recording(path: str | Path) -> Recording:
     except csv.Error as err:
         raise RecordingError(f"{p}, line {line}: {err}") from err
     arr = np.array(values, dtype=float).reshape(-1, len(COLUMNS))
+    refuse_absurd_values(arr, lambda i: f"{p}, line {lines[i]}")
     metadata: dict[str, Any] = {}
     side = sidecar_path(p)
     if side.exists():
@@ -285,6 +295,19 @@ def read_recording(path: str | Path) -> Recording:
                      arr[:, 8:11].copy(), dict(zip(extra_names, extra, strict=True)), metadata)
 
 
+def refuse_absurd_values(arr: np.ndarray, row_name) -> None:
+    """A :class:`RecordingError` naming the first value of ``arr`` (rows of :data:`COLUMNS`)
+    that is infinite or beyond :data:`MAX_ABS_VALUE`; ``row_name(i)`` names row ``i``."""
+    limits = np.array([MAX_ABS_VALUE[c] for c in COLUMNS])
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(arr) > limits
+    if bad.any():
+        i, j = (int(v[0]) for v in np.nonzero(bad))
+        raise RecordingError(
+            f"{row_name(i)}, column '{COLUMNS[j]}': {arr[i, j]:g} is not a value a robot logs "
+            f"(beyond {limits[j]:g}): a corrupt field? (leave a missing value empty)")
+
+
 def _repaired_time(t: np.ndarray, metadata: Mapping[str, Any], row_name, source: str,
                    text: str):
     """``(t, None)`` when ``t`` is strictly increasing, else ``(repaired t, summary)``.
@@ -296,8 +319,13 @@ def _repaired_time(t: np.ndarray, metadata: Mapping[str, Any], row_name, source:
     """
     limit = None
     prior = metadata.get("time_repair")
-    if isinstance(prior, Mapping) and isinstance(prior.get("max_gap_s"), (int, float)):
-        limit = float(prior["max_gap_s"])
+    if isinstance(prior, Mapping) and prior.get("max_gap_s") is not None:
+        value = prior["max_gap_s"]
+        if (isinstance(value, bool) or not isinstance(value, (int, float))
+                or not math.isfinite(value) or value <= 0):
+            raise RecordingError(f"{sidecar_path(source)}: time_repair.max_gap_s must be a "
+                                 f"positive number of seconds (or null), got {value!r}")
+        limit = float(value)
     increasing = t.size < 2 or bool(np.all(np.diff(t) > 0))
     if increasing and limit is None:
         return t, None

@@ -90,6 +90,16 @@ class TableReader:
             raise self.fail(key, f"must be <= {maximum:g}, got {value:g}")
         return value
 
+    def whole_number(self, key: str, default: int | None = None, *,
+                     minimum: float | None = None, maximum: float | None = None) -> int:
+        """A whole number within bounds (``1.5`` refused; ``2.0`` read as 2); ``default`` when
+        absent (error when no default)."""
+        value = self.number(key, None if default is None else float(default), minimum=minimum,
+                            maximum=maximum)
+        if value != int(value):
+            raise self.fail(key, f"must be a whole number, got {value:g}")
+        return int(value)
+
     def numbers(self, key: str, length: int, *, minimum: float | None = None) -> tuple[float, ...]:
         """A list of exactly ``length`` finite numbers."""
         if key not in self.table:

@@ -158,7 +158,7 @@ def load_sim_effects(path: str | Path) -> SimEffects:
     if noise is not None:
         noise.reject_unknown({"wheel_rpm_std", "seed"})
         std = noise.number("wheel_rpm_std", 0.0, minimum=0.0)
-        seed = int(noise.number("seed", 0.0, minimum=0.0))
+        seed = noise.whole_number("seed", 0, minimum=0, maximum=2 ** 63 - 1)
     faults = []
     raw = doc.table.get("faults", [])
     if not isinstance(raw, list):

@@ -245,15 +245,25 @@ def exchange_drive_lag(calibration: Calibration) -> Calibration | None:
     return replace(twin, effects=replace(fx, drive_lag_s=1.0 / B))
 
 
+#: The largest A, B [1/s] and C [1/s^2] a model may have: a time constant of a picosecond, far
+#: beyond any drive, but where the discretised model's products stay finite (C = 1e300
+#: overflowed into a simulation of empty values).
+MAX_COEFFICIENT = 1e12
+
+
 def check_coefficients(A: float, B: float, C: float, source: str = "<coefficients>") -> None:
     """Refuse coefficients of an unstable or unphysical wheel model.
 
     The characteristic polynomial ``s^2 + (A + B) s + C`` is stable iff ``A + B > 0`` and
-    ``C > 0``; ``A = K Kp`` and ``B`` are also non-negative for a real PI drive.
+    ``C > 0``; ``A = K Kp`` and ``B`` are also non-negative for a real PI drive; none may
+    exceed :data:`MAX_COEFFICIENT`.
     """
     for name, value in (("A", A), ("B", B), ("C", C)):
         if not math.isfinite(value):
             raise ConfigError(f"{source}: key 'motor.{name}' must be finite, got {value!r}")
+        if value > MAX_COEFFICIENT:
+            raise ConfigError(f"{source}: key 'motor.{name}' must be at most "
+                              f"{MAX_COEFFICIENT:g} (no drive is that fast), got {value:g}")
     if A < 0:
         raise ConfigError(f"{source}: key 'motor.A' must be >= 0, got {A:g}")
     if B < 0:

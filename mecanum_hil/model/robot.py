@@ -97,6 +97,7 @@ def load_robot_profile(name_or_path: str | Path = DEFAULT_ROBOT) -> RobotProfile
     """
     path = resolve("drivers", name_or_path)
     doc = TableReader(load_toml(path), str(path))
+    doc.reject_unknown({"robot", "limits"})
     robot = doc.sub("robot")
     robot.reject_unknown(
         {"name", "description", "wheel_radius_m", "lx_plus_ly_m", "body_length_m",

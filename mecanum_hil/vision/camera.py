@@ -206,12 +206,10 @@ def load_camera(path: str | Path) -> CameraModel:
     assert cam is not None
     cam.reject_unknown({"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px",
                         "distortion", "rms_px", "source", "views"})
-    w = cam.number("width_px", minimum=16)
-    h = cam.number("height_px", minimum=16)
-    if w != int(w) or h != int(h):
-        raise cam.fail("width_px", "and height_px must be whole numbers")
+    w = cam.whole_number("width_px", minimum=16)
+    h = cam.whole_number("height_px", minimum=16)
     rms = cam.number("rms_px", math.nan) if "rms_px" in cam.table else None
-    return CameraModel(int(w), int(h), cam.number("fx_px", minimum=0, strict_minimum=True),
+    return CameraModel(w, h, cam.number("fx_px", minimum=0, strict_minimum=True),
                        cam.number("fy_px", minimum=0, strict_minimum=True),
                        cam.number("cx_px"), cam.number("cy_px"),
                        cam.numbers("distortion", 5), rms)  # type: ignore[arg-type]

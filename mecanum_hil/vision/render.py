@@ -45,7 +45,8 @@ class RenderSettings:
         Recording time of the first frame, after the recording's first sample [s]; the video
         clock starts at 0 there (the offset ``measure-video --recording`` must find).
     duration_s : float or None
-        Video length [s]; default: until the recording ends.
+        Video length [s]; default: until the recording ends. Past the recording's end the
+        wheels keep its last speeds (the truth beside the video says so, sample by sample).
     marker_hues_deg : tuple of float
         Hue of each wheel's marker [deg] (OpenCV hue x 2), cycled.
     mirror : bool

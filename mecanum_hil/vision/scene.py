@@ -155,19 +155,15 @@ def load_scene(path: str | Path) -> Scene:
     for i, tab in enumerate(floor_list):
         r = TableReader(tab, str(p), f"floor[{i}]")
         r.reject_unknown({"id", "x_m", "y_m", "size_m", "yaw_deg"})
-        mid = r.number("id", minimum=0)
-        if mid != int(mid):
-            raise r.fail("id", "must be a whole number")
-        floor.append(FloorMarker(int(mid), r.number("x_m"), r.number("y_m"),
+        mid = r.whole_number("id", minimum=0)
+        floor.append(FloorMarker(mid, r.number("x_m"), r.number("y_m"),
                                  r.number("size_m", minimum=0, strict_minimum=True),
                                  r.number("yaw_deg", 0.0)))
     rob = root.sub("robot")
     assert rob is not None
     rob.reject_unknown({"marker_id", "size_m", "height_m", "forward_m", "left_m", "yaw_deg"})
-    rid = rob.number("marker_id", minimum=0)
-    if rid != int(rid):
-        raise rob.fail("marker_id", "must be a whole number")
-    robot = RobotMarker(int(rid), rob.number("size_m", minimum=0, strict_minimum=True),
+    rid = rob.whole_number("marker_id", minimum=0)
+    robot = RobotMarker(rid, rob.number("size_m", minimum=0, strict_minimum=True),
                         rob.number("height_m", minimum=0), rob.number("forward_m", 0.0),
                         rob.number("left_m", 0.0), rob.number("yaw_deg", -90.0))
     ids = [m.id for m in floor] + [robot.marker_id]

@@ -391,3 +391,36 @@ def test_a_units_row_under_the_header_row_is_part_of_the_header(tmp_path):
     rec = import_source(log, "text", map_path=write_map(tmp_path, NAMED_MS_MAP)).recording
     np.testing.assert_allclose(rec.t_s, [0.0, 0.002])
     np.testing.assert_allclose(rec.wheel_rpm[:, 0], np.array([2.0, 2.5]) / RPM_TO_RAD_S)
+
+
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-32", "latin-1", "cp1252"])
+def test_a_log_in_the_encoding_its_map_states_is_read_and_detected(tmp_path, encoding):
+    # UTF-16 and UTF-32 (a Windows logger's "Unicode" text) are not ASCII's bytes: they are
+    # transcoded while streamed; Latin-1 and cp1252 are parsed as bytes. A header with a
+    # character outside ASCII (the degree sign) and a comment line; auto detection reads the
+    # head in the map's encoding too.
+    rows = [f"{0.002 * i:.3f};{20.0 * (1 - math.exp(-i / 5)):.3f};100" for i in range(300)]
+    text = "% speed in rpm, angle in \u00b0\nt;v\u00b0;cmd\n" + "\r\n".join(rows) + "\r\n"
+    p = tmp_path / "log.txt"
+    p.write_bytes(text.encode(encoding))
+    m = write_map(tmp_path, f"[file]\nencoding = \"{encoding}\"\n[time]\ncolumn = \"t\"\n"
+                  "unit = \"s\"\n[wheels]\nwheel1 = { column = \"v\u00b0\", unit = \"rpm\" }\n"
+                  "[commands]\nsetpoint = { column = \"cmd\", unit = \"rpm\" }\n")
+    for fmt in ("text", "auto"):
+        rec = import_source(p, fmt, map_path=m).recording
+        assert len(rec) == 300
+        np.testing.assert_allclose(rec.t_s, 0.002 * np.arange(300), atol=1e-9)
+        np.testing.assert_allclose(rec.wheel_rpm[:, 0],
+                                   [float(r.split(";")[1]) for r in rows])
+        assert (rec.commands[:, 0] == 100).all()
+    assert detect_format(p, m) == "text"
+
+
+def test_a_value_overflowing_its_unit_conversion_is_refused_not_written(tmp_path):
+    p = tmp_path / "log.txt"
+    p.write_text("t,w\n0,1\n0.001,1e308\n0.002,3\n")
+    m = write_map(tmp_path, "[time]\ncolumn = \"t\"\n[wheels]\n"
+                  "wheel1 = { column = \"w\", unit = \"rad/s\" }\n")
+    with pytest.raises(RecordingError, match=r"imported row 2 \(t = 0.001 s\), column "
+                       r"'wheel1_rpm': inf is not a value a robot logs"):
+        import_source(p, "text", map_path=m)

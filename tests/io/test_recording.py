@@ -55,6 +55,18 @@ def test_a_sidecar_not_in_utf8_is_one_error_and_one_with_a_bom_is_read(tmp_path)
         read_recording(p)
 
 
+@pytest.mark.parametrize("value", ['"abc"', "-1", "0", "true", "[1]"])
+def test_a_sidecar_gap_limit_that_is_not_seconds_is_one_error_not_ignored(tmp_path, value):
+    p = tmp_path / "r.csv"
+    p.write_text(HEADER + "\n0,1,2,3,,,,,,,\n0.001,1,2,3,,,,,,,\n")
+    (tmp_path / "r.json").write_text('{"time_repair": {"max_gap_s": ' + value + "}}")
+    with pytest.raises(RecordingError, match=r"r.json: time_repair.max_gap_s must be a positive "
+                       r"number of seconds \(or null\), got"):
+        read_recording(p)
+    (tmp_path / "r.json").write_text('{"time_repair": {"max_gap_s": null}}')
+    assert len(read_recording(p)) == 2
+
+
 def test_recording_without_sidecar_is_valid(tmp_path):
     p = tmp_path / "r.csv"
     p.write_text(HEADER + "\n0,1,2,3,,,,,,,\n")
@@ -78,6 +90,17 @@ def test_recording_without_sidecar_is_valid(tmp_path):
         (HEADER + "\n,1,2,3,,,,,,,\n", "time is missing"),
         (HEADER + "\n0,1,2,3,nan,,,,,,\n", "not a finite number"),
         ("", "empty file"),
+        # Python's float() reads 1_0 as 10; on either reader path it is not a number
+        (HEADER + "\n0,1,2,3,1_0,,,,,,\n", "line 2, column 'wheel1_rpm': not a number: '1_0'"),
+        (HEADER + ",v\n0,1,2,3,1_0,,,,,,,x\n", "not a number: '1_0'"),
+        # a value no robot logs overflows every fit's sum of squares: refused, line named
+        (HEADER + "\n0,1,2,3,,,,,,,\n0.1,1,2,3,1e308,,,,,,\n",
+         "line 3, column 'wheel1_rpm': 1e+308 is not a value a robot logs"),
+        (HEADER + "\n0,1e300,2,3,,,,,,,\n", "column 'n_cmd_rpm': 1e+300 is not a value"),
+        (HEADER + ",v\n0,1,2,3,,,,,,,-2e9,x\n", "column 'phi_deg': -2e+09 is not a value"),
+        (HEADER + "\n1e300,1,2,3,,,,,,,\n", "column 't_s': 1e+300 is not a value"),
+        (HEADER + ",a,b,a\n", "duplicate column name(s): a"),
+        (HEADER + ",x_m\n", "duplicate column name(s): x_m"),
     ],
 )
 def test_malformed_input_names_file_line_and_column(tmp_path, text, fragment):

@@ -123,6 +123,7 @@ def test_noise_has_the_configured_spread_and_is_repeatable(tmp_path):
     ("[effects.dead_tim]\ndead_time_s = 1\n", "dead_tim"),
     ("[effects.wheel_gain]\ngains = [1, 1]\n", "gains"),
     ("[noise]\nwheel_rpm_std = -1\n", "wheel_rpm_std"),
+    ("[noise]\nseed = 1.5\n", "key 'noise.seed' must be a whole number, got 1.5"),
     ("[[faults]]\nat_s = 1.0\n", "changes nothing"),
     ("[[faults]]\nat_s = 1.0\nestop = 1\n", "estop"),
     ("[colour]\nx = 1\n", "colour"),

@@ -59,6 +59,9 @@ def test_calibration_round_trip_with_effects(tmp_path):
         ("[motor]\nA = 1\nB = 2\nC = 3\n[effects.friction]\nx = 1\n",
          "key 'effects.friction' is not a known key"),
         ("[motor\n", "not valid TOML"),
+        # a coefficient whose discretised model overflows (C = 1e300 simulated empty values)
+        ("[motor]\nA = 1\nB = 2\nC = 1e300\n", "key 'motor.C' must be at most 1e+12"),
+        ("[motor]\nA = 1e13\nB = 2\nC = 3\n", "key 'motor.A' must be at most 1e+12"),
     ],
 )
 def test_bad_calibration_names_file_and_key(tmp_path, text, fragment):
@@ -84,6 +87,15 @@ def test_bad_robot_profile_names_file_and_key(tmp_path, repo):
     p = tmp_path / "robot.toml"
     p.write_text(text)
     with pytest.raises(ConfigError, match=r"robot.toml: key 'robot.wheel_radius_m' must be > 0"):
+        load_robot_profile(p)
+
+
+def test_a_robot_profile_with_an_unknown_table_is_refused(tmp_path, repo):
+    # an extra table ([motor] pasted from a calibration) is a mistake to say, not to ignore
+    p = tmp_path / "robot.toml"
+    p.write_text((repo / "drivers" / "tdam-stm.toml").read_text() + "\n[motor]\nA = 1\n")
+    with pytest.raises(ConfigError, match=r"robot.toml: key 'motor' is not a known key "
+                       r"\(known: limits, robot\)"):
         load_robot_profile(p)
 
 
