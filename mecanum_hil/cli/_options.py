@@ -96,3 +96,23 @@ def shipped_or_file(name: str | None) -> Path | None:
     if name is None or not name.lower().endswith(".toml"):
         return None
     return Path(name)
+
+
+def echo_safely(text: str) -> None:
+    """Print ``text`` on stdout where it may be closed (``record ... | head``): a closed
+    stdout must not end a run that drives the robot, nor change its exit code (click would
+    exit 1, silently). What cannot be printed is dropped, and stdout points at the null
+    device from then on (no second error at exit)."""
+    import os
+    import sys
+
+    try:
+        typer.echo(text)
+        sys.stdout.flush()
+    except (BrokenPipeError, ValueError):  # a closed pipe; a closed stream
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+        except (OSError, ValueError):
+            pass

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import typer
 
+from ._options import echo_safely
+
 
 def record_policy(*, out: Path, transport: str, port, interface, channel, bitrate, link_option,
                   robot: str, policy: str, task: str | None, episodes: int, seed: int,
@@ -58,16 +60,16 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
 
         def make_observers(csv: Path):
             return [LiveShadow(shadow_cal, rob, ShadowConfig(), event_log_path(csv),
-                               stop_on_divergence=on_divergence == "stop", echo=typer.echo,
+                               stop_on_divergence=on_divergence == "stop", echo=echo_safely,
                                header={"mode": "record --policy", "recording": str(csv),
                                        "on_divergence": on_divergence})]
 
         def close_observers(observers):
             for obs in observers:
                 closed.append(obs.close())
-                typer.echo(closed[-1])
+                echo_safely(closed[-1])
 
-    echo = None if json_out else typer.echo
+    echo = None if json_out else echo_safely
     link = open_transport(transport, options)
     try:
         config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
@@ -83,9 +85,9 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
         link.close()
     s = run.summary
     if json_out:
-        typer.echo(json.dumps(s))
+        echo_safely(json.dumps(s))
     else:
-        typer.echo(f"{s['end_reason']} (exit {s['exit_code']}): {s['episodes']} of {episodes} "
+        echo_safely(f"{s['end_reason']} (exit {s['exit_code']}): {s['episodes']} of {episodes} "
                    f"episodes, success {100 * s['success_rate']:.1f} %, mean return "
                    f"{s['mean_return']:+.3f}; wrote {Path(out) / 'summary.json'}")
     if run.exit_code == 0:

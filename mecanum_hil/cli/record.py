@@ -23,6 +23,7 @@ from ._options import (
     PortOpt,
     RobotOpt,
     TransportOpt,
+    echo_safely,
 )
 
 
@@ -96,7 +97,7 @@ def command(
                                 bitrate=bitrate, link_options=link_option)
     where = port or f"{interface}:{channel}"
     if dry_run:
-        typer.echo(dry_run_report(t, cmd, rob, transport, where))
+        echo_safely(dry_run_report(t, cmd, rob, transport, where))
         return
 
     observers, shadow_obs, live_view = _observers(shadow, on_divergence, foxglove, rob, t, cmd,
@@ -118,10 +119,10 @@ def command(
     finally:
         link.close()
         if shadow_obs is not None:
-            typer.echo(shadow_obs.close())
+            echo_safely(shadow_obs.close())
         if live_view is not None:
             live_view.live.close()
-    typer.echo(format_summary(result))
+    echo_safely(format_summary(result))
     if result.exit_code == 0:
         return
     if result.error is not None and result.reason in ("error", "link_lost"):
@@ -159,14 +160,14 @@ def _observers(shadow, on_divergence, foxglove, rob, t, cmd, out):
     if shadow is not None:
         from ..monitor.live import record_shadow
 
-        shadow_obs = record_shadow(shadow, rob, t, cmd, out, on_divergence, echo=typer.echo)
+        shadow_obs = record_shadow(shadow, rob, t, cmd, out, on_divergence, echo=echo_safely)
         observers.append(shadow_obs)
     live_view = None
     if foxglove is not None:
         from ..monitor.foxglove import start_live_view
 
         # after the shadow observer: it publishes the prediction of the sample just seen
-        live_view = start_live_view(foxglove, shadow_obs, echo=typer.echo)
+        live_view = start_live_view(foxglove, shadow_obs, echo=echo_safely)
         observers.append(live_view)
     return observers, shadow_obs, live_view
 

@@ -529,7 +529,10 @@ class RecordingWriter:
                                  f"{len(self.extra_columns)} extra columns")
         self._last_t = t_s
         extra_text = [format_value(v) if isinstance(v, float) else str(v) for v in extra]
-        self._csv.writerow(_row(t_s, [*commands, *wheel_rpm, *pose], extra_text))
+        try:
+            self._csv.writerow(_row(t_s, [*commands, *wheel_rpm, *pose], extra_text))
+        except OSError as err:  # a full buffer written to a full disk
+            raise self._write_error(err) from err
         self.rows += 1
         self.tick()
 
@@ -540,24 +543,55 @@ class RecordingWriter:
             self.flush()
             self._last_flush = now
 
+    def _write_error(self, err: OSError) -> RecordingError:
+        return RecordingError(f"{self.path}: cannot write: {err.strerror or err}")
+
     def flush(self) -> None:
-        """Push written rows to the operating system (and to disk with ``fsync``)."""
+        """Push written rows to the operating system (and to disk with ``fsync``).
+
+        Raises
+        ------
+        RecordingError
+            When they cannot be written (a full disk, a removed folder).
+        """
         if self._fh.closed:
             return
-        self._fh.flush()
-        if self.fsync:
-            os.fsync(self._fh.fileno())
+        try:
+            self._fh.flush()
+            if self.fsync:
+                os.fsync(self._fh.fileno())
+        except OSError as err:
+            raise self._write_error(err) from err
 
     def close(self, metadata_updates: Mapping[str, Any] | None = None) -> None:
-        """Flush, close, and rewrite the sidecar with ``metadata_updates`` merged in."""
+        """Flush, close, and rewrite the sidecar with ``metadata_updates`` merged in.
+
+        Whatever fails, the file is closed and the sidecar written (with ``write_error``
+        when the last rows could not be); then the first failure is raised as a
+        :class:`RecordingError`. Rows flushed before stay readable.
+        """
         if self._fh.closed:
             return
-        self.flush()
-        self._fh.close()
+        failure: RecordingError | None = None
+        try:
+            self.flush()
+        except RecordingError as err:
+            failure = err
+        try:
+            self._fh.close()
+        except OSError as err:  # the buffer's last rows, again
+            failure = failure or self._write_error(err)
         if metadata_updates:
             self.metadata.update(metadata_updates)
+        if failure is not None:
+            self.metadata["write_error"] = str(failure)
         if self.metadata:
-            write_metadata(self.path, self.metadata)
+            try:
+                write_metadata(self.path, self.metadata)
+            except RecordingError as err:
+                failure = failure or err
+        if failure is not None:
+            raise failure
 
     def __enter__(self) -> RecordingWriter:
         return self

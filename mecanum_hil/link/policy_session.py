@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -43,13 +44,17 @@ from ..model import Calibration, RobotProfile, wheels_to_twist
 from ..units import DPS_TO_RPM, RPM_TO_RAD_S
 from .protocol import PROTOCOL_VERSION, Telemetry
 from .session import (
+    EXIT_CODES,
     EXTRA_COLUMNS,
     RecordResult,
     SessionConfig,
+    SessionTerminated,
+    SignalGuard,
     _ObserverStopError,
     _Session,
     _start_metadata,
     _stream_stop_close,
+    signal_reason,
 )
 from .transport import Transport
 
@@ -374,29 +379,43 @@ def run_policy_episodes(transport: Transport, policy, robot: RobotProfile,
     config = config or SessionConfig()
     results, outcomes = [], []
     exit_code, reason = 0, "completed"
-    for i in range(episodes):
-        ctl = EpisodeController(policy, robot, calibration, episode_draw(policy.task, seed, i))
-        out = out_dir / f"episode_{i:03d}.csv"
-        observers = list(make_observers(out)) if make_observers else []
-        meta = {**(metadata or {}), "episode": i, "seed": seed,
-                "task": task_name(policy.task), "command_rate_hz": 1.0 / ctl.period_s}
-        prog = None if progress is None else (
-            lambda el, tot, counts, i=i: progress(i, el, tot, counts))
-        try:
-            res = run_policy_episode(transport, ctl, out, robot, config=config,
-                                     observers=observers, metadata=meta, progress=prog)
-        finally:
-            if close_observers is not None:
-                close_observers(observers)
-        results.append(res)
-        outcomes.append(ctl.outcome)
-        if echo is not None:
-            o = ctl.outcome
-            echo(f"episode {i}: {o.ended} after {o.end_time_s:.2f} s, return "
-                 f"{o.episode_return:+.3f} ({res.reason}, {out.name})")
-        if res.exit_code != 0:
-            exit_code, reason = res.exit_code, res.reason
-            break
+    # between episodes too: a signal ends the run with its summary (it used to kill the
+    # process with none); inside an episode the episode's own guard ends it with STOP
+    guard = SignalGuard(config.handle_sigterm)
+    try:
+        for i in range(episodes):
+            ctl = EpisodeController(policy, robot, calibration, episode_draw(policy.task, seed, i))
+            out = out_dir / f"episode_{i:03d}.csv"
+            observers = list(make_observers(out)) if make_observers else []
+            meta = {**(metadata or {}), "episode": i, "seed": seed,
+                    "task": task_name(policy.task), "command_rate_hz": 1.0 / ctl.period_s}
+            prog = None if progress is None else (
+                lambda el, tot, counts, i=i: progress(i, el, tot, counts))
+            try:
+                res = run_policy_episode(transport, ctl, out, robot, config=config,
+                                         observers=observers, metadata=meta, progress=prog)
+            finally:
+                if close_observers is not None:
+                    close_observers(observers)
+            results.append(res)
+            outcomes.append(ctl.outcome)
+            if echo is not None:
+                o = ctl.outcome
+                echo(f"episode {i}: {o.ended} after {o.end_time_s:.2f} s, return "
+                     f"{o.episode_return:+.3f} ({res.reason}, {out.name})")
+            if res.exit_code != 0:
+                exit_code, reason = res.exit_code, res.reason
+                break
+            if res.signal_at_end is not None:  # the episode ended whole; no further one
+                reason = "interrupted" if res.signal_at_end == signal.SIGINT else "terminated"
+                exit_code = EXIT_CODES[reason]
+                break
+    except (KeyboardInterrupt, SessionTerminated) as exc:  # between episodes: STOP is out
+        reason = signal_reason(exc)
+        exit_code = EXIT_CODES[reason]
+    finally:
+        guard.defer()
+        guard.restore()
     summary = summary_of(policy, robot, outcomes, {
         "seed": seed, "episodes_requested": episodes, "end_reason": reason,
         "exit_code": exit_code, "policy": policy.describe(),

@@ -33,6 +33,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -181,6 +182,10 @@ class RecordResult:
         Telemetry samples observers did not see because they lagged.
     controller : str
         Name the controller gave in HELLO_ACK.
+    signal_at_end : int or None
+        A signal that came while STOP was being sent and the recording closed: kept, not
+        raised, so that neither was cut short (``record --policy`` then runs no further
+        episode).
     """
 
     reason: str
@@ -196,6 +201,7 @@ class RecordResult:
     observer_dropped: int = 0
     controller: str = ""
     error: BaseException | None = field(default=None, compare=False, repr=False)
+    signal_at_end: int | None = None
 
 
 class SessionTerminated(BaseException):
@@ -321,6 +327,8 @@ class _Session:
         self._other_frames = 0
         self.send_failures = 0
         self.controller = ""
+        #: Whether :meth:`stop` has been called (STOP sent or tried).
+        self.stop_attempted = False
         #: What happened on the link that did not end the run (the sidecar's ``link_events``).
         self.events: list[dict[str, Any]] = []
         self._tlm_seq: int | None = None
@@ -612,6 +620,7 @@ class _Session:
         the STOP: it is sent again, recorded, and the interrupt is raised after that (it used
         to be swallowed, and the run went on: the next episode of ``record --policy``). Other
         failures to send are not raised (best effort)."""
+        self.stop_attempted = True
         sent = None
         interrupt: BaseException | None = None
         for _ in range(3):
@@ -774,32 +783,49 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
         Keys added to the sidecar's end (called as the recording is closed).
     """
     reason, message, error = "completed", "", None
-    saved_handlers = _end_on_hangup(config)
+    guard = SignalGuard(config.handle_sigterm)
     try:
-        reason, message, error, tail = _stream_until_end(sess, config)
+        try:
+            reason, message, error, tail = _stream_until_end(sess, config)
+        except (KeyboardInterrupt, SessionTerminated) as exc:  # as the stream was ending
+            reason, tail = signal_reason(exc), 0.0
+        # from here a signal is kept, not raised: nothing may cut STOP or the close short
+        guard.defer()
         if reason != "completed" and cut_short is not None:
             cut_short(reason)
         # every way out: STOP first, then the recording is closed cleanly
         try:
             sess.stop(tail if settle is None else 0.0)
-            if settle is not None and reason == "completed" and sess.t0 is not None:
-                settle()
-        except (KeyboardInterrupt, SessionTerminated):
-            # during the tail, a courtesy: the run still completed; while settling, it did not
+        except (KeyboardInterrupt, SessionTerminated) as exc:
+            # raised after STOP went out, where no guard defers signals (not the main
+            # thread, handle_sigterm off): during the tail a courtesy, the run still
+            # completed; with episodes to come (settle) the run ends here
             if settle is not None:
-                reason = "interrupted"
+                reason = signal_reason(exc)
+            settle = None
+        if settle is not None and reason == "completed" and sess.t0 is not None:
+            try:
+                with guard.raising():  # waiting for rest may be cut short: STOP is out
+                    settle()
+            except (KeyboardInterrupt, SessionTerminated) as exc:
+                reason = signal_reason(exc)
                 sess.stop(0.0)
-        except LinkError as err:  # only settling receives on its own (STOP never raises)
-            reason, message, error = "link_lost", str(err), err
+            except LinkError as err:  # only settling receives on its own (STOP never raises)
+                reason, message, error = "link_lost", str(err), err
     finally:
-        _restore_handlers(saved_handlers)
+        guard.defer()
+        if not sess.stop_attempted:  # an exception (or a signal) before the STOP above
+            sess.stop(0.0)
         sess.pump.close()
         duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
         latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
         end_meta = _end_metadata(sess, transport, reason, message, latency)
         if end_extra is not None:
             end_meta.update(end_extra())
-        writer.close(end_meta)
+        try:
+            writer.close(end_meta)
+        finally:
+            guard.restore()
     if sess.pump.error is not None and reason == "error" and error is None:
         error = sess.pump.error
     exit_code = EXIT_CODES[reason]
@@ -807,7 +833,7 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
         exit_code = error.exit_code
     return RecordResult(reason, exit_code, Path(out), writer.rows, sess.commands_sent,
                         sess.telemetry, duration, transport.stats.as_dict(), latency, message,
-                        sess.pump.dropped, sess.controller, error)
+                        sess.pump.dropped, sess.controller, error, guard.pending)
 
 
 def _start_metadata(transport: Transport, robot: RobotProfile,
@@ -828,29 +854,84 @@ def _start_metadata(transport: Transport, robot: RobotProfile,
     }
 
 
-def _end_on_hangup(config: SessionConfig) -> tuple | None:
-    """Make SIGTERM and SIGHUP end the stream, and SIGINT raise ``KeyboardInterrupt`` even
-    where the process was started with it ignored (Python then installs no handler: a parent
-    that ignores SIGINT, such as a background job of a script, or a test runner's worker, left
-    Ctrl-C and ``kill -INT`` without effect while the robot drove on); return the handlers to
-    put back, if any."""
-    if not (config.handle_sigterm and threading.current_thread() is threading.main_thread()):
-        return None
+#: Signals that end a command stream, each of which would otherwise end the process with no
+#: STOP: SIGTERM (kill, a service manager), SIGHUP (a closed terminal or SSH session) and
+#: SIGINT (Ctrl-C) always; SIGQUIT (Ctrl-\) and the others that terminate by default where
+#: nothing else handles them. SIGKILL cannot be caught: the controller's watchdog stops then.
+ENDING_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM",
+                  "SIGXCPU", "SIGVTALRM", "SIGPROF")
 
-    def _on_sigterm(signum, frame):
+
+def signal_reason(exc: BaseException) -> str:
+    """The end reason of a signal's exception: ``interrupted`` for Ctrl-C, else
+    ``terminated``."""
+    return "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
+
+
+class SignalGuard:
+    """The stream's signal handlers, from its start until its recording is closed.
+
+    While raising (the stream runs), the first signal of :data:`ENDING_SIGNALS` ends it:
+    SIGINT raises ``KeyboardInterrupt`` (also where the process was started with SIGINT
+    ignored: Python then installs no handler, and Ctrl-C did nothing while the robot drove
+    on), the others :class:`SessionTerminated`. After that, and once :meth:`defer` is called
+    (STOP and the close), a signal is kept in :attr:`pending` and nothing is raised: a second
+    Ctrl-C used to land in the close and lose the sidecar's end. Installed only in the main
+    thread and when ``active``; guards nest (the inner restores the outer's handlers).
+
+    Parameters
+    ----------
+    active : bool
+        Install the handlers (``SessionConfig.handle_sigterm``).
+    """
+
+    def __init__(self, active: bool = True) -> None:
+        self.pending: int | None = None
+        self._raise = True
+        self._saved: dict[int, Any] = {}
+        if not (active and threading.current_thread() is threading.main_thread()):
+            return
+        for name in ENDING_SIGNALS:
+            sig = getattr(signal, name, None)
+            if sig is None:
+                continue
+            if name not in ("SIGTERM", "SIGHUP", "SIGINT") \
+                    and signal.getsignal(sig) is not signal.SIG_DFL:
+                continue  # someone else handles (or ignores) it
+            self._saved[sig] = signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum, frame) -> None:
+        if not self._raise:
+            self.pending = self.pending or signum
+            return
+        self._raise = False  # once: the way out that follows must not be cut short
+        self.pending = None
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
         raise SessionTerminated()
-    old_term = signal.signal(signal.SIGTERM, _on_sigterm)
-    # a closed terminal or dropped SSH session (SIGHUP) ends the run the same way
-    old_hup = signal.signal(signal.SIGHUP, _on_sigterm)
-    old_int = signal.signal(signal.SIGINT, signal.default_int_handler)
-    return old_term, old_hup, old_int
 
+    def defer(self) -> None:
+        """From now on keep a signal in :attr:`pending` instead of raising."""
+        self._raise = False
 
-def _restore_handlers(saved: tuple | None) -> None:
-    if saved is not None:
-        signal.signal(signal.SIGTERM, saved[0])
-        signal.signal(signal.SIGHUP, saved[1])
-        signal.signal(signal.SIGINT, saved[2])
+    @contextmanager
+    def raising(self):
+        """Raise again while inside (a wait after STOP that a signal may cut short); a signal
+        already pending is raised on entry."""
+        if self.pending is not None:
+            signum, self.pending = self.pending, None
+            raise KeyboardInterrupt if signum == signal.SIGINT else SessionTerminated()
+        self._raise = True
+        try:
+            yield
+        finally:
+            self._raise = False
+
+    def restore(self) -> None:
+        """Put back the handlers found at the start."""
+        for sig, handler in self._saved.items():
+            signal.signal(sig, handler)
+        self._saved.clear()
 
 
 def _stream_until_end(sess: _Session, config: SessionConfig

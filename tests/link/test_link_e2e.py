@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -176,6 +177,32 @@ def test_sigterm_stops_the_robot_and_closes_the_recording(tmp_path):
     rec = read_recording(out)
     assert rec.extra["event"][-1] == "stop"
     assert json.loads(out.with_suffix(".json").read_text())["end_reason"] == "terminated"
+
+
+def test_a_closed_stdout_neither_ends_the_run_nor_changes_its_exit_code(tmp_path):
+    """``record ... | head -c0``: the summary cannot be printed. Click exited 1 with no
+    message although the run completed (the sidecar said 0); now the run's own code."""
+    out = tmp_path / "run.csv"
+    profile = tmp_path / "short.toml"
+    profile.write_text('[profile]\nname = "short"\n[[segments]]\nkind = "step"\n'
+                       'duration_s = 0.3\nn_rpm = 20.0\n')
+    with spawn_sim_robot("--serial") as sim:
+        read_end, write_end = os.pipe()
+        os.close(read_end)  # nobody reads: every write is EPIPE
+        try:
+            proc = subprocess.run(
+                [sys.executable, "-m", "mecanum_hil", "record", "--port", sim.path,
+                 "--profile", str(profile), "--out", str(out), "--no-progress"],
+                stdout=write_end, stderr=subprocess.PIPE, timeout=60,
+                env={**SINGLE_THREAD_ENV, **_env()})
+        finally:
+            os.close(write_end)
+        time.sleep(0.1)
+        log = sim.log()
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == b""
+    assert "STOP received" in log
+    assert json.loads(out.with_suffix(".json").read_text())["exit_code"] == 0
 
 
 def _env():

@@ -184,6 +184,77 @@ def test_an_observer_error_and_ctrl_c_both_send_stop(pty_pair, scripted, host_se
     assert read_recording(tmp_path / "b.csv").extra["event"][-1] == "stop"
 
 
+def test_a_second_ctrl_c_during_the_close_is_kept_not_raised(pty_pair, scripted, host_serial,
+                                                              tmp_path, monkeypatch):
+    """Two real Ctrl-C: the first ends the stream, the second lands while the recording is
+    being closed. It used to raise there (the handlers were put back first) and lose the
+    sidecar's end; now it is kept (``signal_at_end``) and the close runs whole."""
+    import signal
+
+    from mecanum_hil.io.recording import RecordingWriter
+
+    close = RecordingWriter.close
+
+    def close_with_a_second_ctrl_c(self, metadata_updates=None):
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(1000):  # the handler runs between bytecodes: give it some
+            pass
+        return close(self, metadata_updates)
+
+    monkeypatch.setattr(RecordingWriter, "close", close_with_a_second_ctrl_c)
+    sent = []
+
+    def first_ctrl_c(elapsed, total, counts):
+        if elapsed > 0.2 and not sent:
+            sent.append(1)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    p = pty_pair()
+    ctrl = scripted(p.master, telemetry=100)
+    t, cmd = _stream(2.0)
+    res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
+                             config=FAST, progress=first_ctrl_c)
+    assert res.reason == "interrupted" and res.exit_code == 130
+    assert res.signal_at_end == signal.SIGINT
+    meta = json.loads((tmp_path / "r.json").read_text())
+    assert meta["end_reason"] == "interrupted" and "link_stats" in meta
+    time.sleep(0.05)
+    assert isinstance(ctrl.received[-1], proto.Stop)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+
+
+def test_a_recording_that_cannot_be_written_ends_with_stop_and_one_error(
+        pty_pair, scripted, host_serial, tmp_path, monkeypatch):
+    """A full disk mid-run: STOP goes out first, the file is closed, the sidecar says why
+    (``write_error``, ``end_reason`` error) and the error is a RecordingError (one line), not
+    an OSError from the close (exit 70, the sidecar's end lost)."""
+    import errno
+
+    from mecanum_hil.errors import RecordingError
+    from mecanum_hil.io.recording import RecordingWriter
+
+    flush = RecordingWriter.flush
+    full_after = time.monotonic() + 0.3
+
+    def flush_to_a_full_disk(self):
+        if time.monotonic() > full_after:
+            self._fh.flush = lambda: (_ for _ in ()).throw(
+                OSError(errno.ENOSPC, "No space left on device"))
+        return flush(self)
+
+    monkeypatch.setattr(RecordingWriter, "flush", flush_to_a_full_disk)
+    p = pty_pair()
+    ctrl = scripted(p.master, telemetry=100)
+    t, cmd = _stream(2.0)
+    with pytest.raises(RecordingError, match=r"r.csv: cannot write: No space left on device"):
+        run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT, config=FAST)
+    time.sleep(0.05)
+    assert isinstance(ctrl.received[-1], proto.Stop)
+    meta = json.loads((tmp_path / "r.json").read_text())
+    assert meta["end_reason"] == "error" and "No space left" in meta["write_error"]
+    assert len(read_recording(tmp_path / "r.csv")) > 10  # what was flushed before stays
+
+
 def test_limits_are_checked_before_the_first_byte(pty_pair, host_serial, tmp_path):
     p = pty_pair()
     link = host_serial(p.path)

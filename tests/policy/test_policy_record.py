@@ -86,7 +86,9 @@ def _wait_for_rows(path, rows=30, timeout_s=60.0):
 
 
 @pytest.mark.parametrize(("sig", "code", "reason"), [(signal.SIGINT, 130, "interrupted"),
-                                                     (signal.SIGTERM, 143, "terminated")])
+                                                     (signal.SIGTERM, 143, "terminated"),
+                                                     # Ctrl-\ killed the process, no STOP
+                                                     (signal.SIGQUIT, 143, "terminated")])
 def test_ctrl_c_and_sigterm_stop_the_robot(tmp_path, sig, code, reason):
     out = tmp_path / "run"
     with spawn_sim_robot("--serial") as sim:
@@ -109,6 +111,30 @@ def test_ctrl_c_and_sigterm_stop_the_robot(tmp_path, sig, code, reason):
     assert summary["end_reason"] == reason and summary["exit_code"] == code
     # the cut episode is not counted
     assert summary["episodes"] == int(cut.stem.split("_")[1])
+
+
+def test_a_signal_between_episodes_ends_the_run_with_its_summary(tmp_path):
+    """Between episodes (STOP sent, the next not begun) SIGTERM used to kill the process with
+    no summary.json; the run's guard now ends it there (the echo after an episode stands in
+    for the signal's moment)."""
+    from mecanum_hil.link.session import SessionTerminated
+
+    def echo(line):
+        raise SessionTerminated()
+
+    with spawn_sim_robot("--serial") as sim:
+        link = SerialTransport.from_options(port=sim.path)
+        try:
+            run = run_policy_episodes(link, ScriptedPolicy(ROBOT, ReachTask()), ROBOT,
+                                      Calibration(), episodes=3, seed=0,
+                                      out_dir=tmp_path / "run", echo=echo)
+        finally:
+            link.close()
+    assert run.exit_code == 143 and len(run.results) == 1
+    assert run.results[0].reason == "completed"
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["end_reason"] == "terminated" and summary["exit_code"] == 143
+    assert summary["recordings"] == ["episode_000.csv"]
 
 
 def test_a_lost_link_is_reported_and_keeps_the_recording(tmp_path, capsys):
@@ -182,9 +208,10 @@ def test_ctrl_c_while_stop_is_being_sent_still_ends_the_run(tmp_path, interrupt)
         time.sleep(0.1)
         log = sim.log()
     assert hits and len(run.results) == 1
-    # while an episode settles, a Ctrl-C or SIGTERM ends the run as interrupted (docs/link.md)
-    assert run.exit_code == EXIT_CODES["interrupted"] == 130
-    assert run.results[0].reason == "interrupted"
+    # a Ctrl-C (130) or SIGTERM (143) raised in STOP ends the run there (docs/link.md)
+    reason = "interrupted" if interrupt is KeyboardInterrupt else "terminated"
+    assert run.exit_code == EXIT_CODES[reason]
+    assert run.results[0].reason == reason and run.summary["end_reason"] == reason
     assert _stops(log) >= 1  # the STOP was sent after all
     rec = read_recording(tmp_path / "run" / "episode_000.csv")
     assert "stop" in rec.extra["event"]
