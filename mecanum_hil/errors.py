@@ -59,5 +59,13 @@ class DiagnoseError(MecanumHILError):
     """The model/measurement disagreement cannot be analysed from the data given."""
 
 
+class SessionTerminated(BaseException):
+    """A signal other than Ctrl-C (SIGTERM, SIGHUP, SIGQUIT ...) ends a command stream: raised
+    by its handler, like ``KeyboardInterrupt`` for Ctrl-C, so that it unwinds past ordinary
+    ``except Exception`` clauses to the code that sends STOP. The CLI ends with 143."""
+
+    exit_code = 143
+
+
 class MecanumHILWarning(UserWarning):
     """Something was done to the data that the user should know of (the CLI prints one line)."""

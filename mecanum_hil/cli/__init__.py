@@ -11,7 +11,7 @@ import warnings
 
 import typer
 
-from ..errors import MecanumHILError, MecanumHILWarning
+from ..errors import MecanumHILError, MecanumHILWarning, SessionTerminated
 from . import batch as batch_cmd
 from . import calibrate_camera as calibrate_camera_cmd
 from . import campaign, demo, measure_video, record, render_video, shadow, sim_robot, simulate
@@ -139,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
+    except SessionTerminated as err:
+        print("error: terminated by a signal", file=sys.stderr)
+        return err.exit_code
     except Exception as err:  # a bug: still one line, the traceback behind --debug
         if debug:
             raise

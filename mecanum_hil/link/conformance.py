@@ -48,6 +48,7 @@ from .protocol import (
     crc16,
     pack_frame,
 )
+from .session import SignalGuard
 from .transport import Transport
 
 #: How long an answer (HELLO_ACK, ERROR, PONG, an acknowledging sample) may take [s].
@@ -798,31 +799,10 @@ def select_rules(patterns: Sequence[str] = ()) -> list[str]:
     return out
 
 
-def run_conformance(transport: Transport, robot: RobotProfile, *,
-                    rules: Sequence[str] = (), estop_pressed: bool = False,
-                    progress: Callable[[RuleResult], None] | None = None
-                    ) -> ConformanceReport:
-    """Run the rules against the controller at the other end of ``transport``.
-
-    Parameters
-    ----------
-    transport : Transport
-        Open link (not closed here).
-    robot : RobotProfile
-        The robot's geometry (``k``).
-    rules : sequence of str
-        Names or prefixes to run (default: all).
-    estop_pressed : bool
-        The e-stop was pressed before the run.
-    progress : callable, optional
-        Called with each result as it comes.
-
-    Returns
-    -------
-    ConformanceReport
-    """
-    probe = Probe(transport, robot, estop_pressed)
-    results = []
+def _run_rules(probe: Probe, rules: Sequence[str], results: list,
+               progress: Callable[[RuleResult], None] | None) -> None:
+    """Run the rules in turn, each ended by STOP (also when a signal ends the run in it);
+    after a lost link the rest are skipped."""
     lost: str | None = None
     for name in select_rules(rules):
         check = RULES[name][0]
@@ -851,6 +831,41 @@ def run_conformance(transport: Transport, robot: RobotProfile, *,
         results.append(result)
         if progress is not None:
             progress(result)
+
+
+def run_conformance(transport: Transport, robot: RobotProfile, *,
+                    rules: Sequence[str] = (), estop_pressed: bool = False,
+                    progress: Callable[[RuleResult], None] | None = None
+                    ) -> ConformanceReport:
+    """Run the rules against the controller at the other end of ``transport``.
+
+    Parameters
+    ----------
+    transport : Transport
+        Open link (not closed here).
+    robot : RobotProfile
+        The robot's geometry (``k``).
+    rules : sequence of str
+        Names or prefixes to run (default: all).
+    estop_pressed : bool
+        The e-stop was pressed before the run.
+    progress : callable, optional
+        Called with each result as it comes.
+
+    Returns
+    -------
+    ConformanceReport
+    """
+    probe = Probe(transport, robot, estop_pressed)
+    results: list[RuleResult] = []
+    # a signal (SIGTERM, Ctrl-\ ...) unwinds through the rule's STOP below like Ctrl-C,
+    # instead of ending the process with the wheels turning
+    guard = SignalGuard()
+    try:
+        _run_rules(probe, rules, results, progress)
+    finally:
+        guard.defer()
+        guard.restore()
     ack = probe.ack
     announced = {} if ack is None else {
         "version": ack.version, "telemetry_rate_hz": ack.telemetry_rate_hz,

@@ -48,6 +48,7 @@ from ..errors import (
     LinkLostError,
     MecanumHILError,
     ProtocolError,
+    SessionTerminated,
 )
 from ..io.recording import RecordingWriter
 from ..model.kinematics import command_to_wheels
@@ -202,10 +203,6 @@ class RecordResult:
     controller: str = ""
     error: BaseException | None = field(default=None, compare=False, repr=False)
     signal_at_end: int | None = None
-
-
-class SessionTerminated(BaseException):
-    """Raised inside the session by its SIGTERM handler (like ``KeyboardInterrupt``)."""
 
 
 class TelemetryCheckError(LinkError):

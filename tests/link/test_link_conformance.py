@@ -147,6 +147,58 @@ def test_the_whole_suite_against_a_controller_without_range_check(pty_pair):
     assert report.failed == ["command.beyond_limit"], report.format()
 
 
+class Recorded(SimulatedController):
+    """The simulated controller, keeping every message it handled."""
+
+    def handle(self, msg):
+        self.received = getattr(self, "received", [])
+        self.received.append(msg)
+        super().handle(msg)
+
+
+def test_a_signal_in_a_moving_rule_still_ends_it_with_stop(pty_pair):
+    """SIGTERM (or Ctrl-\\) while a rule streams commands used to end the process with the
+    wheels turning (only Ctrl-C unwound through the rule's STOP); now every such signal does,
+    and the CLI ends with 143."""
+    import os
+    import signal
+
+    from mecanum_hil.errors import SessionTerminated
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers live in the main thread")
+    p = pty_pair()
+    ctrl = Recorded(SerialTransport(fd=p.master),
+                    ControllerModel(Calibration(), ROBOT, None, rate_hz=1000.0))
+    thread = threading.Thread(target=ctrl.serve, daemon=True)
+    thread.start()
+    try:
+        with SerialTransport(port=p.path) as host:
+            send, commands = host.send, []
+
+            def send_then_signal(msg):
+                out = send(msg)
+                if isinstance(msg, proto.Command):
+                    commands.append(msg)
+                    if len(commands) == 5:
+                        os.kill(os.getpid(), signal.SIGTERM)
+                return out
+
+            host.send = send_then_signal
+            with pytest.raises(SessionTerminated):
+                run_conformance(host, ROBOT, rules=["watchdog.fed"])
+            ctrl_seen = len(commands)
+    finally:
+        import time
+
+        time.sleep(0.1)
+        ctrl.stop_event.set()
+        thread.join(2)
+    assert ctrl_seen >= 5
+    assert isinstance(ctrl.received[-1], proto.Stop), ctrl.received[-3:]
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # put back
+
+
 def test_rule_selection_and_listing(capsys):
     assert select_rules(["watchdog"]) == [n for n in RULES if n.startswith("watchdog.")]
     assert select_rules(["ping"]) == ["ping"]
