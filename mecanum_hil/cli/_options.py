@@ -60,11 +60,13 @@ def refuse_overwriting(inputs, outputs) -> None:
 
     Parameters
     ----------
-    inputs : iterable of (Path or None, str)
-        Files read, with how the user gave them (``"the recording"``).
-    outputs : iterable of (Path or None, str)
-        Files to be written, with their option (``"--out"``). A CSV output also writes its
-        JSON sidecar, which must not be an input's either.
+    inputs : iterable of (Path or None, str) or (Path or None, str, bool)
+        Files read, with how the user gave them (``"the recording"``); a third item ``True``
+        marks a recording whatever its name (its JSON sidecar is read too).
+    outputs : iterable of (Path or None, str) or (Path or None, str, bool)
+        Files to be written, with their option (``"--out"``); a third item ``True`` marks a
+        recording whatever its name (``-o run.txt`` also writes ``run.json``). A CSV is
+        taken for a recording, with its sidecar, either way.
     """
     from ..errors import ConfigError
 
@@ -75,17 +77,21 @@ def refuse_overwriting(inputs, outputs) -> None:
         except OSError:
             return False
 
-    given = [(Path(p), what) for p, what in inputs if p is not None]
-    for out, option in outputs:
+    def with_sidecar(path: Path, recording: bool) -> list[Path]:
+        side = path.with_suffix(".json")
+        return [path] + ([side] if side != path and (recording or path.suffix.lower() == ".csv")
+                         else [])
+
+    given = [(Path(item[0]), item[1], len(item) > 2 and bool(item[2]))
+             for item in inputs if item[0] is not None]
+    for item in outputs:
+        out, option = item[0], item[1]
         if out is None:
             continue
         out = Path(out)
-        written = [out] + ([out.with_suffix(".json")] if out.suffix.lower() == ".csv" else [])
-        for target in written:
-            for path, what in given:
-                hits = [path] + ([path.with_suffix(".json")]
-                                 if path.suffix.lower() == ".csv" else [])
-                if any(same(target, h) for h in hits):
+        for target in with_sidecar(out, len(item) > 2 and bool(item[2])):
+            for path, what, recording in given:
+                if any(same(target, h) for h in with_sidecar(path, recording)):
                     raise ConfigError(f"{out}: {option} would overwrite {what} ({path}); "
                                       "write to another file")
 

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from ._options import JsonOpt
+from ._options import JsonOpt, refuse_overwriting
 
 
 def command(
@@ -27,6 +27,9 @@ def command(
     from ..vision.calibrate import calibrate, parse_board, read_views
     from ..vision.camera import save_camera
 
+    inputs = ([(f, "an image of the board") for f in sorted(source.iterdir()) if f.is_file()]
+              if source.is_dir() else [(source, "the board's video or image")])
+    refuse_overwriting(inputs, [(out, "--out")])
     spec = parse_board(board)
     views = read_views(source, max_views)
     result = calibrate(views, spec, str(source))

@@ -44,7 +44,7 @@ def command(
     from ..model import load_calibration, load_robot_profile, save_calibration
     from ._options import refuse_overwriting, shipped_or_file
 
-    refuse_overwriting([*((p, "a recording") for p in recordings),
+    refuse_overwriting([*((p, "a recording", True) for p in recordings),
                         (shipped_or_file(calibration), "the calibration")], [(out, "--out")])
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)

@@ -40,7 +40,7 @@ def command(
 
     if events is not None and no_events:
         raise ConfigError("give --events or --no-events, not both")
-    refuse_overwriting([(recording, "the recording"), (events, "the event log")],
+    refuse_overwriting([(recording, "the recording", True), (events, "the event log")],
                        [(out, "--out")])
     rec = read_recording(recording)
     predicted = None

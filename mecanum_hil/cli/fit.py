@@ -75,7 +75,7 @@ def command(
     if grid_options and method != "paper-grid":
         raise FitError("--a-grid, --b-grid, --c-grid and --b-start apply to --method paper-grid")
     png = None if no_report else (report or out.with_suffix(".png"))
-    refuse_overwriting([*((p, "a recording") for p in recordings),
+    refuse_overwriting([*((p, "a recording", True) for p in recordings),
                         (shipped_or_file(calibration), "the calibration")],
                        [(out, "--out"), (png, "--report")])
     rob = load_robot_profile(robot)

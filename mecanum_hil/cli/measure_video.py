@@ -99,9 +99,9 @@ def _refuse_overwriting_inputs(video: Path, recording: Path | None, out: Path,
         merged_path = merged or out.with_name(out.stem + ".merged.csv")
         if merged_path.resolve() == out.resolve():
             raise VideoError(f"{out}: --merged and --out name the same file")
-    refuse_overwriting([(recording, "the recording given with --recording"),
+    refuse_overwriting([(recording, "the recording given with --recording", True),
                         (video, "the video being measured")],
-                       [(out, "--out"), (merged_path, "--merged")])
+                       [(out, "--out", True), (merged_path, "--merged", True)])
 
 
 def _measure_with_progress(video: Path, opts, err_console):

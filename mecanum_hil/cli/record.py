@@ -24,6 +24,8 @@ from ._options import (
     RobotOpt,
     TransportOpt,
     echo_safely,
+    refuse_overwriting,
+    shipped_or_file,
 )
 
 
@@ -90,6 +92,12 @@ def command(
             dry_run=dry_run, foxglove=foxglove)
     if (commands is None) == (profile is None):
         raise ConfigError("give exactly one of --profile NAME_OR_FILE and --commands REC.csv")
+    if not dry_run:  # the recording is created before the first command is sent
+        refuse_overwriting([(commands, "the --commands recording", True),
+                            (shipped_or_file(profile), "the profile"),
+                            (shipped_or_file(robot), "the robot profile"),
+                            (shipped_or_file(shadow), "the --shadow calibration")],
+                           [(out, "--out", True)])
     rob = load_robot_profile(robot)
     t, cmd, source = _command_stream(profile, commands, rate_hz)
     rob.check_commands(cmd, source)  # before anything is opened or sent

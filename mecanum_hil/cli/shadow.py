@@ -86,7 +86,7 @@ def command(
         raise ConfigError("--foxglove serves a live run (--transport can); for a recording, "
                           "export it: mecanum-hil export REC.csv --out RUN.mcap")
     if replay_path is not None:
-        refuse_overwriting([(replay_path, "the recording")],
+        refuse_overwriting([(replay_path, "the recording", True)],
                            [(None if no_events else events, "--events"), (plot, "--plot")])
         n_alarms = _replay(replay_path, calibration, robot, config, json_out,
                            None if no_events else events, no_events, plot)

@@ -31,9 +31,9 @@ def command(
 
     if (commands is None) == (profile is None):
         raise ConfigError("give exactly one of --commands REC.csv and --profile NAME_OR_FILE")
-    refuse_overwriting([(commands, "the --commands recording"),
+    refuse_overwriting([(commands, "the --commands recording", True),
                         (shipped_or_file(calibration), "the calibration")],
-                       [(out, "--out"), (plot, "--plot")])
+                       [(out, "--out", True), (plot, "--plot")])
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
     if commands is not None:

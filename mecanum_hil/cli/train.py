@@ -43,9 +43,12 @@ def command(
     from ..model import load_calibration, load_robot_profile
     from ..policy import NetworkPolicy
     from ..policy.train import train
+    from ._options import refuse_overwriting, shipped_or_file
 
     if not control_period_s > 0:
         raise ConfigError(f"--control-period must be > 0 s, got {control_period_s}")
+    refuse_overwriting([(shipped_or_file(calibration), "the calibration"),
+                        (shipped_or_file(robot), "the robot profile")], [(out, "--out")])
     cal = load_calibration(calibration)
     rob = load_robot_profile(robot)
     start = NetworkPolicy.initial(rob, resolve_task(task), control_period_s, cal,

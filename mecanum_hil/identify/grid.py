@@ -121,7 +121,7 @@ def grid_data(data, calibration: Calibration, robot: RobotProfile) -> GridData:
         wheels = np.where(np.abs(wheels) < eff.deadband_rpm, 0.0, wheels) * np.array(eff.gains)
         dt = np.diff(grid)
         step_rows = np.zeros(grid.size, np.int64)
-        for j, k in enumerate(np.round(dt * 1e12).astype(np.int64)):
+        for j, k in enumerate(np.round(dt * 1e12)):  # floats: no overflow for a long gap
             if k not in keys:
                 keys[int(k)] = len(h_list)
                 h_list.append(float(dt[j]))

@@ -42,6 +42,11 @@ POSE_COLUMNS = COLUMNS[8:11]
 #: measurement, and the reader refuses it naming the line (it would overflow every fit).
 MAX_ABS_VALUE = dict.fromkeys(COLUMNS, 1e6) | {"t_s": 1e10, "phi_deg": 1e9}
 
+#: The longest gap between two rows of one recording [s]: a day. Longer is two recordings
+#: joined or a corrupt stamp, and the model would step its controller through all of it (a
+#: 2e7 s gap kept diagnose busy for hours).
+MAX_GAP_S = 86400.0
+
 
 class TimeRepairWarning(MecanumHILWarning):
     """Logged time was repaired on reading (repeated stamps, jitter, a wrapping counter)."""
@@ -327,6 +332,13 @@ def _repaired_time(t: np.ndarray, metadata: Mapping[str, Any], row_name, source:
                                  f"positive number of seconds (or null), got {value!r}")
         limit = float(value)
     increasing = t.size < 2 or bool(np.all(np.diff(t) > 0))
+    if t.size >= 2:
+        d = np.diff(t)
+        i = int(np.argmax(d))
+        if d[i] > MAX_GAP_S:
+            raise RecordingError(
+                f"{row_name(i + 1)}: a gap of {d[i]:.6g} s before this row, more than a day "
+                "(two recordings joined, or a corrupt time?): split the recording there")
     if increasing and limit is None:
         return t, None
     from .time_repair import decimal_resolution, repair_time
@@ -453,9 +465,19 @@ def format_rows(rec: Recording, n_rows: int) -> str:
     return buf.getvalue()
 
 
+def _writable_recording_path(path: str | Path) -> Path:
+    """``path`` as a recording to write; a ``.json`` name is refused: it is its own sidecar's
+    (the sidecar replaced the file the user had there, then the CSV was lost)."""
+    p = Path(path)
+    if sidecar_path(p) == p:
+        raise RecordingError(f"{p}: a recording cannot be named .json (its JSON sidecar is "
+                             "written beside it under that name); name it .csv")
+    return p
+
+
 def write_recording(rec: Recording, path: str | Path) -> Path:
     """Write a recording CSV (atomically: a temporary file renamed into place) and its sidecar."""
-    p = Path(path)
+    p = _writable_recording_path(path)
     tmp = p.with_name(p.name + ".tmp")
     side = sidecar_path(p)
     side_tmp = side.with_name(side.name + ".tmp")
@@ -499,7 +521,7 @@ class RecordingWriter:
     def __init__(self, path: str | Path, extra_columns: Sequence[str] = (),
                  metadata: Mapping[str, Any] | None = None, flush_interval_s: float = 0.2,
                  fsync: bool = False) -> None:
-        self.path = Path(path)
+        self.path = _writable_recording_path(path)
         self.extra_columns = tuple(extra_columns)
         self.metadata = dict(metadata or {})
         self.flush_interval_s = flush_interval_s
@@ -514,7 +536,7 @@ class RecordingWriter:
             raise RecordingError(f"{self.path}: cannot create: {err.strerror or err}") from err
         self._csv = csv.writer(self._fh, lineterminator="\n")
         self._csv.writerow(list(COLUMNS) + list(self.extra_columns))
-        self._fh.flush()
+        self.flush()
         if self.metadata:
             write_metadata(self.path, self.metadata)
 

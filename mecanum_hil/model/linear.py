@@ -50,7 +50,7 @@ def step_lengths(t_s) -> tuple[np.ndarray, np.ndarray]:
     """Distinct step lengths [s] of a time grid and each step's row among them; lengths equal
     to rounding (1e-12 s) share a row, as in the batch simulator."""
     dt = np.diff(np.asarray(t_s, dtype=float))
-    key = np.round(dt * 1e12).astype(np.int64)
+    key = np.round(dt * 1e12)  # floats: no int64 overflow for a gap of months
     _, first, idx = np.unique(key, return_index=True, return_inverse=True)
     return dt[first], idx.reshape(-1)
 

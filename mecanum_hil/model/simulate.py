@@ -150,7 +150,10 @@ def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command:
 def _delay_plan(t: np.ndarray, delay_s: float):
     """The refined grid, each grid point's source sample (-1: before the first) and the
     samples' places on the grid."""
-    eps = 1e-9 * max(1.0, abs(t[-1]))
+    # rounding of t + delay: 1 ns, or a few float steps where the times are large (a fraction
+    # of the recording's end time merged the 10 ms samples of a recording with a months-long
+    # gap: 2e7 s gave 20 ms)
+    eps = max(1e-9, 16.0 * float(np.spacing(max(abs(t[0]), abs(t[-1])))))
     shifted = t + delay_s
     shifted = shifted[shifted < t[-1]]
     # A delayed command change within rounding of a sample time is taken at that sample time, so
@@ -193,7 +196,8 @@ def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
     nsub = substeps(dt, max_substep_s)
     h = dt / nsub
     # step lengths equal to rounding share one table row
-    key = np.round(h * 1e12).astype(np.int64)
+    # as floats: an int64 overflows for a gap over 9.2e6 s (106 days between two samples)
+    key = np.round(h * 1e12)
     _, first, didx = np.unique(key, return_index=True, return_inverse=True)
     return didx.astype(np.int64).reshape(-1), nsub, h[first]
 

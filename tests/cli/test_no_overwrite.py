@@ -27,8 +27,14 @@ def run_csv(repo, tmp_path):
     (["shadow", "--replay", "{rec}", "--events", "{rec}"], "--events"),
     (["shadow", "--replay", "{rec}", "--events", "{dir}/run.json"], "--events"),
     (["export", "{rec}", "-o", "{rec}"], "--out"),
+    # a recording named otherwise still writes its sidecar, run.json: the input's
+    (["simulate", "--commands", "{rec}", "-o", "{dir}/run.txt"], "--out"),
+    # record creates its recording before the first command: --commands would be lost
+    (["record", "--port", "{dir}/no-port", "--commands", "{rec}", "-o", "{rec}"], "--out"),
+    (["train", "-c", "{dir}/cal.toml", "-o", "{dir}/cal.toml"], "--out"),
 ])
 def test_an_output_that_names_an_input_is_refused(run_csv, one_line_error, argv, option):
+    (run_csv.parent / "cal.toml").write_text("[motor]\nA = 14.7\nB = 16.1\nC = 303.0\n")
     before = {p.name: p.read_bytes() for p in run_csv.parent.iterdir()}
     argv = [a.format(rec=run_csv, dir=run_csv.parent) for a in argv]
     err = one_line_error(argv)
@@ -54,3 +60,22 @@ def test_an_unsupported_plot_extension_is_one_line(run_csv, one_line_error):
                           str(run_csv.parent / "sim.csv"), "--plot",
                           str(run_csv.parent / "sim.xyz")])
     assert "cannot write plot" in err and "use .png" in err
+
+
+def test_calibrate_camera_does_not_write_over_its_images(tmp_path, one_line_error):
+    folder = tmp_path / "views"
+    folder.mkdir()
+    (folder / "v0.png").write_bytes(b"not really an image")
+    before = (folder / "v0.png").read_bytes()
+    err = one_line_error(["calibrate-camera", str(folder), "--board", "charuco:7x5:0.04:0.03",
+                          "-o", str(folder / "v0.png")])
+    assert "--out would overwrite an image of the board" in err, err
+    assert (folder / "v0.png").read_bytes() == before
+
+
+def test_a_recording_is_never_written_as_json(run_csv, one_line_error):
+    keep = run_csv.parent / "keep.json"
+    keep.write_text('{"mine": 1}')
+    err = one_line_error(["simulate", "--commands", str(run_csv), "-o", str(keep)])
+    assert "a recording cannot be named .json" in err, err
+    assert keep.read_text() == '{"mine": 1}'

@@ -100,6 +100,9 @@ def test_recording_without_sidecar_is_valid(tmp_path):
         (HEADER + ",v\n0,1,2,3,,,,,,,-2e9,x\n", "column 'phi_deg': -2e+09 is not a value"),
         (HEADER + "\n1e300,1,2,3,,,,,,,\n", "column 't_s': 1e+300 is not a value"),
         (HEADER + ",a,b,a\n", "duplicate column name(s): a"),
+        # the model would tick its controller through it (2e7 s kept diagnose busy for hours)
+        (HEADER + "\n0,1,2,3,,,,,,,\n100000,1,2,3,,,,,,,\n",
+         "line 3, column 't_s': a gap of 100000 s before this row, more than a day"),
         (HEADER + ",x_m\n", "duplicate column name(s): x_m"),
     ],
 )
