@@ -66,7 +66,7 @@ def command(
         raise ConfigError("give --out REC.csv (or --dry-run)")
     if not dry_run:
         refuse_overwriting([(source, "the log"), (map_path, "the map"), (dbc_path, "the DBC"),
-                            (recording, "the --recording")], [(out, "--out")])
+                            (recording, "the --recording", True)], [(out, "--out", True)])
     options = {}
     if map_path is not None:
         options["map_path"] = map_path
@@ -80,7 +80,8 @@ def command(
     _with_model_pose(fmt, options)
     res = import_source(source, fmt, **options)
     used = res.recording.metadata.get("import")
-    if robot is None and isinstance(used, dict) and used.get("wheel_radius_m"):
+    if (robot is None and "wheel_radius_m" in options and isinstance(used, dict)
+            and used.get("wheel_radius_m")):
         # m/s became wheel rpm with a radius the user did not choose: say which
         res = with_notes(res, f"speeds in m/s converted with the wheel radius "
                               f"{options['wheel_radius_m']:g} m of robot profile tdam-stm "

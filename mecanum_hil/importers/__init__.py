@@ -120,8 +120,12 @@ def detect_format(path: str | Path, map_path: str | Path | None = None) -> str:
     return found[0]
 
 
-#: Options whose command-line flag is not the option's name with dashes.
-_FLAGS = {"map_path": "--map", "dbc_path": "--dbc"}
+#: Options whose command-line flag is not the option's name with dashes (the wheel radius
+#: comes from the robot profile that ``--robot`` names).
+_FLAGS = {"map_path": "--map", "dbc_path": "--dbc", "wheel_radius_m": "--robot"}
+
+#: Options the command line computes itself: no flag of their own, not listed to the user.
+_INTERNAL = {"model_pose"}
 
 
 def _flag(option: str) -> str:
@@ -148,7 +152,7 @@ def import_source(path: str | Path, fmt: str = "auto", **options) -> ImportResul
              if k != "path" and v.kind in (v.KEYWORD_ONLY, v.POSITIONAL_OR_KEYWORD)]
     for key in options:
         if key not in takes:
-            known = ", ".join(_flag(t) for t in takes) or "no options"
+            known = ", ".join(_flag(t) for t in takes if t not in _INTERNAL) or "no options"
             raise ConfigError(f"format '{name}' does not take {_flag(key)} (it takes: {known})")
     if not p.exists():
         raise RecordingError(f"{p}: file not found")

@@ -54,6 +54,57 @@ class Stream:
         return int(self.t_ns.shape[0])
 
 
+#: How far a sample's time may lie before an earlier sample's (receive jitter) and still be
+#: sorted into place [ns]; more is an error (a clock reset, a stamp from another clock).
+BACK_TOLERANCE_NS = 1_000_000
+
+
+def check_time_order(t_ns, name, what: str = "samples",
+                     tolerance_ns: int = BACK_TOLERANCE_NS) -> str:
+    """Refuse time running back by more than ``tolerance_ns``; say what jitter is sorted.
+
+    Parameters
+    ----------
+    t_ns : array_like of int, shape (N,)
+        Sample times [ns] in the order the source delivered them.
+    name : callable
+        ``name(i)`` names sample ``i`` (0-based, in that order) in the error.
+    what : str
+        What the samples are, for the note.
+    tolerance_ns : int
+        Largest step back that is sorted rather than refused [ns].
+
+    Returns
+    -------
+    str
+        A note on the samples sorted into time order, or "" when they were in order.
+
+    Raises
+    ------
+    RecordingError
+        A sample more than ``tolerance_ns`` before an earlier one.
+    """
+    t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+    if t.size < 2:
+        return ""
+    prev_max = np.maximum.accumulate(t)[:-1]
+    back = prev_max - t[1:]
+    late = back > tolerance_ns
+    if late.any():
+        i = int(np.argmax(late)) + 1
+        d = int(back[i - 1])
+        step = f"{d * 1e-6:.3f} ms" if d < 1_000_000_000 else f"{d * 1e-9:.6g} s"
+        raise RecordingError(
+            f"{name(i)}: time {t[i] * 1e-9:.6f} s does not increase: it runs back {step} "
+            f"from {prev_max[i - 1] * 1e-9:.6f} s, more than "
+            f"{tolerance_ns * 1e-6:g} ms (a clock reset or stamps of another clock?)")
+    n_back = int((back > 0).sum())
+    if not n_back:
+        return ""
+    return (f"{n_back} {what} up to {back.max() * 1e-6:.3f} ms earlier than a sample before "
+            "them (jitter) sorted into time order")
+
+
 def _to_microseconds(stream: Stream) -> Stream:
     # two samples less than 1 us apart would print as one time in the CSV: make them one row
     return Stream((stream.t_ns + 500) // 1000 * 1000, stream.values)

@@ -35,7 +35,7 @@ from ..errors import ConfigError, MecanumHILError, RecordingError
 from ..io.recording import COMMAND_COLUMNS, POSE_COLUMNS, WHEEL_COLUMNS
 from ..io.resources import resource_dir
 from ..io.toml_config import load_toml
-from ._streams import Stream, merge_streams
+from ._streams import Stream, check_time_order, merge_streams
 
 NAME = "canlog"
 
@@ -181,7 +181,81 @@ def _reader(path: Path, kind: str):
         return can.BLFReader(path)
     if kind == "asc":
         return can.ASCReader(path, relative_timestamp=False)
-    return can.CanutilsLogReader(path)
+    return _CandumpReader(path)
+
+
+class _CandumpReader:
+    """candump ``-L`` lines as frames, like python-can's ``CanutilsLogReader``, but naming a
+    malformed line, and skipping a last line cut off mid-line (no newline at its end): its
+    text is kept in :attr:`cut` for the note. :attr:`line` is the current frame's line."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.line = 0
+        self.cut = ""
+        self._fh = self.path.open("r", encoding="ascii", errors="replace", newline="")
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._fh.close()
+
+    def __iter__(self):
+        for line, raw in enumerate(self._fh, start=1):
+            self.line = line
+            text = raw.strip()
+            if not text:
+                continue
+            try:
+                yield _candump_frame(text)
+            except (ValueError, IndexError):
+                if not raw.endswith(("\n", "\r")):  # only the last line can lack it
+                    self.cut = text  # the logger stopped mid-line
+                    return
+                raise RecordingError(f"{self.path}, line {self.line}: cannot read the candump "
+                                     "log: not a frame line \"(time) interface ID#data\": "
+                                     f"{text[:60]!r}") from None
+
+
+def _candump_frame(text: str):
+    """One candump ``-L`` line as a ``can.Message`` (python-can's parsing, strict)."""
+    import can
+
+    fields = text.split()
+    if len(fields) == 4 and fields[3].lower() in ("r", "t"):
+        is_rx = fields.pop().lower() == "r"
+    else:
+        is_rx = True
+    stamp, channel, frame = fields  # ValueError: too few or too many fields
+    if not (stamp.startswith("(") and stamp.endswith(")")):
+        raise ValueError(stamp)
+    timestamp = float(stamp[1:-1])
+    if not math.isfinite(timestamp):
+        raise ValueError(stamp)
+    can_id_text, data = frame.split("#", maxsplit=1)
+    if not 1 <= len(can_id_text) <= 8:
+        raise ValueError(can_id_text)
+    can_id = int(can_id_text, 16)
+    is_fd = brs = esi = False
+    if data and data[0] == "#":
+        is_fd = True
+        flags = int(data[1], 16)
+        brs, esi = bool(flags & 0x01), bool(flags & 0x02)
+        data = data[2:]
+    if data and data[0].lower() == "r":
+        remote, dlc, payload = True, int(data[1:]) if len(data) > 1 else 0, None
+    else:
+        if len(data) % 2:
+            raise ValueError(data)
+        remote, payload = False, bytearray.fromhex(data)
+        dlc = len(payload)
+    if can_id & 0x20000000 and can_id & 0x00000080:  # CAN_ERR_FLAG, CAN_ERR_BUSERROR
+        return can.Message(timestamp=timestamp, is_error_frame=True)
+    return can.Message(timestamp=timestamp, arbitration_id=can_id & 0x1FFFFFFF,
+                       is_extended_id=len(can_id_text) > 3, is_remote_frame=remote, is_fd=is_fd,
+                       is_rx=is_rx, bitrate_switch=brs, error_state_indicator=esi, dlc=dlc,
+                       data=payload, channel=int(channel) if channel.isdigit() else channel)
 
 
 def _load_dbc(path: Path):
@@ -251,8 +325,16 @@ def read_log(path: str | Path, *, dbc_path: str | Path | None = None,
         raise RecordingError(f"{p}: no frames of {', '.join(cmd_names)} (the commands) among "
                              f"{frames} frames; check the DBC ({dbc}) and the mapping")
     notes = [f"{frames} frames ({kind}), {got.decoded} decoded with {dbc.name}"]
+    if got.cut:
+        notes.append(f"last line cut off mid-line (no newline at the end): skipped: "
+                     f"{got.cut[:60]!r}")
     if got.bad:
         notes.append(f"{got.bad} frame(s) that do not decode skipped")
+    # frames are timed by the log's clock: one running back is a reset, not jitter to sort
+    order = check_time_order(got.order_t, lambda i: "{}, {} ({})".format(
+        p, *got.order_where[i]), "frame(s)")
+    if order:
+        notes.append(order)
     cmd_stream = _command_stream(p, got, wheel_radius_m)
     pose_stream = None
     if got.pose_t:
@@ -296,10 +378,17 @@ class _Decoded:
         self.pose_t: list[int] = []
         self.pose_v: list[list[float]] = []
         self.frames = self.decoded = self.bad = 0
+        #: every decoded frame's time [ns] and name (where, message), in the log's order
+        self.order_t: list[int] = []
+        self.order_where: list[tuple[str, str]] = []
+        self.cut = ""
 
-    def add(self, t_ns: int, values, sigs, is_stop: bool) -> None:
+    def add(self, t_ns: int, values, sigs, is_stop: bool, where: str = "",
+            message: str = "") -> None:
         """Add one decoded frame's mapped signals (and a STOP's zero command)."""
         self.decoded += 1
+        self.order_t.append(t_ns)
+        self.order_where.append((where, message))
         if is_stop:
             self.cmd_t.append(t_ns)
             stop = [np.nan] * 3
@@ -339,7 +428,10 @@ def _decode_log(p: Path, kind: str, plan: dict, got: _Decoded) -> None:
                 except Exception:  # cantools DecodeError, a short frame: counted, not fatal
                     got.bad += 1
                     continue
-                got.add(round(frame.timestamp * 1e9), values, sigs, is_stop)
+                where = (f"line {reader.line}" if isinstance(reader, _CandumpReader)
+                         else f"frame {got.frames}")
+                got.add(round(frame.timestamp * 1e9), values, sigs, is_stop, where, msg.name)
+            got.cut = getattr(reader, "cut", "")
             size = getattr(reader, "file_size", None)  # BLF: the header's file size
             if size and p.stat().st_size < size:
                 raise RecordingError(f"{p}: truncated BLF: {p.stat().st_size} of the header's "

@@ -42,6 +42,7 @@ from ..io.pose_track import fill_pose, onset_offset, unwrap_deg
 from ..io.recording import empty_like_times, read_recording
 from ..io.toml_config import TableReader, load_toml
 from . import ImportResult
+from .text import _is_number
 
 NAME = "mocap"
 
@@ -139,20 +140,38 @@ def _number(text: str, where: str) -> float:
     return v
 
 
-def _read_rows(path: Path) -> list[list[str]]:
+def _read_rows(path: Path) -> tuple[list[list[str]], bool]:
+    """The CSV rows, and whether the file ends with a newline (else its last line may have
+    been cut off while the export was written)."""
     try:
         text = path.read_text(encoding="utf-8-sig")
     except OSError as err:
         raise RecordingError(f"{path}: cannot read: {err.strerror or err}") from err
     except UnicodeDecodeError:
         raise RecordingError(f"{path}: not UTF-8 text") from None
-    return list(csv.reader(io.StringIO(text)))
+    return list(csv.reader(io.StringIO(text))), text.endswith(("\n", "\r")) or not text
 
 
-def _motive(path: Path, rows: list[list[str]], want: str | None
+def _drop_cut_last(data: list[tuple[int, list[str]]], width: int, complete: bool,
+                   notes: list[str]) -> list[tuple[int, list[str]]]:
+    """``data`` (line, fields) without a last line cut off mid-row (no newline at the end of
+    the file, and fewer fields than ``width`` or a field that is not a number), with a note."""
+    if complete or not data:
+        return data
+    last = data[-1][1]
+    if len(last) < width or not all(c.strip() == "" or _is_number(c) for c in last):
+        notes.append(f"last line cut off mid-row (no newline at the end): dropped: "
+                     f"{','.join(last)[:60]!r}")
+        return data[:-1]
+    return data
+
+
+def _motive(path: Path, rows: list[list[str]], want: str | None, complete: bool = True,
+            units: str | None = None, map_path: Path | None = None
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, str, list[str]]:
     """Time [s], positions (N, 3), quaternions (N, 4: x, y, z, w), length scale [m per unit],
-    the rigid body's name, notes."""
+    the rigid body's name, notes. ``units`` (the map's) is needed when the header does not
+    state the length unit."""
     meta = rows[0]
     info = {meta[i].strip(): meta[i + 1].strip() for i in range(0, len(meta) - 1, 2)}
     if info.get("Rotation Type", "Quaternion").lower() != "quaternion":
@@ -161,9 +180,20 @@ def _motive(path: Path, rows: list[list[str]], want: str | None
     if info.get("Coordinate Space", "Global").lower() != "global":
         raise RecordingError(f"{path}: coordinate space {info['Coordinate Space']!r}; export "
                              "in Global coordinates")
-    unit = info.get("Length Units", "Meters").lower()
-    if unit not in _MOTIVE_UNITS:
-        raise RecordingError(f"{path}: unknown length unit {info.get('Length Units')!r}")
+    if "Length Units" in info:
+        if units is not None:
+            raise ConfigError(f"{map_path}: key 'mocap.units': the Motive export states its "
+                              f"unit ({info['Length Units']}); remove the key")
+        unit = info["Length Units"].lower()
+        if unit not in _MOTIVE_UNITS:
+            raise RecordingError(f"{path}: unknown length unit {info['Length Units']!r}")
+        scale = _MOTIVE_UNITS[unit]
+    elif units is None:
+        raise RecordingError(f"{path}: the export does not state its length unit (no 'Length "
+                             "Units' in its first row); give it in the map: [mocap] units = "
+                             "\"m\", \"cm\" or \"mm\" (--map)")
+    else:
+        scale = _UNITS[units]
     label = {}
     header_at = None
     for k, row in enumerate(rows[1:40], start=1):
@@ -202,29 +232,34 @@ def _motive(path: Path, rows: list[list[str]], want: str | None
     missing = [f"{k} {a}" for k, a in need if (k, a) not in index]
     if missing:
         raise RecordingError(f"{path}: rigid body {want!r} lacks columns {', '.join(missing)}")
-    data = [r for r in rows[header_at + 1:] if any(c.strip() for c in r)]
+    notes: list[str] = []
+    data = [(k + 1, r) for k, r in enumerate(rows[header_at + 1:], start=header_at + 1)
+            if any(c.strip() for c in r)]
+    data = _drop_cut_last(data, len(cols), complete, notes)
     t = np.empty(len(data))
     pq = np.empty((len(data), 7))
-    for i, r in enumerate(data):
-        line = header_at + 2 + i
-        if len(r) < 2:
-            raise RecordingError(f"{path}, line {line}: too few fields")
+    for i, (line, r) in enumerate(data):
+        if len(r) < len(cols):
+            raise RecordingError(f"{path}, line {line}: {len(r)} fields, fewer than the "
+                                 f"header's {len(cols)}")
         t[i] = _number(r[1], f"{path}, line {line}, column 'Time (Seconds)'")
         for c, key in enumerate(need):
             j = index[key]
             pq[i, c] = _number(r[j] if j < len(r) else "", f"{path}, line {line}, column {j + 1}")
     if np.isnan(t).any():
         raise RecordingError(f"{path}: a row without its time")
-    return t, pq[:, :3], pq[:, 3:], _MOTIVE_UNITS[unit], want, []
+    return t, pq[:, :3], pq[:, 3:], scale, want, notes
 
 
-def _plain(path: Path, rows: list[list[str]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _plain(path: Path, rows: list[list[str]], complete: bool = True,
+           notes: list[str] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     start = next((i for i, r in enumerate(rows)
                   if any(c.strip() for c in r) and not r[0].lstrip().startswith("#")), None)
     if start is None or not _is_plain_header(",".join(rows[start])):
         raise RecordingError(f"{path}: expected the header {', '.join(PLAIN_HEADER)}")
     data = [(i, r) for i, r in enumerate(rows[start + 1:], start=start + 2)
             if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    data = _drop_cut_last(data, 8, complete, [] if notes is None else notes)
     arr = np.empty((len(data), 8))
     for k, (line, r) in enumerate(data):
         if len(r) != 8:
@@ -280,26 +315,25 @@ def read(path: Path, *, map_path: Path | None = None, recording: Path | None = N
     """
     path = Path(path)
     m = load_mocap_map(map_path)
-    rows = _read_rows(path)
+    rows, complete = _read_rows(path)
     if not rows:
         raise RecordingError(f"{path}: empty file")
     notes: list[str] = []
     if rows[0] and rows[0][0].startswith("Format Version"):
         layout = "motive"
-        t, pos, quat, scale, body, more = _motive(path, rows, m.rigid_body)
+        t, pos, quat, scale, body, more = _motive(path, rows, m.rigid_body, complete, m.units,
+                                                  map_path)
         notes += more
         up = m.up or "y"
-        if m.units is not None:
-            raise ConfigError(f"{map_path}: key 'mocap.units' is for plain CSV; Motive's header "
-                              "states its unit")
     else:
         layout = "plain"
-        t, pos, quat = _plain(path, rows)
+        t, pos, quat = _plain(path, rows, complete, notes)
         scale, body = _UNITS[m.units or "m"], None
         up = m.up or "z"
     if len(t) < 2 or not np.all(np.diff(t) > 0):
         raise RecordingError(f"{path}: times must increase (at least two samples)")
     rotation = m.rotation if m.rotation is not None else _UP[up]
+    _check_forward_axis(quat, rotation, m, map_path)
     pose = floor_pose(pos, quat, scale, rotation, m)
     occluded = int((~np.isfinite(pose).all(axis=1)).sum())
     if occluded:
@@ -329,6 +363,7 @@ def read(path: Path, *, map_path: Path | None = None, recording: Path | None = N
         how = "auto: the robot's motion onset (1 cm) against the model for the commands"
     else:
         shift, how = _start(start_s), "given"
+    _check_overlap(path, recording, tc, shift, base.t_s)
     notes.append(f"capture's first sample at recording time {shift:.4f} s ({how})")
     meta.update({"capture_start_s": shift, "capture_start_method": how})
     filled = fill_pose(base, tc, pose, shift, {"pose_source": f"import {path}",
@@ -337,6 +372,48 @@ def read(path: Path, *, map_path: Path | None = None, recording: Path | None = N
     prior = [prior] if isinstance(prior, str) else list(prior or [])
     filled = filled.with_values(metadata={**filled.metadata, "notes": prior + notes})
     return ImportResult(filled, tuple(notes))
+
+
+def _check_overlap(path: Path, recording: Path, tc: np.ndarray, shift: float,
+                   t_rec: np.ndarray) -> None:
+    """Refuse a capture that, placed at ``shift``, lies wholly outside the recording's span
+    (not one pose would be filled)."""
+    c0, c1 = shift + float(tc[0]), shift + float(tc[-1])
+    if not len(t_rec):
+        raise RecordingError(f"{recording}: the recording has no rows")
+    r0, r1 = float(np.min(t_rec)), float(np.max(t_rec))
+    if c1 < r0 or c0 > r1:
+        raise RecordingError(f"{path}: the capture (recording time {c0:.3f} to {c1:.3f} s with "
+                             f"its first sample at {shift:g} s, --start-s) does not overlap the "
+                             f"recording {recording} ({r0:.3f} to {r1:.3f} s): no pose to fill")
+
+
+#: Least length of the forward axis's projection on the floor (the median over the samples):
+#: sin(10 deg); an axis closer to the vertical gives no heading.
+MIN_FLOOR_PROJECTION = math.sin(math.radians(10.0))
+
+
+def _forward_on_floor(quat: np.ndarray, rotation: np.ndarray, m: MocapMap) -> np.ndarray:
+    """The robot's forward axis in floor coordinates (N, 3), for unit quaternions ``quat``."""
+    fwd = np.asarray(m.forward_axis, dtype=float)
+    return (quaternion_matrices(quat) @ (fwd / np.linalg.norm(fwd))) @ rotation.T
+
+
+def _check_forward_axis(quat: np.ndarray, rotation: np.ndarray, m: MocapMap,
+                        map_path: Path | None) -> None:
+    """Refuse a forward axis that does not project onto the floor plane (phi would be 0 or
+    noise): it is (nearly) vertical in the floor frame for most samples."""
+    ok = np.isfinite(quat).all(axis=1) & (np.linalg.norm(np.nan_to_num(quat), axis=1) > 0.5)
+    if not ok.any():
+        return
+    f = _forward_on_floor(quat[ok], rotation, m)
+    horizontal = float(np.median(np.hypot(f[:, 0], f[:, 1])))
+    if horizontal < MIN_FLOOR_PROJECTION:
+        where = f"{map_path}: key" if map_path is not None else "the default of key"
+        raise ConfigError(f"{where} 'mocap.forward_axis' {list(m.forward_axis)} does not project "
+                          f"onto the floor plane (its floor part is {horizontal:.3g} of its "
+                          "length: it points up or down, giving no heading); give the robot's "
+                          "forward direction in the rigid body's own frame")
 
 
 def _start(value: str | float) -> float:

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import ConfigError, MecanumHILError, RecordingError
 from ..units import RPM_TO_RAD_S, mps_to_rpm
-from ._streams import Stream, merge_streams
+from ._streams import Stream, check_time_order, merge_streams
 
 NAME = "rosbag"
 
@@ -451,8 +451,10 @@ def _open_reader(path: Path):
     if head == ROS1_MAGIC and path.suffix != ".bag":
         raise RecordingError(f"{path}: a ROS 1 bag must be named *.bag to be read")
     if path.is_file() and head != ROS1_MAGIC and path.suffix not in (".db3", ".mcap"):
-        raise RecordingError(f"{path}: a rosbag2 storage file must be named *.db3 or *.mcap (or "
-                             "give the bag's folder, with its metadata.yaml)")
+        raise RecordingError(f"{path}: not a readable ROS 1 bag (it does not start with "
+                             f"{ROS1_MAGIC.decode().strip()!r}), and a rosbag2 storage file must "
+                             "be named *.db3 or *.mcap (or give the bag's folder, with its "
+                             "metadata.yaml)")
     # bags recorded without message definitions (older rosbag2 sqlite3) use the standard
     # types; the four message types read here are the same in every ROS 2 distribution
     return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
@@ -494,9 +496,26 @@ def read_bag(path: str | Path, *, cmd_topic: str = "/cmd_vel",
         notes.append(f"{js.skipped} {joint_topic} message(s) without velocities skipped")
     mapping = _wheel_joints(p, js, joint_topic, mapping, notes)
     times = _sample_times((cmd, js, odo), notes)
+    for tp in (cmd, js, odo):
+        if len(tp):
+            _check_order(p, tp, times[tp.name], notes)
+    _check_receive_order(p)
+    if odom_topic and not len(odo):
+        notes.append(f"no odometry on {odom_topic}: no pose")
     tw = cmd.values()
     commands = twist_to_commands(tw[:, 0], tw[:, 1], tw[:, 2], wheel_radius_m)
+    bad_cmd = ~np.isfinite(tw).all(axis=1)
+    if bad_cmd.all():
+        raise RecordingError(f"{p}: every command on {cmd_topic} has a non-finite (NaN or "
+                             "infinite) linear or angular velocity")
+    if bad_cmd.any():
+        notes.append(f"{int(bad_cmd.sum())} of {len(cmd)} commands ({cmd_topic}) not finite: "
+                     "their command columns left empty")
     wheels = _wheel_rpm(js, mapping, signs)
+    bad_js = ~np.isfinite(wheels).all(axis=1)
+    if bad_js.any():
+        notes.append(f"{int(bad_js.sum())} of {len(js)} joint-state samples ({joint_topic}) not "
+                     "finite: left empty")
     pose_stream = None
     if len(odo):
         pa = odo.values()
@@ -600,6 +619,88 @@ def _sample_times(topics: Sequence[_Samples], notes: list[str]) -> dict[str, np.
                 notes.append(f"{tp.name}: {len(tp) - n_stamped} message(s) without a "
                              "header stamp timed by receive time")
     return times
+
+
+#: How far a bag's message may be stamped or received before an earlier one and still be
+#: sorted into place [ns]: a ROS graph delivers through executors, queues and the network, so
+#: tens of milliseconds out of order is normal (several publishers on one topic, a loaded
+#: recorder); a clock stepping back by half a second or more is a reset.
+BAG_BACK_TOLERANCE_NS = 500_000_000
+
+
+def _check_order(p: Path, tp: _Samples, t_ns: np.ndarray, notes: list[str]) -> None:
+    """A topic's times in the order it was received: more than
+    :data:`BAG_BACK_TOLERANCE_NS` back is an error naming the message; less (jitter between
+    stamping and receiving) is sorted."""
+    recv = tp.column(2)
+    order = np.argsort(recv, kind="stable")  # the bag's order (rosbags reads by receive time)
+    note = check_time_order(t_ns[order], lambda i: f"{p}: {tp.name} message {i + 1} (received "
+                            f"at {recv[order[i]] * 1e-9:.6f} s)", f"{tp.name} message(s)",
+                            BAG_BACK_TOLERANCE_NS)
+    if note:
+        notes.append(note)
+
+
+def _check_receive_order(p: Path) -> None:
+    """The receive times in the order the recorder wrote the messages (rosbags reads them
+    sorted by time, which interleaves the halves of a bag whose clock was reset): more than
+    :data:`BAG_BACK_TOLERANCE_NS` back is an error. rosbag2 sqlite3 (message ids) and MCAP
+    (message indexes) storage are checked; a ROS 1 bag is not."""
+    files = ([f for f in sorted(p.iterdir()) if f.suffix in (".db3", ".mcap")] if p.is_dir()
+             else [p])
+    for f in files:
+        if f.suffix == ".db3":
+            t = _db3_receive_times(f)
+        elif f.suffix == ".mcap":
+            t = _mcap_receive_times(f)
+        else:
+            continue
+        if t is not None:
+            check_time_order(t, lambda i, f=f: f"{f}: message {i + 1} in the file (receive "
+                             "time)", tolerance_ns=BAG_BACK_TOLERANCE_NS)
+
+
+def _db3_receive_times(f: Path) -> np.ndarray | None:
+    try:
+        con = sqlite3.connect(f"file:{f}?mode=ro", uri=True)
+        try:
+            rows = con.execute("SELECT timestamp FROM messages ORDER BY id").fetchall()
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return None  # read (and reported) by rosbags
+    return np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
+
+
+def _mcap_receive_times(f: Path) -> np.ndarray | None:
+    """Log times in file order, from the chunks' message indexes (no decompression)."""
+    try:
+        from mcap.reader import make_reader
+    except ImportError:
+        return None
+    try:
+        with f.open("rb") as fh:
+            summary = make_reader(fh).get_summary()
+            if summary is None:
+                return None
+            parts = []
+            for chunk in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+                t_c, off_c = [], []
+                for offset in chunk.message_index_offsets.values():
+                    fh.seek(offset)
+                    head = fh.read(15)  # opcode, record length, channel id, records length
+                    if len(head) < 15 or head[0] != 0x07:
+                        return None
+                    (n,) = struct.unpack_from("<I", head, 11)
+                    rec = np.frombuffer(fh.read(n), dtype="<u8").reshape(-1, 2)
+                    t_c.append(rec[:, 0])
+                    off_c.append(rec[:, 1])
+                if t_c:
+                    t_all, off_all = np.concatenate(t_c), np.concatenate(off_c)
+                    parts.append(t_all[np.argsort(off_all, kind="stable")])
+    except Exception:  # a damaged summary: rosbags reads (and reports) the messages
+        return None
+    return np.concatenate(parts).astype(np.int64) if parts else None
 
 
 def _wheel_rpm(js: _Samples, mapping: Sequence[str], signs: np.ndarray) -> np.ndarray:

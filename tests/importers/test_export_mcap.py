@@ -135,3 +135,19 @@ def test_an_export_that_cannot_be_put_in_place_leaves_no_temporary_file(tmp_path
     with pytest.raises(RecordingError, match=r"run\.mcap: cannot write"):
         export_mcap(rec, out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mcap"]
+
+
+def test_an_imported_recording_exported_imports_back(recording, tmp_path, capsys):
+    """A recording that an import made (its sidecar's ``import`` names the wheel radius used)
+    exported to MCAP imports back: the mcap format takes no wheel radius."""
+    import json
+
+    side = recording.with_suffix(".json")
+    meta = json.loads(side.read_text())
+    meta["import"] = {"format": "rosbag", "wheel_radius_m": 0.102}
+    side.write_text(json.dumps(meta))
+    out = tmp_path / "run.mcap"
+    assert main(["export", str(recording), "--out", str(out)]) == 0
+    back = tmp_path / "back.csv"
+    assert main(["import", str(out), "--out", str(back)]) == 0, capsys.readouterr().err
+    assert read_recording(back).metadata["import"]["wheel_radius_m"] == 0.102

@@ -237,3 +237,56 @@ def test_bad_mapping_files(tmp_path):
     bad.write_text('[can.columns]\nspeed = "A.b"\n')
     with pytest.raises(ConfigError, match="not a recording column"):
         import_source(tmp_path / "x.log", map_path=bad)
+
+
+# -- time that runs back, cut and malformed lines ---------------------------------------------
+
+def test_a_clock_reset_is_refused_naming_the_line(tmp_path, one_line_error):
+    """A log whose clock resets halfway is not sorted into interleaved halves."""
+    frames, *_ = protocol_frames()
+    half = len(frames) // 2
+    for f in frames[half:]:
+        f.timestamp -= 1.7
+    log = write_log(tmp_path / "reset.log", frames, "candump")
+    err = one_line_error(["import", str(log), "--out", str(tmp_path / "r.csv")])
+    first = next(k for k in range(half, len(frames)) if frames[k].arbitration_id != 0x181)
+    assert f"line {first + 1} (" in err and "runs back 1.69 s" in err, err
+    assert not (tmp_path / "r.csv").exists()
+    # every wheel frame on a clock 1e8 s earlier (python-can's writer would clamp it)
+    log = write_log(tmp_path / "tb.log", protocol_frames()[0], "candump")
+    log.write_text("".join(ln.replace("(17", "(16", 1) if " 182#" in ln else ln
+                           for ln in log.read_text().splitlines(True)))
+    with pytest.raises(RecordingError, match=r"tb\.log, line \d+ \(MC_WHEELS\).*runs back "
+                       r"1e\+08 s"):
+        import_source(log)
+
+
+def test_jitter_within_a_millisecond_is_sorted_with_a_note(tmp_path):
+    frames, *_ = protocol_frames()
+    wheels = [k for k, f in enumerate(frames) if f.arbitration_id == 0x182]
+    k = wheels[10]  # a wheel frame logged 0.5 ms after its successor's status frame
+    frames[k].timestamp += 0.0105
+    frames[k], frames[k + 1] = frames[k + 1], frames[k]
+    res = import_source(write_log(tmp_path / "j.log", frames, "candump"))
+    assert any("1 frame(s) up to" in n and "sorted into time order" in n for n in res.notes)
+
+
+def test_a_cut_last_line_is_skipped_and_a_malformed_line_named(tmp_path, one_line_error):
+    frames, *_ = protocol_frames()
+    log = write_log(tmp_path / "cut.log", frames, "candump")
+    text = log.read_text()
+    log.write_text(text[: len(text) - 20])  # the logger stopped mid-line
+    res = import_source(log)
+    assert any("last line cut off mid-line" in n and "skipped" in n for n in res.notes)
+    lines = text.splitlines(True)
+    lines[99] = "(1700000000.5) vcan0 182#00G0\n"
+    log.write_text("".join(lines))
+    err = one_line_error(["import", str(log), "--out", str(tmp_path / "r.csv")])
+    assert "line 100" in err and "182#00G0" in err
+
+
+def test_an_option_the_format_does_not_take_lists_user_facing_flags(tmp_path, one_line_error):
+    log = write_log(tmp_path / "run.log", protocol_frames()[0][:30], "candump")
+    err = one_line_error(["import", str(log), "--joints", "a,b,c,d", "--out",
+                          str(tmp_path / "r.csv")])
+    assert "--dbc, --map, --robot" in err and "--wheel-radius-m" not in err

@@ -221,3 +221,60 @@ def test_motive_body_axes_other_than_the_robots(tmp_path):
     np.testing.assert_allclose(rec.pose[:, :2], floor_xy, atol=1e-7)
     np.testing.assert_allclose(rec.pose[:, 2], np.degrees(phi), atol=1e-5)
     assert rec.metadata["capture_to_floor"]["scale_m_per_unit"] == 0.01
+
+
+# -- cut exports, missing unit, degenerate axis, no overlap ---------------------------------
+
+def _take(tmp_path, unit=("Millimeters", 1000.0)):
+    truth = path_truth()
+    t = np.arange(0.0, 3.5, 0.01)
+    pose = np.column_stack([np.interp(t, truth.t_s, truth.pose[:, k]) for k in range(3)])
+    src = tmp_path / "take.csv"
+    write_motive(src, t, pose, unit=unit)
+    mp = tmp_path / "map.toml"
+    mp.write_text('[mocap]\nrigid_body = "robot"\n')
+    return src, mp, t
+
+
+def test_a_cut_last_line_is_dropped_and_a_short_line_named(tmp_path, one_line_error):
+    src, mp, t = _take(tmp_path)
+    text = src.read_text()
+    src.write_text(text[: len(text) - 40])  # cut mid-number: fewer fields than the header
+    res = import_source(src, map_path=mp)
+    assert len(res.recording) == t.size - 1
+    assert any("last line cut off mid-row" in n and "dropped" in n for n in res.notes)
+    lines = text.splitlines(True)
+    lines[50] = ",".join(lines[50].split(",")[:9]) + "\r\n"
+    src.write_text("".join(lines))
+    err = one_line_error(["import", str(src), "--map", str(mp), "--out",
+                          str(tmp_path / "r.csv")])
+    assert "line 51: 9 fields, fewer than the header's 20" in err
+
+
+def test_a_motive_export_without_its_unit_needs_the_maps(tmp_path, one_line_error):
+    src, mp, _ = _take(tmp_path)
+    src.write_text(src.read_text().replace("Length Units,Millimeters,", ""))
+    err = one_line_error(["import", str(src), "--map", str(mp), "--out",
+                          str(tmp_path / "r.csv")])
+    assert "does not state its length unit" in err and "units" in err
+    mp.write_text('[mocap]\nrigid_body = "robot"\nunits = "mm"\n')
+    ref = import_source(src, map_path=mp)
+    assert np.nanmax(np.abs(ref.recording.pose[:, :2])) < 10.0  # metres, not millimetres
+
+
+def test_a_vertical_forward_axis_is_refused(tmp_path):
+    from mecanum_hil.errors import ConfigError
+
+    src, mp, _ = _take(tmp_path)
+    mp.write_text('[mocap]\nrigid_body = "robot"\nforward_axis = [0.0, 1.0, 0.0]\n')  # Motive up
+    with pytest.raises(ConfigError, match=r"mocap\.forward_axis.*does not project onto the floor"):
+        import_source(src, map_path=mp)
+
+
+def test_a_start_without_overlap_is_refused(tmp_path, one_line_error):
+    src, mp, _ = _take(tmp_path)
+    rec = tmp_path / "rec.csv"
+    write_recording(empty_like_times(np.arange(0.0, 3.0, 0.01)), rec)
+    err = one_line_error(["import", str(src), "--map", str(mp), "--recording", str(rec),
+                          "--start-s", "50", "--out", str(tmp_path / "r.csv")])
+    assert "does not overlap the recording" in err and "50.000 to 53.490 s" in err

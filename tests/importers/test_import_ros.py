@@ -329,3 +329,66 @@ def test_merge_puts_no_sample_from_before_the_first_command_on_its_row():
     np.testing.assert_array_equal(rec.wheel_rpm[1], [9.7, 9.5, 9.7, 9.7])
     assert any("dropped 2 sample(s) before the first command" in n for n in notes)
     assert any("7 wheel speed(s) replaced by a later sample" in n for n in notes)
+
+
+# -- time that runs back, non-finite values, empty odometry ----------------------------------
+
+@pytest.mark.parametrize("storage", [StoragePlugin.SQLITE3, StoragePlugin.MCAP],
+                         ids=["sqlite3", "mcap"])
+def test_a_receive_clock_reset_is_refused(tmp_path, one_line_error, storage):
+    """rosbags reads messages sorted by receive time, which interleaves the halves of a bag
+    whose clock was reset: the order in the file tells."""
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    msgs = bag_messages(ts, False, False)
+    half = len(msgs) // 2
+    msgs = msgs[:half] + [(a, b, ns - 3_000_000_000, m) for a, b, ns, m in msgs[half:]]
+    bag = write_bag2(tmp_path / "bag", storage, msgs)
+    err = one_line_error(["import", str(bag), "--out", str(tmp_path / "r.csv")])
+    assert f"message {half + 1} in the file" in err and "runs back 2.99 s" in err, err
+
+
+def test_header_stamps_that_run_back_are_refused(tmp_path):
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    msgs = bag_messages(ts, False, True)
+    for _, typ, _, m in msgs[-40:]:  # the last stamps 1.5 s back: same clock, reset
+        if typ.endswith("JointState"):
+            s = m.header.stamp
+            ns = s.sec * 10**9 + s.nanosec - 1_500_000_000
+            s.sec, s.nanosec = ns // 10**9, ns % 10**9
+    bag = write_bag2(tmp_path / "bag", StoragePlugin.MCAP, msgs)
+    with pytest.raises(RecordingError, match=r"/joint_states message \d+ \(received at .*runs "
+                                             r"back 1\.4\d+ s .*more than 500 ms"):
+        import_source(bag, **OPTIONS)
+
+
+def test_non_finite_values_and_empty_odometry_are_said(tmp_path, one_line_error):
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    msgs = bag_messages(ts, False, True, odom=False)
+    js = [m for _, typ, _, m in msgs if typ.endswith("JointState")]
+    for m in js[::3]:
+        m.velocity[:] = np.nan
+    # an /odom topic without messages
+    with Writer2(tmp_path / "b2", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {t: w.add_connection(t, typ, typestore=ts) for t, typ in (
+            ("/cmd_vel", "geometry_msgs/msg/TwistStamped"),
+            ("/joint_states", "sensor_msgs/msg/JointState"), ("/odom", "nav_msgs/msg/Odometry"))}
+        for topic, typ, ns, m in msgs:
+            w.write(conns[topic], ns, ts.serialize_cdr(m, typ))
+    res = import_source(tmp_path / "b2", **OPTIONS)
+    assert f"{len(js[::3])} of {len(js)} joint-state samples (/joint_states) not finite: left " \
+           "empty" in res.notes
+    assert "no odometry on /odom: no pose" in res.notes
+    for _, typ, _, m in msgs:
+        if typ.endswith("TwistStamped"):
+            m.twist.linear.x = float("nan")
+    bag = write_bag2(tmp_path / "nan", StoragePlugin.MCAP, msgs)
+    err = one_line_error(["import", str(bag), "--out", str(tmp_path / "r.csv")])
+    assert "every command on /cmd_vel has a non-finite" in err
+
+
+def test_a_garbage_bag_file_is_not_a_ros1_bag(tmp_path, one_line_error):
+    bag = tmp_path / "x.bag"
+    bag.write_bytes(bytes(range(256)) * 4)
+    err = one_line_error(["import", str(bag), "--format", "rosbag", "--out",
+                          str(tmp_path / "r.csv")])
+    assert "not a readable ROS 1 bag" in err
