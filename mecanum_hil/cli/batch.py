@@ -106,6 +106,13 @@ def command(
         raise ConfigError(f"--marker must be auto or aruco, got {marker!r}")
     if scheduler is not None and workers is not None:
         raise ConfigError("--workers sizes the local cluster; it does not go with --scheduler")
+    if not (drift_threshold >= 0 and drift_threshold < float("inf")):
+        raise ConfigError(f"--drift-threshold must be a finite percentage >= 0, got "
+                          f"{drift_threshold}")
+    if stage == "measure-video":
+        from ..vision.video import check_fps
+
+        check_fps(fps)
     options: dict = {}
     if stage in ("fit", "diagnose"):
         options["method"] = method
@@ -129,12 +136,16 @@ def command(
     alarmed = sorted({r["group"] for r in outcome.rows if (r.get("alarms") or 0) > 0})
     failed = [r for r in outcome.rows if r["status"] == "failed"]
     partial = [r for r in outcome.rows if r["status"] == "partial"]
+    # every group failed: no result at all, whatever the table says (exit 0 read as success)
+    all_failed = bool(outcome.rows) and len(failed) == len(outcome.rows)
     if json_out:
         typer.echo(json.dumps({
             "results": str(outcome.results), "groups": c.total, "done": c.done,
             "failed": c.failed, "unchanged": c.unchanged, "partial": len(partial),
             "drifted": drifted, "alarms": alarmed, "dashboard": outcome.dashboard,
             "wall_s": outcome.wall_s}))
+        if all_failed:
+            raise ConfigError(_all_failed(failed, outcome.results))
         return
     typer.echo(f"{c.total} group(s): {c.done} run, {c.unchanged} unchanged (skipped), "
                f"{c.failed} failed, {len(partial)} with inputs left out; "
@@ -147,6 +158,14 @@ def command(
         print(f"warning: {r['group']} {r['period'] or ''}".rstrip() + f": {r['error']}",
               file=sys.stderr)
     typer.echo(f"wrote {outcome.results}")
+    if all_failed:
+        raise ConfigError(_all_failed(failed, outcome.results))
+
+
+def _all_failed(failed, results: Path) -> str:
+    first = failed[0]
+    return (f"every group failed ({len(failed)}); first, {first['group']}: {first['error']} "
+            f"(each group's error is in {results})")
 
 
 def _run_with_progress(settings, quiet: bool):
@@ -159,7 +178,9 @@ def _run_with_progress(settings, quiet: bool):
     console = Console(stderr=True)
     columns = (TextColumn("batch {task.fields[stage]}"), BarColumn(),
                TextColumn("{task.fields[text]}"), TimeElapsedColumn())
-    with Progress(*columns, console=console, disable=quiet, transient=False) as bar:
+    # the bar on a terminal only: in a log its last state would precede the warnings and errors
+    with Progress(*columns, console=console, disable=quiet or not console.is_terminal,
+                  transient=False) as bar:
         task = bar.add_task("batch", total=None, stage=settings.command, text="planning")
 
         def progress(c) -> None:

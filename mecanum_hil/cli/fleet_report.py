@@ -18,12 +18,27 @@ def command(
         "\\[%] (default: as the batch wrote it; 5 when joining tables).")] = None,
 ) -> None:
     """Write drift plots (PNG) and a Markdown summary of a fleet's batch results."""
+    import math
+
+    from ..errors import ConfigError
     from ..fleet.report import write_report
     from ..fleet.results import DRIFT_MIN_RELATIVE, add_drift, read_results, row_key
 
+    if drift_threshold is not None and not (math.isfinite(drift_threshold)
+                                            and drift_threshold >= 0):
+        raise ConfigError(f"--drift-threshold must be a finite percentage >= 0, got "
+                          f"{drift_threshold}")
+    if out.exists() and not out.is_dir():
+        given = any(p.exists() and out.samefile(p) for p in results)
+        raise ConfigError(f"{out}: --out is a folder for summary.md and the plots, and this is "
+                          + ("the results table given" if given else "a file"))
     joined: dict = {}
     for path in results:
-        for row in read_results(path):
+        rows_read = read_results(path)
+        if not rows_read:
+            raise ConfigError(f"{path}: no rows: not a results table of mecanum-hil batch, or "
+                              "one cut before its first row")
+        for row in rows_read:
             joined[row_key(row)] = row  # a later table's row replaces an earlier one's
     rows = list(joined.values())
     threshold = None if drift_threshold is None else drift_threshold / 100.0

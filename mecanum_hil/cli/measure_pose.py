@@ -39,13 +39,20 @@ def command(
 ) -> None:
     """Measure the robot's pose per frame: static camera from the floor markers over the whole
     video, the robot's marker on its known plane, smoothed without lag."""
+    from ..errors import VideoError
     from ..io.pose_track import fill_pose
     from ..io.recording import read_recording, write_metadata, write_recording
     from ..vision.camera import load_camera
     from ..vision.pose import PoseOptions, write_pose_csv
     from ..vision.scene import load_scene
+    from ._options import refuse_overwriting
 
     start_auto, start_s = _parse_video_start(video_start, recording)
+    # Refuse before the (long) measurement: writing over an input would lose it.
+    refuse_overwriting([(video, "the video being measured"), (camera, "the camera (--camera)"),
+                        (scene, "the scene (--scene)"),
+                        (recording, "the recording given with --recording", True)],
+                       [(out, "--out", True)])
     cam = load_camera(camera)
     scn = load_scene(scene)
     rec = read_recording(recording) if recording is not None else None
@@ -65,10 +72,12 @@ def command(
         filled = fill_pose(rec, m.t_s, m.pose, start_s, {
             "pose_source": f"measure-pose {video}", "video_start_s": start_s,
             "video_start_method": method, "pose_measurement": summary})
+        with_pose = int(sum(1 for row in filled.pose if all(v == v for v in row)))
+        if with_pose == 0:
+            raise VideoError(_no_pose_rows(m, rec, start_s, video, recording))
         write_recording(filled, out)
         summary["out"] = str(out)
-        summary["recording_rows_with_pose"] = int(
-            sum(1 for row in filled.pose if all(v == v for v in row)))
+        summary["recording_rows_with_pose"] = with_pose
     else:
         write_pose_csv(out, m.t_s + start_s, m.pose)
         write_metadata(out, summary)
@@ -106,16 +115,35 @@ def _parse_video_start(video_start: str | None, recording: Path | None) -> tuple
     return False, start_s
 
 
+def _no_pose_rows(m, rec, start_s: float, video: Path, recording: Path | None) -> str:
+    """Why no row of the recording got a pose: the video's times (from ``start_s``) miss the
+    recording's, or the robot was not seen at those times."""
+    import numpy as np
+
+    seen = np.isfinite(m.pose).all(axis=1)
+    v0, v1 = start_s + float(m.t_s[0]), start_s + float(m.t_s[-1])
+    r0, r1 = (float(rec.t_s[0]), float(rec.t_s[-1])) if len(rec) else (np.nan, np.nan)
+    if not len(rec) or v1 < r0 or v0 > r1:
+        return (f"{video}: the video ({v0:.6g} .. {v1:.6g} s on the recording's clock, video "
+                f"start {start_s:.6g} s) does not overlap {recording} ({r0:.6g} .. {r1:.6g} s): "
+                "no pose row would be filled; check --video-start-s")
+    return (f"{video}: no row of {recording} falls where the robot's marker was seen "
+            f"({int(seen.sum())} of {len(seen)} frames, video start {start_s:.6g} s): no pose "
+            "row would be filled; check --video-start-s")
+
+
 def _measure_with_progress(video: Path, cam, scn, opts):
-    """:func:`~mecanum_hil.vision.pose.measure_pose` behind a frame-count bar on stderr."""
+    """:func:`~mecanum_hil.vision.pose.measure_pose` behind a frame-count bar on stderr (only
+    on a terminal: elsewhere the bar's empty line would precede every warning and error)."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn
 
     from ..vision.pose import measure_pose
 
+    console = Console(stderr=True)
     with Progress(TextColumn("measuring pose"), BarColumn(),
                   TextColumn("{task.completed}/{task.total} frames"),
-                  console=Console(stderr=True), transient=True) as bar:
+                  console=console, transient=True, disable=not console.is_terminal) as bar:
         task = bar.add_task("measure", total=None)
         return measure_pose(video, cam, scn, opts,
                             progress=lambda d, t: bar.update(task, completed=d, total=t or None))

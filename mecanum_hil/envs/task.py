@@ -33,6 +33,9 @@ not; leaving the arena is a failure too.
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +43,20 @@ import numpy as np
 from ..errors import ConfigError
 from ..model import DEFAULT_POSE, RobotProfile
 from . import _kernels
+
+#: Longest simulated episode a task may ask for [s]: one hour (an evaluation of a few hundred
+#: episodes of it already runs minutes; a policy file asking for more is refused, not run).
+MAX_EPISODE_S = 3600.0
+
+
+def _finite(task: object) -> None:
+    """Every parameter a finite number (a task from a policy file may hold anything)."""
+    for f in dataclasses.fields(task):  # type: ignore[arg-type]
+        value = getattr(task, f.name)
+        for v in value if isinstance(value, tuple | list | np.ndarray) else (value,):
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+                raise ConfigError(f"{type(task).__name__}: {f.name} must be a finite number, "
+                                  f"got {value!r}")
 
 
 def _positive(task: object, *names: str) -> None:
@@ -97,11 +114,17 @@ class ReachTask:
     )
 
     def __post_init__(self) -> None:
+        _finite(self)
+        if len(self.start_pose) != 3:
+            raise ConfigError("ReachTask: start_pose must be (X, Y, phi)")
         if not 0 <= self.min_distance_m <= self.max_distance_m < self.arena_radius_m:
             raise ConfigError("ReachTask: need 0 <= min_distance_m <= max_distance_m < "
                               "arena_radius_m")
         _positive(self, "position_tolerance_m", "heading_tolerance_deg", "position_scale_m",
                   "heading_scale_deg", "episode_s")
+        if self.episode_s > MAX_EPISODE_S:
+            raise ConfigError(f"ReachTask: episode_s must be at most {MAX_EPISODE_S:g} s, got "
+                              f"{self.episode_s:g}")
 
     def draw(self, rng: np.random.Generator) -> np.ndarray:
         """A target pose ``(X [m], Y [m], phi [deg])`` (three uniform variates from ``rng``)."""
@@ -171,8 +194,14 @@ class DodgeTask:
     )
 
     def __post_init__(self) -> None:
+        _finite(self)
+        if len(self.start_pose) != 3:
+            raise ConfigError("DodgeTask: start_pose must be (X, Y, phi)")
         if not 0 < self.min_deadline_s <= self.max_deadline_s:
             raise ConfigError("DodgeTask: need 0 < min_deadline_s <= max_deadline_s")
+        if self.max_deadline_s + 1.0 > MAX_EPISODE_S:
+            raise ConfigError(f"DodgeTask: max_deadline_s must be at most "
+                              f"{MAX_EPISODE_S - 1:g} s, got {self.max_deadline_s:g}")
         if not 0 <= self.attack_arc_deg <= 180:
             raise ConfigError("DodgeTask: attack_arc_deg must be within [0, 180]")
         if self.margin_m < 0:

@@ -8,6 +8,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from ..errors import ConfigError
 from .results import add_drift
 
 _COEFFS = (("A", "1/s"), ("B", "1/s"), ("C", "1/s^2"))
@@ -143,7 +144,11 @@ def write_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path,
         ``{"summary": path, "trends": path, ...}`` of the files written.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:  # a file of that name (FileExistsError), no permission ...
+        raise ConfigError(f"{out}: cannot make the report folder: "
+                          f"{err.strerror or err}") from err
     table = add_drift(rows, min_relative) if min_relative is not None else \
         sorted(rows, key=lambda r: (r["group"] or "", r["period"] or ""))
     written: dict[str, Path] = {}

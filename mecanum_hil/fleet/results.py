@@ -149,7 +149,39 @@ def read_results(path: str | Path) -> list[dict[str, Any]]:
         raise ConfigError(f"{p}: cannot read the results table: {err}") from err
     if rows and "group" not in rows[0]:
         raise ConfigError(f"{p}: not a results table of mecanum-hil batch (no 'group' column)")
+    if fmt == "csv":
+        _check_csv_rows(p, rows)
     return [normalise(r) for r in rows]
+
+
+#: Columns every results table has (a table cut in its header lacks some).
+REQUIRED_COLUMNS = ("group", "period", "command", "status")
+
+
+def _check_csv_rows(p: Path, rows: Sequence[Mapping[str, Any]]) -> None:
+    """One line for a CSV table that is not whole: columns missing, a row with more cells than
+    the header, text in a number column (it would be dropped silently, and the row's plots
+    with it)."""
+    if not rows:
+        return
+    missing = [c for c in REQUIRED_COLUMNS if c not in rows[0]]
+    if missing:
+        raise ConfigError(f"{p}: not a whole results table of mecanum-hil batch (no "
+                          f"{', '.join(repr(c) for c in missing)} column)")
+    for i, row in enumerate(rows, start=2):  # line 1 is the header
+        if None in row:
+            raise ConfigError(f"{p}, line {i}: more cells than the header has columns")
+        for c, kind in SCHEMA.items():
+            v = row.get(c)
+            if kind not in ("float", "int") or v is None or v == "":
+                continue
+            try:
+                float(v)
+            except ValueError:
+                raise ConfigError(f"{p}, line {i}, column {c}: {v!r} is not a number"
+                                  ) from None
+            if kind == "int" and not math.isfinite(float(v)):
+                raise ConfigError(f"{p}, line {i}, column {c}: {v!r} is not a whole number")
 
 
 def row_key(row: Mapping[str, Any]) -> tuple[str, str, str]:

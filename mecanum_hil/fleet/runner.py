@@ -207,6 +207,53 @@ class _Calibrations:
         return cal, _digest(data)
 
 
+#: The placeholders of a ``--calibration`` template.
+CALIBRATION_PLACEHOLDERS = ("group", "period")
+
+
+def calibration_ref(template: str, group: str, period: str) -> str:
+    """``--calibration`` for a group: the template's ``{group}`` and ``{period}`` filled.
+
+    Raises
+    ------
+    ConfigError
+        An unknown placeholder or a stray brace, naming the known placeholders.
+    """
+    known = ", ".join("{" + p + "}" for p in CALIBRATION_PLACEHOLDERS)
+    try:
+        return template.format(group=group, period=period)
+    except KeyError as err:
+        raise ConfigError(f"--calibration {template!r}: unknown placeholder {{{err.args[0]}}} "
+                          f"(known: {known})") from None
+    except (IndexError, ValueError, AttributeError) as err:
+        raise ConfigError(f"--calibration {template!r}: not a template ({err}; the known "
+                          f"placeholders are {known}, a literal brace is written twice)"
+                          ) from None
+
+
+def refuse_reading_out(settings: BatchSettings) -> None:
+    """One line when the results table would be written over a file the batch reads: a
+    recording (or video) of a local archive, e.g. ``batch fit ARCH -o ARCH/robA/r1.csv``."""
+    url = settings.archive
+    if url.startswith("file://"):
+        url = url[len("file://"):]
+    elif "://" in url:
+        return  # a remote archive: the local table cannot be one of its files
+    out = Path(settings.out)
+    try:
+        root, target = Path(url).resolve(), out.resolve()
+    except OSError:
+        return
+    if not target.is_file() or not target.is_relative_to(root) or target.name.startswith("."):
+        return
+    from .archive import RECORDING_SUFFIXES, VIDEO_SUFFIXES
+
+    read = VIDEO_SUFFIXES if settings.command == "measure-video" else RECORDING_SUFFIXES
+    if target.name.lower().endswith(read):
+        raise ConfigError(f"{out}: --out would overwrite an input of the archive "
+                          f"({target.relative_to(root)}); write the results elsewhere")
+
+
 def plan(settings: BatchSettings,
          previous: Mapping[tuple[str, str, str], Mapping[str, Any]] | None = None
          ) -> tuple[list[GroupSpec], Any]:
@@ -222,8 +269,13 @@ def plan(settings: BatchSettings,
     if settings.command not in COMMANDS:
         raise ConfigError(f"batch command must be one of {', '.join(COMMANDS)}, got "
                           f"{settings.command!r}")
+    calibration_ref(settings.calibration, "", "")  # a bad template: one line, before the work
     kind = "videos" if settings.command == "measure-video" else "recordings"
     archive = open_archive(settings.archive, kind)
+    level = settings.period_level
+    if level and not any(len(f.rel.split("/")) > level for f in archive.files):
+        raise ConfigError(f"--period-level {level}: no file of {settings.archive} is inside a "
+                          f"level-{level} folder (e.g. {archive.files[0].rel})")
     groups: list[Group] = group_files(archive, settings.group_by, settings.period,
                                       per_file=settings.command == "measure-video",
                                       period_level=settings.period_level)
@@ -235,7 +287,7 @@ def plan(settings: BatchSettings,
         error = g.error
         cal, cal_hash = None, ""
         if settings.command != "measure-video" or "{" not in settings.calibration:
-            ref = settings.calibration.format(group=g.group, period=g.period)
+            ref = calibration_ref(settings.calibration, g.group, g.period)
             try:
                 cal, cal_hash = cals.get(ref)
             except MecanumHILError as err:
@@ -380,6 +432,7 @@ def run_batch(settings: BatchSettings, progress: Callable[[Counts], None] | None
     say = echo or (lambda _m: None)
     t0 = time.perf_counter()
     table_format(settings.out)
+    refuse_reading_out(settings)
     previous = previous_rows(settings.out, settings.command) if settings.resume else {}
     specs, _archive = plan(settings, previous)
     say(f"{settings.archive}: {describe_specs(specs)}")

@@ -15,6 +15,8 @@ oldest data when a viewer lags.
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -75,17 +77,46 @@ def event_entry(event: dict[str, Any]) -> LogEntry | None:
     t = event.get("t_s")
     if t is None or kind in ("start", "end"):
         return None
+    t = _event_time(t)
+    if kind in ("alarm", "recovered", "noise") and not isinstance(event.get("channel"), str):
+        raise ValueError(f"an event {kind!r} needs a \"channel\" (text), got "
+                         f"{event.get('channel')!r}")
     if kind == "alarm":
         level = LOG_ERROR if event.get("action") == "stop" else LOG_WARNING
-        return LogEntry(float(t), level, alarm_line(event))
+        return LogEntry(t, level, _line(event, lambda: alarm_line(event)))
     if kind == "recovered":
-        return LogEntry(float(t), LOG_INFO, alarm_line(event))
+        return LogEntry(t, LOG_INFO, _line(event, lambda: alarm_line(event)))
     if kind == "noise":
-        return LogEntry(float(t), LOG_DEBUG, f"noise {event['channel']}: "
-                                             f"{event['noise']:.3g} {event['unit']}")
+        return LogEntry(t, LOG_DEBUG, _line(event, lambda: f"noise {event['channel']}: "
+                                                        f"{event['noise']:.3g} {event['unit']}"))
     if kind == "stop_failed":
         return LogEntry(float(t), LOG_ERROR, f"STOP failed: {event.get('error', '')}")
-    return LogEntry(float(t), LOG_INFO, json.dumps(event, default=str))
+    return LogEntry(t, LOG_INFO, json.dumps(event, default=str))
+
+
+#: Largest event time [s] from the recording's start (|t_s|; 31 years): the MCAP log time,
+#: the recording's start plus t_s in nanoseconds, must fit its 64 bits.
+MAX_EVENT_T_S = 1e9
+
+
+def _event_time(t: Any) -> float:
+    """An event's ``t_s`` as seconds; ValueError (the reason) for anything else."""
+    if isinstance(t, bool) or not isinstance(t, numbers.Real):
+        raise ValueError(f"\"t_s\" must be a number of seconds, got {t!r}")
+    t = float(t)
+    if not (math.isfinite(t) and abs(t) <= MAX_EVENT_T_S):
+        raise ValueError(f"\"t_s\" must be a finite number of seconds within "
+                         f"+-{MAX_EVENT_T_S:g}, got {t!r}")
+    return t
+
+
+def _line(event: dict[str, Any], text: Callable[[], str]) -> str:
+    """The event's line; its JSON when a field is missing or not a number (a NaN written as
+    null by the monitor), so one odd field does not lose the event."""
+    try:
+        return text()
+    except (KeyError, TypeError, ValueError):
+        return json.dumps(event, default=str)
 
 
 def read_event_log(path: str | Path) -> list[LogEntry]:
@@ -102,10 +133,16 @@ def read_event_log(path: str | Path) -> list[LogEntry]:
         try:
             event = json.loads(line)
         except json.JSONDecodeError as err:
-            if i == len(lines):
+            if i == len(lines) and any(x.strip() for x in lines[:i - 1]):
                 break  # a last line cut off mid-write (the process died): everything before
             raise MecanumHILError(f"{p}, line {i}: not JSON: {err}") from err
-        entry = event_entry(event)
+        if not isinstance(event, dict):
+            raise MecanumHILError(f"{p}, line {i}: not an event (a JSON object), got "
+                                  f"{type(event).__name__}")
+        try:
+            entry = event_entry(event)
+        except ValueError as err:
+            raise MecanumHILError(f"{p}, line {i}: {err}") from err
         if entry is not None:
             entries.append(entry)
     return entries

@@ -254,7 +254,10 @@ def load_policy(path: str | Path) -> NetworkPolicy:
     ConfigError
         Missing, not a policy file, another format version, or inconsistent arrays.
     """
+    import zipfile
+
     path = Path(path)
+    _check_zip(path)
     try:
         with np.load(path, allow_pickle=False) as z:
             meta = json.loads(str(z["meta"][()]))
@@ -263,9 +266,10 @@ def load_policy(path: str | Path) -> NetworkPolicy:
             scale = np.asarray(z["input_scale"], dtype=float)
     except FileNotFoundError as err:
         raise ConfigError(f"{path}: no such policy file") from err
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as err:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile,
+            json.JSONDecodeError) as err:
         raise ConfigError(f"{path}: not a mecanum-hil policy file ({err})") from err
-    if meta.get("format") != FORMAT:
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ConfigError(f"{path}: not a mecanum-hil policy file")
     if meta.get("format_version") != FORMAT_VERSION:
         raise ConfigError(f"{path}: policy format version {meta.get('format_version')}, this "
@@ -279,17 +283,77 @@ def load_policy(path: str | Path) -> NetworkPolicy:
         task = task_from_dict(meta["task"]["name"], meta["task"]["parameters"])
         features = tuple(meta["features"])
         period = float(meta["control_period_s"])
-    except (KeyError, TypeError, ValueError) as err:
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise ConfigError(f"{path}: policy file lacks or garbles {err}") from err
-    if params.shape != (arch.n_params,) or offset.shape != scale.shape != (arch.n_inputs,) \
-            or len(features) != arch.n_inputs or not np.isfinite(params).all():
+    except ConfigError as err:  # the task's parameters
+        raise ConfigError(f"{path}: task: {err}") from err
+    _check_values(path, meta, robot, period)
+    if params.shape != (arch.n_params,) or offset.shape != (arch.n_inputs,) \
+            or scale.shape != (arch.n_inputs,) or len(features) != arch.n_inputs \
+            or not np.isfinite(params).all():
         raise ConfigError(f"{path}: policy arrays do not match its network")
+    if not np.isfinite(offset).all():
+        raise ConfigError(f"{path}: input_offset must be finite")
+    if not (np.isfinite(scale).all() and (scale > 0).all()):
+        raise ConfigError(f"{path}: input_scale must be finite and > 0")
     if features != FEATURES[task_name(task)]:
         raise ConfigError(f"{path}: features {features} are not those of the task")
     return NetworkPolicy(arch, params, features, offset, scale, robot, task, period,
                          meta["calibration"].get("toml", ""),
                          meta["calibration"].get("source", ""), dict(meta.get("training", {})),
                          name=path.stem)
+
+
+#: The longest control period a policy file may give [s].
+MAX_CONTROL_PERIOD_S = 1.0
+
+
+def _check_zip(path: Path) -> None:
+    """One line for a file that cannot be a policy file (an ``.npz`` is a zip archive): numpy
+    would take anything else for a pickle, or abort on an empty file."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(4)
+    except FileNotFoundError as err:
+        raise ConfigError(f"{path}: no such policy file") from err
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the policy file: {err.strerror or err}") from err
+    if not head.startswith(b"PK"):
+        raise ConfigError(f"{path}: not a mecanum-hil policy file (.npz): "
+                          + ("the file is empty" if not head else "not a zip archive"))
+
+
+def _check_values(path: Path, meta: dict[str, Any], robot: RobotProfile, period: float) -> None:
+    """Every number of the file finite and in range, the network one this tool computes: one
+    line naming the file and the key."""
+    net = meta["network"]
+    for key, known in (("kind", "mlp"), ("activation", "tanh"), ("output", "tanh")):
+        if net.get(key, known) != known:
+            raise ConfigError(f"{path}: network.{key} {net.get(key)!r} is not supported "
+                              f"(this tool computes {known!r})")
+    if meta.get("action_map", "polar") != "polar":
+        raise ConfigError(f"{path}: action_map {meta.get('action_map')!r} is not supported "
+                          "(polar)")
+    for key in ROBOT_FIELDS[1:]:
+        v = getattr(robot, key)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) \
+                or v <= 0:
+            raise ConfigError(f"{path}: robot.{key} must be a finite number > 0, got {v!r}")
+    if not (math.isfinite(period) and 0 < period <= MAX_CONTROL_PERIOD_S):
+        raise ConfigError(f"{path}: control_period_s must be > 0 and at most "
+                          f"{MAX_CONTROL_PERIOD_S:g} s, got {period!r}")
+    bounds = {}
+    for key in ("action_low", "action_high"):
+        if key not in meta:
+            continue
+        try:
+            bounds[key] = np.asarray(meta[key], dtype=float)
+        except (TypeError, ValueError):
+            bounds[key] = np.full(1, np.nan)
+        if bounds[key].shape != (3,) or not np.isfinite(bounds[key]).all():
+            raise ConfigError(f"{path}: {key} must be three finite numbers, got {meta[key]!r}")
+    if len(bounds) == 2 and not (bounds["action_low"] < bounds["action_high"]).all():
+        raise ConfigError(f"{path}: action_low must be below action_high")
 
 
 def resolve_policy(spec: str | Path, robot: RobotProfile, task: str | None = None,

@@ -37,7 +37,7 @@ from .. import __version__
 from ..errors import VideoError
 from .camera import CameraModel, CameraPose, rays_to_plane
 from .scene import UNIT_CORNERS, Scene, dictionary_by_name
-from .video import decoded_ahead, frame_times, open_video
+from .video import check_fps, decoded_ahead, frame_times, open_video
 
 #: Default smoothing window [s] (0 turns smoothing off).
 DEFAULT_WINDOW_S = 0.2
@@ -73,6 +73,7 @@ class PoseOptions:
             raise VideoError("floor_every must be >= 1")
         if not 0.0 <= self.min_found <= 1.0:
             raise VideoError(f"--min-found must be within 0..1, got {self.min_found}")
+        check_fps(self.fps)
 
 
 @dataclass(frozen=True)

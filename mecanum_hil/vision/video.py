@@ -33,6 +33,11 @@ FOURCC_BY_SUFFIX = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJP
 TIMESTAMP_RESOLUTION_S = 0.001
 #: Relative spread of frame intervals above which a video counts as variable frame rate.
 VARIABLE_RATE_TOLERANCE = 0.02
+#: Bounds of ``--fps`` [1/s]: from a time-lapse camera's 0.1 frames per second (one frame every
+#: 10 s; below it the frame times of an ordinary video, 1e-5 fps, would be days) to beyond any
+#: high-speed camera. Outside them the value is a typing error, refused.
+MIN_FPS = 0.1
+MAX_FPS = 100_000.0
 
 
 @dataclass(frozen=True)
@@ -281,6 +286,13 @@ class FrameTiming:
     variable: bool
 
 
+def check_fps(fps: float | None) -> None:
+    """A ``--fps`` within :data:`MIN_FPS` .. :data:`MAX_FPS` (None: not given)."""
+    if fps is not None and not MIN_FPS <= fps <= MAX_FPS:
+        raise VideoError(f"--fps must be within {MIN_FPS:g} .. {MAX_FPS:g} frames per second, "
+                         f"got {fps:g}")
+
+
 def frame_times(stamps_s: np.ndarray, fps_nominal: float, fps_override: float | None = None,
                 source: str = "video") -> FrameTiming:
     """Frame times from container timestamps, or from the frame rate when those are unusable.
@@ -298,8 +310,7 @@ def frame_times(stamps_s: np.ndarray, fps_nominal: float, fps_override: float | 
     """
     n = len(stamps_s)
     if fps_override is not None:
-        if not fps_override > 0:
-            raise VideoError(f"--fps must be > 0, got {fps_override}")
+        check_fps(fps_override)
         return FrameTiming(np.arange(n) / fps_override, float(fps_override), "override", False)
     st = np.asarray(stamps_s, dtype=float)
     if n >= 2 and np.isfinite(st).all() and (np.diff(st) > 0).all():

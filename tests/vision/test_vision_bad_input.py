@@ -296,8 +296,11 @@ def test_a_marker_really_lost_fails_in_one_line_at_the_lower_default(tmp_path, r
 
 
 @pytest.mark.parametrize(("option", "value", "fragment"), [
-    ("--fps", "inf", "--fps must be > 0 and at most 100000"),
-    ("--fps", "1e9", "--fps must be > 0 and at most 100000"),
+    ("--fps", "inf", "--fps must be within 0.1 .. 100000 frames per second"),
+    ("--fps", "1e9", "--fps must be within 0.1 .. 100000 frames per second"),
+    # below a time-lapse camera's rate: frame times of days (1e-300: t_s ~ 1e300), exit 0
+    ("--fps", "1e-5", "--fps must be within 0.1 .. 100000 frames per second"),
+    ("--fps", "1e-300", "--fps must be within 0.1 .. 100000 frames per second"),
     ("--window", "1e6", "--window must be > 0 s and at most 60 s"),
 ])
 def test_options_that_size_the_work_are_bounded_before_decoding(tmp_path, capsys, good_video,
