@@ -159,7 +159,7 @@ def import_source(path: str | Path, fmt: str = "auto", **options) -> ImportResul
     with np.errstate(over="ignore"):  # a unit conversion overflowing: refused just below
         res = mod.read(p, **options)
     rec = res.recording
-    refuse_absurd_values(np.column_stack([rec.t_s, rec.commands, rec.wheel_rpm, rec.pose]),
+    refuse_absurd_values([rec.t_s, *rec.commands.T, *rec.wheel_rpm.T, *rec.pose.T],
                          lambda i: f"{p}: imported row {i + 1} (t = {rec.t_s[i]:.6g} s)")
     if "notes" not in res.recording.metadata:  # a format that keeps them only in the result
         res = with_notes(res)

@@ -300,17 +300,33 @@ def read_recording(path: str | Path) -> Recording:
                      arr[:, 8:11].copy(), dict(zip(extra_names, extra, strict=True)), metadata)
 
 
-def refuse_absurd_values(arr: np.ndarray, row_name) -> None:
-    """A :class:`RecordingError` naming the first value of ``arr`` (rows of :data:`COLUMNS`)
-    that is infinite or beyond :data:`MAX_ABS_VALUE`; ``row_name(i)`` names row ``i``."""
-    limits = np.array([MAX_ABS_VALUE[c] for c in COLUMNS])
-    with np.errstate(invalid="ignore"):
-        bad = np.abs(arr) > limits
-    if bad.any():
-        i, j = (int(v[0]) for v in np.nonzero(bad))
+def refuse_absurd_values(columns, row_name) -> None:
+    """A :class:`RecordingError` naming the first value (by row) that is infinite or beyond
+    :data:`MAX_ABS_VALUE`.
+
+    Parameters
+    ----------
+    columns : array of shape (T, 11) or sequence of 11 arrays of shape (T,)
+        The values in the order of :data:`COLUMNS` (checked a column at a time: an hour of
+        1 kHz samples is not copied).
+    row_name : callable
+        ``row_name(i)`` names row ``i`` in the message.
+    """
+    cols = list(columns.T) if isinstance(columns, np.ndarray) else list(columns)
+    first = None  # (row, column)
+    for j, name in enumerate(COLUMNS):
+        with np.errstate(invalid="ignore"):
+            bad = np.abs(cols[j]) > MAX_ABS_VALUE[name]
+        if bad.any():
+            i = int(np.argmax(bad))
+            if first is None or i < first[0]:
+                first = (i, j)
+    if first is not None:
+        i, j = first
         raise RecordingError(
-            f"{row_name(i)}, column '{COLUMNS[j]}': {arr[i, j]:g} is not a value a robot logs "
-            f"(beyond {limits[j]:g}): a corrupt field? (leave a missing value empty)")
+            f"{row_name(i)}, column '{COLUMNS[j]}': {cols[j][i]:g} is not a value a robot logs "
+            f"(beyond {MAX_ABS_VALUE[COLUMNS[j]]:g}): a corrupt field? (leave a missing value "
+            "empty)")
 
 
 def _repaired_time(t: np.ndarray, metadata: Mapping[str, Any], row_name, source: str,
