@@ -34,7 +34,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ConfigError, FitError
 from ..io.recording import Recording
-from ..model.calibration import MAX_COEFFICIENT, Calibration, Effects
+from ..model.calibration import Calibration, Effects
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
 from ..model.simulate import simulate_batch, steady_state
@@ -64,9 +64,11 @@ _NO_EFFECTS = Effects()
 
 #: Default bounds: the model stays stable (A, B >= 0, C > 0) and effects physical.
 DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
-    "A": (0.0, MAX_COEFFICIENT),
-    "B": (0.0, MAX_COEFFICIENT),
-    "C": (1e-6, MAX_COEFFICIENT),
+    # unbounded above: finite bounds change the solver's scaling (trf) on every fit; a model
+    # beyond calibration.MAX_COEFFICIENT is refused when the result is made
+    "A": (0.0, math.inf),
+    "B": (0.0, math.inf),
+    "C": (1e-6, math.inf),
     "dead_time_s": (0.0, 5.0),
     "top_speed_rpm": (1e-6, math.inf),
     "rate_limit_rpm_per_s": (1e-6, math.inf),
