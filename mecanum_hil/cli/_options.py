@@ -109,13 +109,21 @@ def echo_safely(text: str) -> None:
     stdout must not end a run that drives the robot, nor change its exit code (click would
     exit 1, silently). What cannot be printed is dropped, and stdout points at the null
     device from then on (no second error at exit)."""
+    import errno
     import os
     import sys
 
     try:
         typer.echo(text)
         sys.stdout.flush()
-    except (BrokenPipeError, ValueError):  # a closed pipe; a closed stream
+    except UnicodeError:  # a real error (a character the terminal cannot show): said
+        raise
+    except (OSError, ValueError) as err:
+        # a closed pipe (EPIPE), a terminal hung up (EIO, with SIGHUP), a closed stream
+        if isinstance(err, OSError) and err.errno not in (errno.EPIPE, errno.EIO):
+            raise
+        if isinstance(err, ValueError) and not getattr(sys.stdout, "closed", False):
+            raise
         try:
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())

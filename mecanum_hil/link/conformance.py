@@ -800,9 +800,10 @@ def select_rules(patterns: Sequence[str] = ()) -> list[str]:
 
 
 def _run_rules(probe: Probe, rules: Sequence[str], results: list,
-               progress: Callable[[RuleResult], None] | None) -> None:
-    """Run the rules in turn, each ended by STOP (also when a signal ends the run in it);
-    after a lost link the rest are skipped."""
+               progress: Callable[[RuleResult], None] | None, guard: SignalGuard) -> None:
+    """Run the rules in turn, each ended by STOP (also when a signal ends the run in it:
+    signals are kept while STOP is sent, and raised after it); after a lost link the rest
+    are skipped."""
     lost: str | None = None
     for name in select_rules(rules):
         check = RULES[name][0]
@@ -822,11 +823,13 @@ def _run_rules(probe: Probe, rules: Sequence[str], results: list,
         except LinkError as err:
             outcome, detail = "fail", f"link error: {err}"
         finally:
+            guard.defer()  # a signal now waits for the rule's STOP
             if lost is None:
                 try:
                     probe.end()
                 except LinkError:
                     pass
+            guard.rearm()  # ... and ends the run here
         result = RuleResult(name, outcome, detail, round(time.monotonic() - start, 3))
         results.append(result)
         if progress is not None:
@@ -862,7 +865,8 @@ def run_conformance(transport: Transport, robot: RobotProfile, *,
     # instead of ending the process with the wheels turning
     guard = SignalGuard()
     try:
-        _run_rules(probe, rules, results, progress)
+        guard.check()
+        _run_rules(probe, rules, results, progress, guard)
     finally:
         guard.defer()
         guard.restore()

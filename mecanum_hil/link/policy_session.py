@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import time
 from collections.abc import Callable, Sequence
@@ -379,51 +380,68 @@ def run_policy_episodes(transport: Transport, policy, robot: RobotProfile,
     config = config or SessionConfig()
     results, outcomes = [], []
     exit_code, reason = 0, "completed"
-    # between episodes too: a signal ends the run with its summary (it used to kill the
-    # process with none); inside an episode the episode's own guard ends it with STOP
+    # between episodes a signal is kept (observers closed, the episode counted, the summary
+    # written whole) and ends the run at the next check; inside an episode the episode's own
+    # guard ends it with STOP (it takes over this guard's handlers)
     guard = SignalGuard(config.handle_sigterm)
+    guard.defer()
+
+    def signalled() -> str | None:
+        if guard.pending is None:
+            return None
+        return "interrupted" if guard.pending == signal.SIGINT else "terminated"
+
     try:
-        for i in range(episodes):
-            ctl = EpisodeController(policy, robot, calibration, episode_draw(policy.task, seed, i))
-            out = out_dir / f"episode_{i:03d}.csv"
-            observers = list(make_observers(out)) if make_observers else []
-            meta = {**(metadata or {}), "episode": i, "seed": seed,
-                    "task": task_name(policy.task), "command_rate_hz": 1.0 / ctl.period_s}
-            prog = None if progress is None else (
-                lambda el, tot, counts, i=i: progress(i, el, tot, counts))
-            try:
-                res = run_policy_episode(transport, ctl, out, robot, config=config,
-                                         observers=observers, metadata=meta, progress=prog)
-            finally:
-                if close_observers is not None:
-                    close_observers(observers)
-            results.append(res)
-            outcomes.append(ctl.outcome)
-            if echo is not None:
-                o = ctl.outcome
-                echo(f"episode {i}: {o.ended} after {o.end_time_s:.2f} s, return "
-                     f"{o.episode_return:+.3f} ({res.reason}, {out.name})")
-            if res.exit_code != 0:
-                exit_code, reason = res.exit_code, res.reason
-                break
-            if res.signal_at_end is not None:  # the episode ended whole; no further one
-                reason = "interrupted" if res.signal_at_end == signal.SIGINT else "terminated"
-                exit_code = EXIT_CODES[reason]
-                break
-    except (KeyboardInterrupt, SessionTerminated) as exc:  # between episodes: STOP is out
-        reason = signal_reason(exc)
-        exit_code = EXIT_CODES[reason]
+        try:
+            for i in range(episodes):
+                if (kept := signalled()) is not None:
+                    exit_code, reason = EXIT_CODES[kept], kept
+                    break
+                ctl = EpisodeController(policy, robot, calibration,
+                                        episode_draw(policy.task, seed, i))
+                out = out_dir / f"episode_{i:03d}.csv"
+                observers = list(make_observers(out)) if make_observers else []
+                meta = {**(metadata or {}), "episode": i, "seed": seed,
+                        "task": task_name(policy.task), "command_rate_hz": 1.0 / ctl.period_s}
+                prog = None if progress is None else (
+                    lambda el, tot, counts, i=i: progress(i, el, tot, counts))
+                try:
+                    res = run_policy_episode(transport, ctl, out, robot, config=config,
+                                             observers=observers, metadata=meta, progress=prog)
+                finally:
+                    if close_observers is not None:
+                        close_observers(observers)
+                results.append(res)
+                outcomes.append(ctl.outcome)
+                if echo is not None:
+                    o = ctl.outcome
+                    echo(f"episode {i}: {o.ended} after {o.end_time_s:.2f} s, return "
+                         f"{o.episode_return:+.3f} ({res.reason}, {out.name})")
+                if res.exit_code != 0:
+                    exit_code, reason = res.exit_code, res.reason
+                    break
+                if res.signal_at_end is not None:  # the episode ended whole; no further one
+                    reason = "interrupted" if res.signal_at_end == signal.SIGINT \
+                        else "terminated"
+                    exit_code = EXIT_CODES[reason]
+                    break
+        except (KeyboardInterrupt, SessionTerminated) as exc:  # raised between episodes
+            reason = signal_reason(exc)
+            exit_code = EXIT_CODES[reason]
+        summary = summary_of(policy, robot, outcomes, {
+            "seed": seed, "episodes_requested": episodes, "end_reason": reason,
+            "exit_code": exit_code, "policy": policy.describe(),
+            "recordings": [r.path.name for r in results]})
+        path = out_dir / "summary.json"
+        tmp = path.with_name(path.name + ".tmp")
+        try:  # atomically: a reader never sees half of it
+            tmp.write_text(json.dumps(summary, indent=2) + "\n")
+            os.replace(tmp, path)
+        except OSError as err:
+            raise ConfigError(f"{out_dir}: cannot write summary.json: "
+                              f"{err.strerror or err}") from err
     finally:
-        guard.defer()
         guard.restore()
-    summary = summary_of(policy, robot, outcomes, {
-        "seed": seed, "episodes_requested": episodes, "end_reason": reason,
-        "exit_code": exit_code, "policy": policy.describe(),
-        "recordings": [r.path.name for r in results]})
-    try:
-        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    except OSError as err:
-        raise ConfigError(f"{out_dir}: cannot write summary.json: {err.strerror or err}") from err
     return PolicyRun(results, outcomes, summary, exit_code)
 
 

@@ -783,11 +783,13 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
     guard = SignalGuard(config.handle_sigterm)
     try:
         try:
+            guard.check()
             reason, message, error, tail = _stream_until_end(sess, config)
+            # from here a signal is kept, not raised: nothing may cut STOP or the close short
+            guard.defer()
         except (KeyboardInterrupt, SessionTerminated) as exc:  # as the stream was ending
             reason, tail = signal_reason(exc), 0.0
-        # from here a signal is kept, not raised: nothing may cut STOP or the close short
-        guard.defer()
+            guard.defer()
         if reason != "completed" and cut_short is not None:
             cut_short(reason)
         # every way out: STOP first, then the recording is closed cleanly
@@ -809,17 +811,26 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
                 sess.stop(0.0)
             except LinkError as err:  # only settling receives on its own (STOP never raises)
                 reason, message, error = "link_lost", str(err), err
+            except Exception as err:  # a row that cannot be written while settling, ...
+                reason, message, error = "error", str(err), err
     finally:
-        guard.defer()
-        if not sess.stop_attempted:  # an exception (or a signal) before the STOP above
-            sess.stop(0.0)
-        sess.pump.close()
-        duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
-        latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
-        end_meta = _end_metadata(sess, transport, reason, message, latency)
-        if end_extra is not None:
-            end_meta.update(end_extra())
         try:
+            guard.defer()
+            if not sess.stop_attempted:  # an exception (or a signal) before the STOP above
+                sess.stop(0.0)
+            try:
+                sess.pump.close()
+            except Exception:  # the observers' thread: the recording is closed all the same
+                pass
+            duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
+            latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
+            try:
+                end_meta = _end_metadata(sess, transport, reason, message, latency)
+                if end_extra is not None:
+                    end_meta.update(end_extra())
+            except Exception as err:  # the end is written, whatever failed in making it
+                end_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
+                            "end_message": f"{message} (end metadata failed: {err})"}
             writer.close(end_meta)
         finally:
             guard.restore()
@@ -884,18 +895,28 @@ class SignalGuard:
 
     def __init__(self, active: bool = True) -> None:
         self.pending: int | None = None
-        self._raise = True
+        # installed keeping signals: one that comes while the handlers go in is raised by
+        # check() inside the caller's try, not out of this constructor (handlers orphaned)
+        self._raise = False
         self._saved: dict[int, Any] = {}
-        if not (active and threading.current_thread() is threading.main_thread()):
-            return
-        for name in ENDING_SIGNALS:
-            sig = getattr(signal, name, None)
-            if sig is None:
-                continue
-            if name not in ("SIGTERM", "SIGHUP", "SIGINT") \
-                    and signal.getsignal(sig) is not signal.SIG_DFL:
-                continue  # someone else handles (or ignores) it
-            self._saved[sig] = signal.signal(sig, self._on_signal)
+        if active and threading.current_thread() is threading.main_thread():
+            for name in ENDING_SIGNALS:
+                sig = getattr(signal, name, None)
+                if sig is None:
+                    continue
+                current = signal.getsignal(sig)
+                if (name not in ("SIGTERM", "SIGHUP", "SIGINT") and current is not signal.SIG_DFL
+                        and getattr(current, "__func__", None) is not SignalGuard._on_signal):
+                    continue  # someone else handles (or ignores) it; an outer guard's we take
+                self._saved[sig] = signal.signal(sig, self._on_signal)
+        self._raise = True
+
+    def check(self) -> None:
+        """Raise a signal kept so far (while raising), as its handler would have."""
+        if self.pending is not None and self._raise:
+            signum, self.pending = self.pending, None
+            self._raise = False
+            raise KeyboardInterrupt if signum == signal.SIGINT else SessionTerminated()
 
     def _on_signal(self, signum, frame) -> None:
         if not self._raise:
@@ -910,6 +931,11 @@ class SignalGuard:
     def defer(self) -> None:
         """From now on keep a signal in :attr:`pending` instead of raising."""
         self._raise = False
+
+    def rearm(self) -> None:
+        """Raise again from now on; a signal kept meanwhile is raised at once."""
+        self._raise = True
+        self.check()
 
     @contextmanager
     def raising(self):

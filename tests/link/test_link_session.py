@@ -300,3 +300,36 @@ def test_controller_without_telemetry_gives_commands_only(pty_pair, host_serial,
     assert np.isnan(rec.wheel_rpm).all() and np.isfinite(rec.commands).all()
     assert ctrl.commands_received == t.size
     assert res.latency_ms["rtt_n"] >= 1  # PING still measures the round trip
+
+
+def test_nested_guards_take_over_every_signal_and_put_each_back():
+    """``record --policy`` nests an episode's guard in the run's: the episode's must take
+    over every signal the run's holds (Ctrl-\\ reached the run's raising handler while the
+    episode's recording was being closed), keep what comes while it defers, and put the run's
+    handlers back."""
+    import signal
+
+    from mecanum_hil.link.session import ENDING_SIGNALS, SignalGuard
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers live in the main thread")
+    names = [n for n in ENDING_SIGNALS if hasattr(signal, n)]
+    before = {n: signal.getsignal(getattr(signal, n)) for n in names}
+    outer = SignalGuard()
+    outer.defer()
+    held = [n for n in names if signal.getsignal(getattr(signal, n)) == outer._on_signal]
+    assert {"SIGTERM", "SIGHUP", "SIGINT"} <= set(held)
+    inner = SignalGuard()
+    try:
+        assert all(signal.getsignal(getattr(signal, n)) == inner._on_signal for n in held)
+        inner.defer()
+        if "SIGUSR1" in held:  # a real one: kept by the inner guard, not raised
+            os.kill(os.getpid(), signal.SIGUSR1)
+            for _ in range(1000):
+                pass
+            assert inner.pending == signal.SIGUSR1 and outer.pending is None
+    finally:
+        inner.restore()
+    assert all(signal.getsignal(getattr(signal, n)) == outer._on_signal for n in held)
+    outer.restore()
+    assert {n: signal.getsignal(getattr(signal, n)) for n in names} == before
