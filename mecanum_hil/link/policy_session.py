@@ -30,7 +30,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -55,6 +54,7 @@ from .session import (
     _Session,
     _start_metadata,
     _stream_stop_close,
+    signal_end_reason,
     signal_reason,
 )
 from .transport import Transport
@@ -389,7 +389,7 @@ def run_policy_episodes(transport: Transport, policy, robot: RobotProfile,
     def signalled() -> str | None:
         if guard.pending is None:
             return None
-        return "interrupted" if guard.pending == signal.SIGINT else "terminated"
+        return signal_end_reason(guard.pending)
 
     try:
         try:
@@ -421,8 +421,7 @@ def run_policy_episodes(transport: Transport, policy, robot: RobotProfile,
                     exit_code, reason = res.exit_code, res.reason
                     break
                 if res.signal_at_end is not None:  # the episode ended whole; no further one
-                    reason = "interrupted" if res.signal_at_end == signal.SIGINT \
-                        else "terminated"
+                    reason = signal_end_reason(res.signal_at_end)
                     exit_code = EXIT_CODES[reason]
                     break
         except (KeyboardInterrupt, SessionTerminated) as exc:  # raised between episodes

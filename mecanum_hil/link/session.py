@@ -876,6 +876,17 @@ def signal_reason(exc: BaseException) -> str:
     return "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
 
 
+def signal_end_reason(signum: int) -> str:
+    """The end reason of a signal kept by a :class:`SignalGuard` (as :func:`signal_reason`)."""
+    return "interrupted" if signum == signal.SIGINT else "terminated"
+
+
+def _signal_exception(signum: int) -> BaseException:
+    """What a signal raises in a stream: ``KeyboardInterrupt`` for Ctrl-C, else
+    :class:`SessionTerminated`."""
+    return KeyboardInterrupt() if signum == signal.SIGINT else SessionTerminated()
+
+
 class SignalGuard:
     """The stream's signal handlers, from its start until its recording is closed.
 
@@ -916,7 +927,7 @@ class SignalGuard:
         if self.pending is not None and self._raise:
             signum, self.pending = self.pending, None
             self._raise = False
-            raise KeyboardInterrupt if signum == signal.SIGINT else SessionTerminated()
+            raise _signal_exception(signum)
 
     def _on_signal(self, signum, frame) -> None:
         if not self._raise:
@@ -924,9 +935,7 @@ class SignalGuard:
             return
         self._raise = False  # once: the way out that follows must not be cut short
         self.pending = None
-        if signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        raise SessionTerminated()
+        raise _signal_exception(signum)
 
     def defer(self) -> None:
         """From now on keep a signal in :attr:`pending` instead of raising."""
@@ -943,7 +952,7 @@ class SignalGuard:
         already pending is raised on entry."""
         if self.pending is not None:
             signum, self.pending = self.pending, None
-            raise KeyboardInterrupt if signum == signal.SIGINT else SessionTerminated()
+            raise _signal_exception(signum)
         self._raise = True
         try:
             yield
