@@ -39,7 +39,6 @@ def command(
 ) -> None:
     """Measure the robot's pose per frame: static camera from the floor markers over the whole
     video, the robot's marker on its known plane, smoothed without lag."""
-    from ..errors import VideoError
     from ..io.pose_track import fill_pose
     from ..io.recording import read_recording, write_metadata, write_recording
     from ..vision.camera import load_camera
@@ -71,10 +70,10 @@ def command(
     if rec is not None:
         filled = fill_pose(rec, m.t_s, m.pose, start_s, {
             "pose_source": f"measure-pose {video}", "video_start_s": start_s,
-            "video_start_method": method, "pose_measurement": summary})
+            "video_start_method": method, "pose_measurement": summary},
+            track=f"{video}: the video", recording=str(recording),
+            offset_option="--video-start-s")
         with_pose = int(sum(1 for row in filled.pose if all(v == v for v in row)))
-        if with_pose == 0:
-            raise VideoError(_no_pose_rows(m, rec, start_s, video, recording))
         write_recording(filled, out)
         summary["out"] = str(out)
         summary["recording_rows_with_pose"] = with_pose
@@ -113,23 +112,6 @@ def _parse_video_start(video_start: str | None, recording: Path | None) -> tuple
         raise ConfigError(f"--video-start-s must be a number of seconds or auto, got "
                           f"{video_start!r}")
     return False, start_s
-
-
-def _no_pose_rows(m, rec, start_s: float, video: Path, recording: Path | None) -> str:
-    """Why no row of the recording got a pose: the video's times (from ``start_s``) miss the
-    recording's, or the robot was not seen at those times."""
-    import numpy as np
-
-    seen = np.isfinite(m.pose).all(axis=1)
-    v0, v1 = start_s + float(m.t_s[0]), start_s + float(m.t_s[-1])
-    r0, r1 = (float(rec.t_s[0]), float(rec.t_s[-1])) if len(rec) else (np.nan, np.nan)
-    if not len(rec) or v1 < r0 or v0 > r1:
-        return (f"{video}: the video ({v0:.6g} .. {v1:.6g} s on the recording's clock, video "
-                f"start {start_s:.6g} s) does not overlap {recording} ({r0:.6g} .. {r1:.6g} s): "
-                "no pose row would be filled; check --video-start-s")
-    return (f"{video}: no row of {recording} falls where the robot's marker was seen "
-            f"({int(seen.sum())} of {len(seen)} frames, video start {start_s:.6g} s): no pose "
-            "row would be filled; check --video-start-s")
 
 
 def _measure_with_progress(video: Path, cam, scn, opts):

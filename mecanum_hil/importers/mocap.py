@@ -42,7 +42,7 @@ from ..io.pose_track import fill_pose, onset_offset, unwrap_deg
 from ..io.recording import empty_like_times, read_recording
 from ..io.toml_config import TableReader, load_toml
 from . import ImportResult
-from .text import _is_number
+from .text import is_number
 
 NAME = "mocap"
 
@@ -159,7 +159,7 @@ def _drop_cut_last(data: list[tuple[int, list[str]]], width: int, complete: bool
     if complete or not data:
         return data
     last = data[-1][1]
-    if len(last) < width or not all(c.strip() == "" or _is_number(c) for c in last):
+    if len(last) < width or not all(c.strip() == "" or is_number(c) for c in last):
         notes.append(f"last line cut off mid-row (no newline at the end): dropped: "
                      f"{','.join(last)[:60]!r}")
         return data[:-1]
@@ -363,29 +363,16 @@ def read(path: Path, *, map_path: Path | None = None, recording: Path | None = N
         how = "auto: the robot's motion onset (1 cm) against the model for the commands"
     else:
         shift, how = _start(start_s), "given"
-    _check_overlap(path, recording, tc, shift, base.t_s)
     notes.append(f"capture's first sample at recording time {shift:.4f} s ({how})")
     meta.update({"capture_start_s": shift, "capture_start_method": how})
     filled = fill_pose(base, tc, pose, shift, {"pose_source": f"import {path}",
-                                               "pose_import": meta})
+                                               "pose_import": meta},
+                       track=f"{path}: the capture", recording=str(recording),
+                       offset_option="--start-s")
     prior = base.metadata.get("notes")
     prior = [prior] if isinstance(prior, str) else list(prior or [])
     filled = filled.with_values(metadata={**filled.metadata, "notes": prior + notes})
     return ImportResult(filled, tuple(notes))
-
-
-def _check_overlap(path: Path, recording: Path, tc: np.ndarray, shift: float,
-                   t_rec: np.ndarray) -> None:
-    """Refuse a capture that, placed at ``shift``, lies wholly outside the recording's span
-    (not one pose would be filled)."""
-    c0, c1 = shift + float(tc[0]), shift + float(tc[-1])
-    if not len(t_rec):
-        raise RecordingError(f"{recording}: the recording has no rows")
-    r0, r1 = float(np.min(t_rec)), float(np.max(t_rec))
-    if c1 < r0 or c0 > r1:
-        raise RecordingError(f"{path}: the capture (recording time {c0:.3f} to {c1:.3f} s with "
-                             f"its first sample at {shift:g} s, --start-s) does not overlap the "
-                             f"recording {recording} ({r0:.3f} to {r1:.3f} s): no pose to fill")
 
 
 #: Least length of the forward axis's projection on the floor (the median over the samples):

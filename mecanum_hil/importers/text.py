@@ -80,7 +80,10 @@ class Layout:
     comments: tuple[str, ...]
 
 
-def _is_number(text: str) -> bool:
+def is_number(text: str) -> bool:
+    """Whether ``text`` is one number as loggers write them (Python's ``1_0`` is not)."""
+    if "_" in text:
+        return False
     try:
         float(text)
     except ValueError:
@@ -100,7 +103,7 @@ def _guess_delimiter(line: str) -> str | None:
     present = [d for d in DELIMITERS
                if d in line and not any(len(f.split()) > 1 for f in line.split(d))]
     for d in present:
-        if all(f.strip() == "" or _is_number(f) for f in line.split(d)):
+        if all(f.strip() == "" or is_number(f) for f in line.split(d)):
             return d
     return present[0] if present else None
 
@@ -147,7 +150,7 @@ def detect_layout(lines: list[str], *, delimiter: str | None = "auto", header: A
     delim = _guess_delimiter(first) if delimiter == "auto" else (
         None if delimiter in ("whitespace", " ") else delimiter)
     fields = _split(first, delim)
-    is_header = (not all(_is_number(f) for f in fields if f != "")) if header == "auto" \
+    is_header = (not all(is_number(f) for f in fields if f != "")) if header == "auto" \
         else bool(header)
     names: tuple[str, ...] = ()
     data_line = i
@@ -161,7 +164,7 @@ def detect_layout(lines: list[str], *, delimiter: str | None = "auto", header: A
             if data_line >= len(lines):
                 break
             row = _split(lines[data_line].strip(), delim)
-            if len(row) != len(names) or any(f == "" or _is_number(f) for f in row):
+            if len(row) != len(names) or any(f == "" or is_number(f) for f in row):
                 break
             data_line += 1
         if data_line >= len(lines):
@@ -177,7 +180,7 @@ def detect_layout(lines: list[str], *, delimiter: str | None = "auto", header: A
             cand = _split(c, delim) if delim is not None else c.split()
             if len(cand) != n_columns and delim is not None:
                 cand = c.split()  # '% t w1 w2' above comma-separated data
-            if len(cand) == n_columns and not all(_is_number(f) for f in cand):
+            if len(cand) == n_columns and not all(is_number(f) for f in cand):
                 candidates.append(tuple(cand))
         names = next((c for c in candidates if set(wanted) <= set(c)),
                      candidates[0] if candidates else ())
@@ -202,7 +205,7 @@ def sniff(path: Path, head: bytes, encoding: str = "utf-8-sig") -> bool:
         return False
     data = lines[lay.data_line] if lay.data_line < len(lines) else ""
     fields = _split(data.strip(), lay.delimiter)
-    return bool(fields) and all(f == "" or _is_number(f) for f in fields)
+    return bool(fields) and all(f == "" or is_number(f) for f in fields)
 
 
 # --- the map -----------------------------------------------------------------------------------
@@ -401,7 +404,7 @@ def _bad_line(path: Path, layout: Layout, usecols: list[int], encoding: str) -> 
             if len(fields) != layout.n_columns:
                 return f"{path}, line {ln}: {len(fields)} fields, expected {layout.n_columns}"
             for c in usecols:
-                if fields[c] != "" and not _is_number(fields[c]):
+                if fields[c] != "" and not is_number(fields[c]):
                     name = layout.names[c] if layout.names else str(c)
                     return f"{path}, line {ln}, column {name}: not a number: {fields[c]!r}"
     return ""
@@ -431,7 +434,7 @@ def _is_cut(line: bytes, layout: Layout, encoding: str) -> bool:
         fields = _split(text, layout.delimiter)
     except csv.Error:
         return True
-    return len(fields) < layout.n_columns or not all(f == "" or _is_number(f) for f in fields)
+    return len(fields) < layout.n_columns or not all(f == "" or is_number(f) for f in fields)
 
 
 def _fill_blank_fields(raw: bytes, d: bytes) -> bytes:

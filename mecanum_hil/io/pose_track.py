@@ -131,12 +131,46 @@ def onset_offset(track_t_s: np.ndarray, track_pose: np.ndarray, model_t_s: np.nd
 
 
 def fill_pose(rec: Recording, track_t_s: np.ndarray, track_pose: np.ndarray, offset_s: float,
-              metadata: dict | None = None, max_gap_s: float | None = None) -> Recording:
+              metadata: dict | None = None, max_gap_s: float | None = None, *,
+              track: str = "the track", recording: str = "the recording",
+              offset_option: str = "the start offset") -> Recording:
     """The recording with its pose columns replaced by the track's at ``t_s - offset_s``
-    (empty where the track has no value; heading continuous)."""
+    (empty where the track has no value; heading continuous).
+
+    Raises
+    ------
+    RecordingError
+        When not one row would get a pose: the track, placed at ``offset_s``, does not
+        overlap the recording, or the robot was not measured at any of its times. The message
+        names ``track``, ``recording`` and the option that set the offset (``offset_option``).
+    """
     if not math.isfinite(offset_s):
         raise RecordingError(f"the start offset must be finite, got {offset_s}")
     pose = resample_pose(track_t_s, track_pose, rec.t_s - offset_s, max_gap_s)
+    if not np.isfinite(pose).all(axis=1).any():
+        raise RecordingError(_no_pose_rows(rec, track_t_s, track_pose, offset_s, track,
+                                           recording, offset_option))
     meta = dict(rec.metadata)
     meta.update(metadata or {})
     return rec.with_values(pose=pose, metadata=meta)
+
+
+def _no_pose_rows(rec: Recording, track_t_s: np.ndarray, track_pose: np.ndarray,
+                  offset_s: float, track: str, recording: str, offset_option: str) -> str:
+    """Why no row of the recording got a pose: the track's times (from ``offset_s``) miss the
+    recording's, or the robot was not measured at those times."""
+    t = np.asarray(track_t_s, dtype=float)
+    seen = np.isfinite(np.asarray(track_pose, dtype=float)).all(axis=1)
+    v0, v1 = (offset_s + float(t.min()), offset_s + float(t.max())) if t.size else (math.nan,
+                                                                                    math.nan)
+    r0, r1 = (float(np.min(rec.t_s)), float(np.max(rec.t_s))) if len(rec) else (math.nan,
+                                                                                math.nan)
+    if not len(rec):
+        return f"{recording}: the recording has no rows: no pose to fill"
+    if not t.size or v1 < r0 or v0 > r1:
+        return (f"{track} (recording time {v0:.3f} to {v1:.3f} s with its first sample at "
+                f"{offset_s:g} s, {offset_option}) does not overlap the recording {recording} "
+                f"({r0:.3f} to {r1:.3f} s): no pose to fill")
+    return (f"{track}: no row of {recording} falls where the robot was measured ({int(seen.sum())}"
+            f" of {seen.size} samples, first sample at {offset_s:g} s, {offset_option}): no pose "
+            "to fill")

@@ -116,11 +116,12 @@ def write_bag2(path, storage: StoragePlugin, messages=None, stamped: bool = True
     return path
 
 
-def write_bag1(path, stamped: bool = False):
+def write_bag1(path, stamped: bool = False, messages=None):
     ts = get_typestore(Stores.ROS1_NOETIC)
+    msgs = bag_messages(ts, ros1=True, stamped=stamped) if messages is None else messages
     with Writer1(path) as w:
         conns = {}
-        for topic, typ, ns, msg in bag_messages(ts, ros1=True, stamped=stamped):
+        for topic, typ, ns, msg in msgs:
             if topic not in conns:
                 conns[topic] = w.add_connection(topic, typ, typestore=ts)
             w.write(conns[topic], ns, ts.serialize_ros1(msg, typ))
@@ -343,6 +344,17 @@ def test_a_receive_clock_reset_is_refused(tmp_path, one_line_error, storage):
     half = len(msgs) // 2
     msgs = msgs[:half] + [(a, b, ns - 3_000_000_000, m) for a, b, ns, m in msgs[half:]]
     bag = write_bag2(tmp_path / "bag", storage, msgs)
+    err = one_line_error(["import", str(bag), "--out", str(tmp_path / "r.csv")])
+    assert f"message {half + 1} in the file" in err and "runs back 2.99 s" in err, err
+
+
+def test_a_ros1_receive_clock_reset_is_refused(tmp_path, one_line_error):
+    """The same for a ROS 1 bag: its index gives each record's chunk and offset."""
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    msgs = bag_messages(ts, True, False)
+    half = len(msgs) // 2
+    msgs = msgs[:half] + [(a, b, ns - 3_000_000_000, m) for a, b, ns, m in msgs[half:]]
+    bag = write_bag1(tmp_path / "run.bag", messages=msgs)
     err = one_line_error(["import", str(bag), "--out", str(tmp_path / "r.csv")])
     assert f"message {half + 1} in the file" in err and "runs back 2.99 s" in err, err
 

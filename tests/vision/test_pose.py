@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mecanum_hil.cli import main
-from mecanum_hil.io.pose_track import motion_onset, resample_pose
+from mecanum_hil.io.pose_track import fill_pose, motion_onset, resample_pose
 from mecanum_hil.io.recording import empty_like_times, read_recording, write_recording
 from mecanum_hil.model import load_calibration, load_robot_profile
 from mecanum_hil.prediction import predict
@@ -120,6 +120,29 @@ def test_resample_never_across_a_gap_nor_outside():
     t2 = np.array([0.0, 0.1, 0.2, 0.9, 1.0])
     out2 = resample_pose(t2, np.column_stack([t2, t2, t2]), np.array([0.5, 0.95]))
     assert np.isnan(out2[0]).all() and out2[1, 0] == pytest.approx(0.95)
+
+
+def test_fill_pose_refuses_to_fill_no_row():
+    """One check for every track (camera, motion capture): placed where it misses the
+    recording, or overlapping it only where the robot was not measured, it fills no pose row:
+    an error naming the track, the recording and the option that placed it, not empty columns."""
+    from mecanum_hil.errors import RecordingError
+    from mecanum_hil.io.recording import empty_like_times
+
+    rec = empty_like_times(np.arange(0.0, 3.0, 0.01))
+    t = np.arange(0.0, 1.0, 0.1)
+    pose = np.column_stack([t, t, t])
+    names = dict(track="cap.csv: the capture", recording="rec.csv", offset_option="--start-s")
+    with pytest.raises(RecordingError, match=r"cap\.csv: the capture \(recording time 50\.000 to "
+                       r"50\.900 s .*--start-s\) does not overlap the recording rec\.csv"):
+        fill_pose(rec, t, pose, 50.0, **names)
+    hidden = pose.copy()
+    hidden[:5] = np.nan  # seen only after the recording's end
+    with pytest.raises(RecordingError, match=r"no row of rec\.csv falls where the robot was "
+                       r"measured \(5 of 10 samples"):
+        fill_pose(rec, t, hidden, 2.5, **names)
+    filled = fill_pose(rec, t, pose, 0.5, **names)
+    assert 90 <= np.isfinite(filled.pose).all(axis=1).sum() <= 91  # 0.5 .. 1.4 s
 
 
 def test_motion_onset():
