@@ -233,7 +233,8 @@ def calibration_ref(template: str, group: str, period: str) -> str:
 
 def refuse_reading_out(settings: BatchSettings) -> None:
     """One line when the results table would be written over a file the batch reads: a
-    recording (or video) of a local archive, e.g. ``batch fit ARCH -o ARCH/robA/r1.csv``."""
+    recording (or video) of a local archive, e.g. ``batch fit ARCH -o ARCH/robA/r1.csv``, or
+    would become one: a new ``ARCH/robA/results.csv`` is read as a recording by the next run."""
     url = settings.archive
     if url.startswith("file://"):
         url = url[len("file://"):]
@@ -244,14 +245,19 @@ def refuse_reading_out(settings: BatchSettings) -> None:
         root, target = Path(url).resolve(), out.resolve()
     except OSError:
         return
-    if not target.is_file() or not target.is_relative_to(root) or target.name.startswith("."):
+    if not target.is_relative_to(root) or target.name.startswith("."):
         return
     from .archive import RECORDING_SUFFIXES, VIDEO_SUFFIXES
 
     read = VIDEO_SUFFIXES if settings.command == "measure-video" else RECORDING_SUFFIXES
-    if target.name.lower().endswith(read):
+    if not target.name.lower().endswith(read + RECORDING_SUFFIXES):
+        return
+    if target.is_file():
         raise ConfigError(f"{out}: --out would overwrite an input of the archive "
                           f"({target.relative_to(root)}); write the results elsewhere")
+    raise ConfigError(f"{out}: --out inside the archive would be read as one of its "
+                      f"recordings by the next batch ({target.relative_to(root)}); write the "
+                      "results elsewhere, or as .parquet")
 
 
 def plan(settings: BatchSettings,

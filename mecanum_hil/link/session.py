@@ -813,11 +813,21 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
                 reason, message, error = "link_lost", str(err), err
             except Exception as err:  # a row that cannot be written while settling, ...
                 reason, message, error = "error", str(err), err
+    except BaseException as exc:  # what no end of the stream takes (SystemExit, a callback's)
+        if reason == "completed":  # the sidecar must not say the stream completed
+            reason, message = "error", f"ended by {type(exc).__name__}: {exc}"
+        raise
     finally:
+        late: BaseException | None = None  # a signal raised by the fallback STOP below
         try:
             guard.defer()
             if not sess.stop_attempted:  # an exception (or a signal) before the STOP above
-                sess.stop(0.0)
+                try:
+                    sess.stop(0.0)
+                except (KeyboardInterrupt, SessionTerminated) as exc:
+                    # raised after STOP went out, where no guard defers signals: raised again
+                    # once the recording is closed, not in place of its close
+                    late = exc
             try:
                 sess.pump.close()
             except Exception:  # the observers' thread: the recording is closed all the same
@@ -834,6 +844,8 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
             writer.close(end_meta)
         finally:
             guard.restore()
+        if late is not None:
+            raise late
     if sess.pump.error is not None and reason == "error" and error is None:
         error = sess.pump.error
     exit_code = EXIT_CODES[reason]

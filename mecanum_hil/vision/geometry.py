@@ -155,7 +155,8 @@ def _hue_close(h: np.ndarray, h0: float, tol_deg: float) -> np.ndarray:
 def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_frames: int,
                  max_radius_px: float, rng: np.random.Generator | None = None,
                  hypotheses: int = 400, rho_tol: float = 0.12, hue_tol_deg: float = 25.0,
-                 source: str = "video", initial: Ellipse | None = None) -> Track:
+                 source: str = "video", initial: Ellipse | None = None,
+                 hint: str = "give --marker-hsv, or --roi around the wheel") -> Track:
     """Find the candidate blobs that move on a circle (an ellipse in the image).
 
     RANSAC: ellipses through five candidates of one hue from different places; the winner is the
@@ -177,6 +178,8 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
     initial : Ellipse, optional
         A path found before (on part of the video): the first hypothesis; the search then
         only draws random samples around it.
+    hint : str
+        What the user can do when no marker is found (the end of the error message).
 
     Raises
     ------
@@ -186,12 +189,12 @@ def select_track(frame_idx: np.ndarray, xy: np.ndarray, hue_deg: np.ndarray, n_f
     rng = rng or np.random.default_rng(12345)
     if len(frame_idx) < 5:
         raise VideoError(f"{source}: no marker: no saturated blob found in the video "
-                         "(give --marker-hsv, or --roi around the wheel)")
+                         f"({hint})")
     score, path, hue0 = _search_path(frame_idx, xy, hue_deg, n_frames, max_radius_px, rng,
                                      hypotheses, rho_tol, hue_tol_deg, initial)
     if path is None or score < 3:
         raise VideoError(f"{source}: no marker: no saturated blob moves on a circle "
-                         "(give --marker-hsv, or --roi around the wheel)")
+                         f"({hint})")
     path, shape = _refine_path(path, frame_idx, xy, hue_deg, hue0, n_frames, max_radius_px,
                                rho_tol, hue_tol_deg, source)
     track_xy, found, index = _best_per_frame(path, frame_idx, xy, hue_deg, hue0, n_frames,

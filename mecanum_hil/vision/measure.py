@@ -449,8 +449,12 @@ def _wheel_angles(results: list, n: int, det: _WheelScan, seed: int, source: str
     frame_idx = np.repeat(np.arange(n), [len(c) for c, _ in results])
     allc = np.concatenate([c for c, _ in results]) if results else np.empty((0, 5))
     xy = allc[:, :2] - offsets[frame_idx]
+    hint = ("check --marker-hsv against the marker's colour in a frame, or give --roi around "
+            "the wheel" if det.blobs.spec.kind == "hsv"
+            else "give --marker-hsv, or --roi around the wheel")
     track = select_track(frame_idx, xy, allc[:, 2], n, det.blobs.size_px,
-                         np.random.default_rng(seed), source=source, initial=det.blobs.path)
+                         np.random.default_rng(seed), source=source, initial=det.blobs.path,
+                         hint=hint)
     track, partial = _drop_partial(track, allc[:, 4], det.blobs.size_px)
     angle = np.full(n, np.nan)
     _, ang = track.path.unit(track.xy_px[track.found])

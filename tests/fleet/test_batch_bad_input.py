@@ -34,6 +34,13 @@ def test_results_table_over_an_archive_recording_is_refused(small_archive, capsy
     assert rec.read_bytes() == before
 
 
+def test_a_new_results_csv_inside_the_archive_is_refused(small_archive, capsys):
+    """It would join the archive's recordings: the next run reads it as one."""
+    out = small_archive / "robot-b" / "results.csv"
+    err = _one_error(["batch", "fit", small_archive, "-o", out, "--no-resume"], capsys)
+    assert "would be read as one of its recordings" in err and not out.exists()
+
+
 def test_an_unknown_calibration_placeholder_names_the_known_ones(small_archive, tmp_path,
                                                                  capsys):
     err = _one_error(["batch", "fit", small_archive, "-o", tmp_path / "r.csv", "-c",

@@ -223,6 +223,44 @@ def test_a_second_ctrl_c_during_the_close_is_kept_not_raised(pty_pair, scripted,
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
 
 
+def test_ctrl_c_in_the_fallback_stop_without_a_guard_still_closes_the_recording(
+        pty_pair, scripted, host_serial, tmp_path):
+    """With the handlers off (``handle_sigterm=False``, an embedding application's choice), a
+    Ctrl-C that lands while the STOP after an exception is sent: STOP still goes out, the
+    recording is closed with its end, then the Ctrl-C is raised (it used to skip the close)."""
+    import dataclasses
+
+    p = pty_pair()
+    ctrl = scripted(p.master, telemetry=100)
+    tr = host_serial(p.path)
+    send = tr.send
+
+    def send_with_a_ctrl_c_on_the_first_stop(msg):
+        if isinstance(msg, proto.Stop) and not getattr(tr, "_ctrl_c_sent", False):
+            tr._ctrl_c_sent = True
+            send(msg)
+            raise KeyboardInterrupt
+        return send(msg)
+
+    tr.send = send_with_a_ctrl_c_on_the_first_stop
+
+    def crash(elapsed, total, counts):
+        if elapsed > 0.2:  # what no end of the stream catches: STOP is sent on the way out
+            raise SystemExit("the application exits")
+
+    t, cmd = _stream(2.0)
+    with pytest.raises(KeyboardInterrupt) as info:
+        run_record_session(tr, t, cmd, tmp_path / "r.csv", ROBOT, progress=crash,
+                           config=dataclasses.replace(FAST, handle_sigterm=False))
+    assert isinstance(info.value.__context__, SystemExit)
+    meta = json.loads((tmp_path / "r.json").read_text())
+    assert meta["end_reason"] == "error" and "SystemExit" in meta["end_message"]
+    assert "link_stats" in meta
+    time.sleep(0.05)
+    assert isinstance(ctrl.received[-1], proto.Stop)
+    assert read_recording(tmp_path / "r.csv").extra["event"][-1] == "stop"
+
+
 def test_a_recording_that_cannot_be_written_ends_with_stop_and_one_error(
         pty_pair, scripted, host_serial, tmp_path, monkeypatch):
     """A full disk mid-run: STOP goes out first, the file is closed, the sidecar says why

@@ -283,7 +283,8 @@ def test_a_marker_really_lost_fails_in_one_line_at_the_lower_default(tmp_path, r
     base = ["measure-video", str(reverse_video.path), "--out", str(out)]
     # The wrong colour pinned (the dot is green): nothing of that colour moves.
     code, _, err = run_cli([*base, "--marker-hsv", "170,100,80:10,255,255"], capsys)
-    assert code == 1 and "no marker" in one_error_line(err)
+    line = one_error_line(err)
+    assert code == 1 and "no marker" in line and "check --marker-hsv" in line, line
     # A search region over the wheel's left edge only: the dot passes through it on a fifth
     # of each turn, the rest of the time it is out of the region.
     p = reverse_video.placements[0]
