@@ -166,6 +166,11 @@ def test_proportional_only_is_read_off_the_coefficients():
     assert proportional_only(Calibration(A=0.5, B=30.0, C=800.0), 1.0) is None
     # a P-only loop that leaves less than 3 % is not worth naming
     assert proportional_only(Calibration(A=98.0, B=2.0, C=1e-6), 0.4) is None
+    # the level made up by the wheels' gains (a slow compromise of a PI loop): on target
+    made_up = Calibration(A=85.0, B=15.0, C=1e-6,
+                          effects=Effects(gains=(1 / 0.85, 1 / 0.85, 1.0, 1.0)))
+    assert proportional_only(made_up, 0.4, wheels=(0, 1)) is None
+    assert proportional_only(made_up, 0.4, wheels=(2, 3)) is not None  # those wheels not
 
 
 def test_typical_step_follows_the_data(tmp_path):

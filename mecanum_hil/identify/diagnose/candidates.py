@@ -109,6 +109,9 @@ GRID_EVALUATIONS = 12
 COARSE_EVALUATIONS = 3
 #: Start values (as factors on the data-derived start) of effects whose cost has local minima.
 MULTI_START: dict[str, tuple[float, ...]] = {"breakaway": (1.0, 2.0), "drive_lag": (1.0, 3.0)}
+#: Effects whose search also restarts A, B, C from the engine's coarse grid (with the effect
+#: held at its start): a ceiling moves the best coefficients far from a fit without it.
+GRID_RESTART: tuple[str, ...] = ("saturation",)
 
 
 def _sample_period_s(ev: _Evaluator) -> float:
@@ -448,7 +451,7 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
     ms = in_sample_ms(ev, fitted.calibration) if fitted is not None else math.inf
     ms_base = in_sample_ms(ev, base)
     if fitted is not None and ms <= ms_base:
-        return fitted
+        return _resolved(ev, fitted, base, base_free, noise_rpm)
     least = with_parameters(base, _least_values(effect, bounds))
     try:
         with np.errstate(over="ignore", invalid="ignore"):
@@ -462,11 +465,47 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
     except (FitError, ConfigError):
         floor, ms_floor = None, math.inf
     if ms_floor < min(ms, ms_base):
-        return floor
+        return _resolved(ev, floor, base, base_free, noise_rpm)
     if fitted is None and floor is None:
         raise failure
     return _Fitted(effect, base, tuple(base_free), {}, (), absent=(
         "no fit within its search range does better in sample than the model without it"))
+
+
+#: A set-point ramp is named only when it lasts at least this many sample periods over a
+#: typical target jump: a shorter one is what the speed reading's own lag (counts over the last
+#: period: half a period late) looks like, which the data cannot tell from a ramp.
+MIN_RAMP_SAMPLES = 2.0
+
+
+def _typical_jump_rpm(ev: _Evaluator, noise_rpm: float) -> float:
+    """Median size of the wheel targets' jumps on the measured wheels [rpm] (jumps of at least
+    ``max(20 noise, 5 rpm)``, as :func:`_rise_time_s`); NaN without one."""
+    jumps = []
+    for r in ev.recs:
+        tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
+        measured = np.isfinite(r.wheel_rpm).any(axis=0)
+        d = np.abs(np.diff(tg[:, measured], axis=0))
+        jumps.extend(d[d >= max(20.0 * noise_rpm, 5.0)].tolist())
+    return float(np.median(jumps)) if jumps else math.nan
+
+
+def _resolved(ev: _Evaluator, fitted: _Fitted, base: Calibration, base_free: Sequence[str],
+              noise_rpm: float) -> _Fitted:
+    """``fitted``, or the model without its effect when the data cannot resolve it: a ramp
+    limit shorter than :data:`MIN_RAMP_SAMPLES` sample periods over a typical jump."""
+    if fitted.effect != "rate_limit":
+        return fitted
+    rate = fitted.calibration.effects.rate_limit_rpm_per_s
+    jump, period = _typical_jump_rpm(ev, noise_rpm), _sample_period_s(ev)
+    if not (math.isfinite(jump) and math.isfinite(rate) and rate > 0):
+        return fitted
+    if jump / rate >= MIN_RAMP_SAMPLES * period:
+        return fitted
+    return _Fitted(fitted.effect, base, tuple(base_free), {}, (), absent=(
+        f"the ramp it fits ({1000 * jump / rate:.3g} ms over a typical jump of {jump:.4g} rpm) "
+        f"is shorter than {MIN_RAMP_SAMPLES:g} samples ({1000 * period:.3g} ms each): the data "
+        "cannot tell it from the speed reading's own lag"))
 
 
 def _least_values(effect: str, bounds: Mapping[str, tuple[float, float]]
@@ -535,6 +574,26 @@ def _searched(ev: _Evaluator, effect: str, base: Calibration, cal: Calibration,
             continue
         if best is None or got[1].sse < best[1].sse:
             best = got
+    if effect in GRID_RESTART:
+        # a fit without a ceiling compromises (a slow, low-gain loop that never reaches the
+        # ceiling's speeds fast); no local search from there finds the loop that runs into
+        # the ceiling: the engine's coarse grid restarts A, B, C with the ceiling held at its
+        # start, then the joint search runs from there, and competes with the searches above
+        held = with_parameters(base, guess)
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):
+                grid = fit_parameters(ev.recs, held, ev.robot, list(base_free), x0={
+                    n: parameter_value(held, n) for n in base_free if n not in _COEFFICIENTS},
+                    sources=sources)
+                held = with_parameters(held, grid.parameters)
+                got = (held, fit_parameters(ev.recs, held, ev.robot, free,
+                                            x0={n: parameter_value(held, n) for n in free},
+                                            bounds=bounds, sources=sources))
+        except (FitError, ConfigError) as err:
+            errors.append(err)
+        else:
+            if best is None or got[1].sse < best[1].sse:
+                best = got
     if best is None:
         raise errors[0]
     cal, res = best

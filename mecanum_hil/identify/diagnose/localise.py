@@ -412,29 +412,33 @@ def typical_step_s(recordings: Sequence[Recording], robot: RobotProfile) -> floa
     return float(np.median(durations)) if durations else math.nan
 
 
-def proportional_only(calibration: Calibration, step_s: float) -> Finding | None:
+def proportional_only(calibration: Calibration, step_s: float,
+                      wheels: Sequence[int] = (0, 1, 2, 3)) -> Finding | None:
     """The missing integral action, when the model shows it: a proportional-only speed loop.
 
     With ``A`` the loop's proportional and ``C`` its integral gain (times the motor's), the
     proportional part alone settles at ``A / (A + B)`` of the target with the time constant
     ``1 / (A + B)``, and the integral then closes the rest with the slow time constant about
     ``(A + B) / C``. Named when, over a typical step of ``step_s``, the proportional part
-    settles (``(A + B) step_s >= P_ONLY_SETTLED``), leaves more than ``P_ONLY_GAP`` of the
-    target (``B / (A + B)``) and the integral closes less than ``P_ONLY_INTEGRAL`` of that gap
-    (``C step_s / (A + B)`` below it): every level then sits at a fixed fraction of its target.
-    The model already reproduces it (``C`` near 0): nothing is added to the calibration.
+    settles (``(A + B) step_s >= P_ONLY_SETTLED``), the integral closes less than
+    ``P_ONLY_INTEGRAL`` of the gap (``C step_s / (A + B)`` below it), and the level, with the
+    model's ``wheel_gain`` of the measured ``wheels`` [0-based] (their median), sits more than
+    ``P_ONLY_GAP`` below the target: every level then sits at a fixed fraction of its target.
+    A loop whose gains bring the level back to the target (a slow mode of a PI loop that the
+    coefficients settled on, the gains making up the level) is not named. The model already
+    reproduces it (``C`` near 0): nothing is added to the calibration.
     """
     A, B, C = calibration.A, calibration.B, calibration.C
     if not (math.isfinite(step_s) and step_s > 0 and A + B > 0):
         return None
-    gap = B / (A + B)
-    if (A + B) * step_s < P_ONLY_SETTLED or gap <= P_ONLY_GAP \
+    gain = float(np.median([calibration.effects.gains[w] for w in wheels])) if wheels else 1.0
+    ratio = gain * A / (A + B)
+    if (A + B) * step_s < P_ONLY_SETTLED or 1.0 - ratio <= P_ONLY_GAP \
             or C * step_s / (A + B) >= P_ONLY_INTEGRAL:
         return None
-    ratio = A / (A + B)
     slow = (A + B) / C if C > 0 else math.inf
     return Finding("proportional_only",
                    {"level_ratio": ratio, "integral_time_s": slow},
                    f"no integral action: every level settles at {100 * ratio:.1f} % of its "
-                   f"target (A / (A + B)); the integral would take about {slow:.3g} s to close "
-                   "the rest, far longer than a step (C near 0)")
+                   f"target (A / (A + B), times the wheels' gain); the integral would take "
+                   f"about {slow:.3g} s to close the rest, far longer than a step (C near 0)")

@@ -733,7 +733,8 @@ def _final_calibration(model: _Model, rmse_final: float, unexplained: bool) -> C
 def _findings(cal: Calibration, recs: Sequence[Recording], robot: RobotProfile,
               say: Callable[[str], None]) -> tuple[Finding, ...]:
     """Named properties of the final model (:func:`.localise.proportional_only`)."""
-    found = proportional_only(cal, typical_step_s(recs, robot))
+    wheels = [w for w in range(4) if any(np.isfinite(r.wheel_rpm[:, w]).any() for r in recs)]
+    found = proportional_only(cal, typical_step_s(recs, robot), wheels)
     if found is None:
         return ()
     say(f"named: proportional_only: {found.description}")
