@@ -642,56 +642,70 @@ def _check_order(p: Path, tp: _Samples, t_ns: np.ndarray, notes: list[str]) -> N
 
 
 def _check_receive_order(p: Path) -> None:
-    """The receive times in the order the recorder wrote the messages (rosbags reads them
-    sorted by time, which interleaves the halves of a bag whose clock was reset): more than
-    :data:`BAG_BACK_TOLERANCE_NS` back is an error. rosbag2 sqlite3 (message ids), MCAP
-    (message indexes) and ROS 1 bags (index entries: chunk, offset) are checked."""
+    """Each topic's receive times in the order the recorder wrote its messages (rosbags reads
+    them sorted by time, which interleaves the halves of a bag whose clock was reset): more
+    than :data:`BAG_BACK_TOLERANCE_NS` back is an error. Per topic, because a bag written by a
+    conversion script one topic after another runs back between topics, not within one (a
+    clock reset moves every topic back). rosbag2 sqlite3 (message ids), MCAP (message indexes)
+    and ROS 1 bags (index entries: chunk, offset) are checked."""
     files = ([f for f in sorted(p.iterdir()) if f.suffix in (".db3", ".mcap")] if p.is_dir()
              else [p])
     for f in files:
         if f.suffix == ".db3":
-            t = _db3_receive_times(f)
+            topics = _db3_receive_times(f)
         elif f.suffix == ".mcap":
-            t = _mcap_receive_times(f)
+            topics = _mcap_receive_times(f)
         elif f.suffix == ".bag":
-            t = _bag1_receive_times(f)
+            topics = _bag1_receive_times(f)
         else:
             continue
-        if t is not None:
-            check_time_order(t, lambda i, f=f: f"{f}: message {i + 1} in the file (receive "
-                             "time)", tolerance_ns=BAG_BACK_TOLERANCE_NS)
+        for topic, t in (topics or {}).items():
+            check_time_order(t, lambda i, f=f, topic=topic: f"{f}: {topic} message {i + 1} in "
+                             "the file (receive time)", tolerance_ns=BAG_BACK_TOLERANCE_NS)
 
 
-def _db3_receive_times(f: Path) -> np.ndarray | None:
+def _db3_receive_times(f: Path) -> dict[str, np.ndarray] | None:
+    """Receive times per topic, in message-id order."""
     try:
         con = sqlite3.connect(f"file:{f}?mode=ro", uri=True)
         try:
-            rows = con.execute("SELECT timestamp FROM messages ORDER BY id").fetchall()
+            names = dict(con.execute("SELECT id, name FROM topics").fetchall())
+            rows = con.execute("SELECT topic_id, timestamp FROM messages ORDER BY id").fetchall()
         finally:
             con.close()
     except sqlite3.Error:
         return None  # read (and reported) by rosbags
-    return np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
+    out: dict[str, list[int]] = {}
+    for topic_id, stamp in rows:
+        out.setdefault(str(names.get(topic_id, topic_id)), []).append(stamp)
+    return {k: np.asarray(v, dtype=np.int64) for k, v in out.items()}
 
 
-def _bag1_receive_times(f: Path) -> np.ndarray | None:
-    """A ROS 1 bag's record times in file order, from its index (chunk position, offset
-    within the chunk; no decompression)."""
+def _bag1_receive_times(f: Path) -> dict[str, np.ndarray] | None:
+    """A ROS 1 bag's record times per topic in file order, from its index (chunk position,
+    offset within the chunk; no decompression)."""
     try:
         from rosbags.rosbag1 import Reader
     except ImportError:
         return None
     try:
         with Reader(f) as bag:
-            entries = [e for entries in bag.indexes.values() for e in entries]
+            topics = {c.id: c.topic for c in bag.connections}
+            per = {cid: sorted(entries, key=lambda e: (e.chunk_pos, e.offset))
+                   for cid, entries in bag.indexes.items()}
     except Exception:  # a damaged index: rosbags reads (and reports) the messages
         return None
-    entries.sort(key=lambda e: (e.chunk_pos, e.offset))
-    return np.fromiter((e.time for e in entries), dtype=np.int64, count=len(entries))
+    out: dict[str, np.ndarray] = {}
+    for cid, entries in per.items():
+        t = np.fromiter((e.time for e in entries), dtype=np.int64, count=len(entries))
+        name = topics.get(cid, str(cid))
+        out[name] = np.concatenate([out[name], t]) if name in out else t
+    return out
 
 
-def _mcap_receive_times(f: Path) -> np.ndarray | None:
-    """Log times in file order, from the chunks' message indexes (no decompression)."""
+def _mcap_receive_times(f: Path) -> dict[str, np.ndarray] | None:
+    """Log times per topic in file order, from the chunks' message indexes (no
+    decompression)."""
     try:
         from mcap.reader import make_reader
     except ImportError:
@@ -701,24 +715,22 @@ def _mcap_receive_times(f: Path) -> np.ndarray | None:
             summary = make_reader(fh).get_summary()
             if summary is None:
                 return None
-            parts = []
+            parts: dict[str, list[np.ndarray]] = {}
             for chunk in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
-                t_c, off_c = [], []
-                for offset in chunk.message_index_offsets.values():
+                for channel, offset in chunk.message_index_offsets.items():
                     fh.seek(offset)
                     head = fh.read(15)  # opcode, record length, channel id, records length
                     if len(head) < 15 or head[0] != 0x07:
                         return None
                     (n,) = struct.unpack_from("<I", head, 11)
                     rec = np.frombuffer(fh.read(n), dtype="<u8").reshape(-1, 2)
-                    t_c.append(rec[:, 0])
-                    off_c.append(rec[:, 1])
-                if t_c:
-                    t_all, off_all = np.concatenate(t_c), np.concatenate(off_c)
-                    parts.append(t_all[np.argsort(off_all, kind="stable")])
+                    ch = summary.channels.get(channel)
+                    topic = ch.topic if ch is not None else str(channel)
+                    parts.setdefault(topic, []).append(
+                        rec[np.argsort(rec[:, 1], kind="stable"), 0])
     except Exception:  # a damaged summary: rosbags reads (and reports) the messages
         return None
-    return np.concatenate(parts).astype(np.int64) if parts else None
+    return {k: np.concatenate(v).astype(np.int64) for k, v in parts.items()}
 
 
 def _wheel_rpm(js: _Samples, mapping: Sequence[str], signs: np.ndarray) -> np.ndarray:

@@ -82,8 +82,13 @@ class Layout:
 
 def is_number(text: str) -> bool:
     """Whether ``text`` is one number as loggers write them (Python's ``1_0`` is not)."""
-    if "_" in text:
-        return False
+    return "_" not in text and _float_like(text)
+
+
+def _float_like(text: str) -> bool:
+    """Whether Python reads ``text`` as a number (``1_0`` included): the layout's test (a
+    header, data lines), so that a mistyped value is named as such, not taken for a header
+    and its row dropped."""
     try:
         float(text)
     except ValueError:
@@ -103,7 +108,7 @@ def _guess_delimiter(line: str) -> str | None:
     present = [d for d in DELIMITERS
                if d in line and not any(len(f.split()) > 1 for f in line.split(d))]
     for d in present:
-        if all(f.strip() == "" or is_number(f) for f in line.split(d)):
+        if all(f.strip() == "" or _float_like(f) for f in line.split(d)):
             return d
     return present[0] if present else None
 
@@ -150,7 +155,7 @@ def detect_layout(lines: list[str], *, delimiter: str | None = "auto", header: A
     delim = _guess_delimiter(first) if delimiter == "auto" else (
         None if delimiter in ("whitespace", " ") else delimiter)
     fields = _split(first, delim)
-    is_header = (not all(is_number(f) for f in fields if f != "")) if header == "auto" \
+    is_header = (not all(_float_like(f) for f in fields if f != "")) if header == "auto" \
         else bool(header)
     names: tuple[str, ...] = ()
     data_line = i
@@ -164,7 +169,7 @@ def detect_layout(lines: list[str], *, delimiter: str | None = "auto", header: A
             if data_line >= len(lines):
                 break
             row = _split(lines[data_line].strip(), delim)
-            if len(row) != len(names) or any(f == "" or is_number(f) for f in row):
+            if len(row) != len(names) or any(f == "" or _float_like(f) for f in row):
                 break
             data_line += 1
         if data_line >= len(lines):
@@ -180,7 +185,7 @@ def detect_layout(lines: list[str], *, delimiter: str | None = "auto", header: A
             cand = _split(c, delim) if delim is not None else c.split()
             if len(cand) != n_columns and delim is not None:
                 cand = c.split()  # '% t w1 w2' above comma-separated data
-            if len(cand) == n_columns and not all(is_number(f) for f in cand):
+            if len(cand) == n_columns and not all(_float_like(f) for f in cand):
                 candidates.append(tuple(cand))
         names = next((c for c in candidates if set(wanted) <= set(c)),
                      candidates[0] if candidates else ())
@@ -205,7 +210,7 @@ def sniff(path: Path, head: bytes, encoding: str = "utf-8-sig") -> bool:
         return False
     data = lines[lay.data_line] if lay.data_line < len(lines) else ""
     fields = _split(data.strip(), lay.delimiter)
-    return bool(fields) and all(f == "" or is_number(f) for f in fields)
+    return bool(fields) and all(f == "" or _float_like(f) for f in fields)
 
 
 # --- the map -----------------------------------------------------------------------------------

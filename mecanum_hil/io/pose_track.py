@@ -171,6 +171,6 @@ def _no_pose_rows(rec: Recording, track_t_s: np.ndarray, track_pose: np.ndarray,
         return (f"{track} (recording time {v0:.3f} to {v1:.3f} s with its first sample at "
                 f"{offset_s:g} s, {offset_option}) does not overlap the recording {recording} "
                 f"({r0:.3f} to {r1:.3f} s): no pose to fill")
-    return (f"{track}: no row of {recording} falls where the robot was measured ({int(seen.sum())}"
-            f" of {seen.size} samples, first sample at {offset_s:g} s, {offset_option}): no pose "
-            "to fill")
+    return (f"{track} measured the robot at no time of a row of {recording} ({int(seen.sum())} "
+            f"of {seen.size} samples measured, first sample at {offset_s:g} s, {offset_option}): "
+            "no pose to fill")

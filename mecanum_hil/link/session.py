@@ -780,6 +780,7 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
         Keys added to the sidecar's end (called as the recording is closed).
     """
     reason, message, error = "completed", "", None
+    failing: BaseException | None = None  # an exception on its way out of the stream
     guard = SignalGuard(config.handle_sigterm)
     try:
         try:
@@ -814,22 +815,31 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
             except Exception as err:  # a row that cannot be written while settling, ...
                 reason, message, error = "error", str(err), err
     except BaseException as exc:  # what no end of the stream takes (SystemExit, a callback's)
+        guard.defer()  # nothing may cut STOP or the close short from here
+        failing = exc
         if reason == "completed":  # the sidecar must not say the stream completed
-            reason, message = "error", f"ended by {type(exc).__name__}: {exc}"
+            if isinstance(exc, (KeyboardInterrupt, SessionTerminated)):
+                reason = signal_reason(exc)  # no guard (handle_sigterm off): raised here
+            else:
+                reason, message = "error", f"ended by {type(exc).__name__}: {exc}"
         raise
     finally:
-        late: BaseException | None = None  # a signal raised by the fallback STOP below
+        # Without a guard (handle_sigterm off, not the main thread) a signal raises where it
+        # lands: one that lands in the fallback STOP, the observers' close or the end's
+        # metadata is kept and raised once the recording is closed, not in place of its close
+        # (and not in place of an exception already on its way out: STOP has gone out)
+        late: BaseException | None = None
         try:
             guard.defer()
             if not sess.stop_attempted:  # an exception (or a signal) before the STOP above
                 try:
                     sess.stop(0.0)
                 except (KeyboardInterrupt, SessionTerminated) as exc:
-                    # raised after STOP went out, where no guard defers signals: raised again
-                    # once the recording is closed, not in place of its close
                     late = exc
             try:
                 sess.pump.close()
+            except (KeyboardInterrupt, SessionTerminated) as exc:
+                late = late or exc
             except Exception:  # the observers' thread: the recording is closed all the same
                 pass
             duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
@@ -838,13 +848,16 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
                 end_meta = _end_metadata(sess, transport, reason, message, latency)
                 if end_extra is not None:
                     end_meta.update(end_extra())
-            except Exception as err:  # the end is written, whatever failed in making it
+            except (KeyboardInterrupt, SessionTerminated, Exception) as err:
+                # the end is written, whatever failed (or was cut short) in making it
+                if isinstance(err, (KeyboardInterrupt, SessionTerminated)):
+                    late = late or err
                 end_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
-                            "end_message": f"{message} (end metadata failed: {err})"}
+                            "end_message": f"{message} (end metadata failed: {err!r})"}
             writer.close(end_meta)
         finally:
             guard.restore()
-        if late is not None:
+        if late is not None and failing is None:
             raise late
     if sess.pump.error is not None and reason == "error" and error is None:
         error = sess.pump.error

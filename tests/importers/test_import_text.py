@@ -227,6 +227,12 @@ def test_wheel_setpoints_off_the_image_warn_or_fail_with_the_residual(tmp_path):
          "'start_s' must be a finite number"),
         ("1 2\n", "[time]\nperiod_s = 0.001\nstart_s = 1e300\n",
          "a time stamp loses its microseconds"),
+        # Python's float() reads 1_0 as 10: named, not a number; on the first line not taken
+        # for a header (its row was dropped, exit 0)
+        ("1_0 2\n3 4\n5 6\n", "[time]\nperiod_s = 0.01\n[wheels]\nwheel1 = { column = 0, "
+         "unit = \"rpm\" }\n", "line 1, column 0: not a number: '1_0'"),
+        ("t w\n0 1\n0.01 1_0\n", "[time]\ncolumn = \"t\"\nunit = \"s\"\n[wheels]\n"
+         "wheel1 = { column = \"w\", unit = \"rpm\" }\n", "line 3, column w: not a number"),
     ],
 )
 def test_malformed_logs_and_maps_are_one_clear_error(tmp_path, log, map_text, fragment):

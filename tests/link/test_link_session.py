@@ -227,7 +227,8 @@ def test_ctrl_c_in_the_fallback_stop_without_a_guard_still_closes_the_recording(
         pty_pair, scripted, host_serial, tmp_path):
     """With the handlers off (``handle_sigterm=False``, an embedding application's choice), a
     Ctrl-C that lands while the STOP after an exception is sent: STOP still goes out, the
-    recording is closed with its end, then the Ctrl-C is raised (it used to skip the close)."""
+    recording is closed with its end (the Ctrl-C used to skip the close), and the exception on
+    its way out stays the one raised."""
     import dataclasses
 
     p = pty_pair()
@@ -249,16 +250,42 @@ def test_ctrl_c_in_the_fallback_stop_without_a_guard_still_closes_the_recording(
             raise SystemExit("the application exits")
 
     t, cmd = _stream(2.0)
-    with pytest.raises(KeyboardInterrupt) as info:
+    with pytest.raises(SystemExit, match="the application exits"):
         run_record_session(tr, t, cmd, tmp_path / "r.csv", ROBOT, progress=crash,
                            config=dataclasses.replace(FAST, handle_sigterm=False))
-    assert isinstance(info.value.__context__, SystemExit)
     meta = json.loads((tmp_path / "r.json").read_text())
     assert meta["end_reason"] == "error" and "SystemExit" in meta["end_message"]
     assert "link_stats" in meta
     time.sleep(0.05)
     assert isinstance(ctrl.received[-1], proto.Stop)
     assert read_recording(tmp_path / "r.csv").extra["event"][-1] == "stop"
+
+
+def test_ctrl_c_in_the_observers_close_without_a_guard_still_closes_the_recording(
+        pty_pair, scripted, host_serial, tmp_path, monkeypatch):
+    """Without a guard, a Ctrl-C while the observers' thread is joined (up to 2 s, on every
+    way out) is raised after the recording is closed with its end, not in place of it."""
+    import dataclasses
+
+    from mecanum_hil.link import session
+
+    close = session._ObserverPump.close
+
+    def close_with_a_ctrl_c(self, timeout_s=2.0):
+        close(self, timeout_s)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(session._ObserverPump, "close", close_with_a_ctrl_c)
+    p = pty_pair()
+    ctrl = scripted(p.master, telemetry=100)
+    t, cmd = _stream(0.4)
+    with pytest.raises(KeyboardInterrupt):
+        run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
+                           config=dataclasses.replace(FAST, handle_sigterm=False))
+    meta = json.loads((tmp_path / "r.json").read_text())
+    assert meta["end_reason"] == "completed" and "link_stats" in meta
+    time.sleep(0.05)
+    assert isinstance(ctrl.received[-1], proto.Stop)
 
 
 def test_a_recording_that_cannot_be_written_ends_with_stop_and_one_error(

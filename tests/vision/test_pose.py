@@ -138,8 +138,8 @@ def test_fill_pose_refuses_to_fill_no_row():
         fill_pose(rec, t, pose, 50.0, **names)
     hidden = pose.copy()
     hidden[:5] = np.nan  # seen only after the recording's end
-    with pytest.raises(RecordingError, match=r"no row of rec\.csv falls where the robot was "
-                       r"measured \(5 of 10 samples"):
+    with pytest.raises(RecordingError, match=r"the capture measured the robot at no time of a "
+                       r"row of rec\.csv \(5 of 10 samples measured"):
         fill_pose(rec, t, hidden, 2.5, **names)
     filled = fill_pose(rec, t, pose, 0.5, **names)
     assert 90 <= np.isfinite(filled.pose).all(axis=1).sum() <= 91  # 0.5 .. 1.4 s

@@ -485,7 +485,8 @@ def _typical_jump_rpm(ev: _Evaluator, noise_rpm: float) -> float:
     for r in ev.recs:
         tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
         measured = np.isfinite(r.wheel_rpm).any(axis=0)
-        d = np.abs(np.diff(tg[:, measured], axis=0))
+        # a recording that starts with its target counts it as a jump from rest
+        d = np.abs(np.diff(tg[:, measured], axis=0, prepend=0.0))
         jumps.extend(d[d >= max(20.0 * noise_rpm, 5.0)].tolist())
     return float(np.median(jumps)) if jumps else math.nan
 
@@ -498,7 +499,8 @@ def _resolved(ev: _Evaluator, fitted: _Fitted, base: Calibration, base_free: Seq
         return fitted
     rate = fitted.calibration.effects.rate_limit_rpm_per_s
     jump, period = _typical_jump_rpm(ev, noise_rpm), _sample_period_s(ev)
-    if not (math.isfinite(jump) and math.isfinite(rate) and rate > 0):
+    if not (math.isfinite(jump) and math.isfinite(rate) and rate > 0
+            and math.isfinite(period) and period > 0):
         return fitted
     if jump / rate >= MIN_RAMP_SAMPLES * period:
         return fitted
