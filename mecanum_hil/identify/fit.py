@@ -21,6 +21,7 @@ Methods (see ``docs/fit.md``):
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 import threading
@@ -106,6 +107,14 @@ START_SSE_RATIO = 1.25
 #: decrease of the cost for which one more is tried.
 MAX_RESTARTS = 8
 RESTART_GAIN = 1e-4
+#: A search whose best cost fell by less than ``RESTART_GAIN`` (relative) over its last
+#: ``max(STALL_MIN_EVALUATIONS, STALL_EVALUATIONS_PER_PARAMETER x free parameters)``
+#: evaluations is stopped at its best point (status 5, not restarted): in a corner of the model
+#: (C -> 0) a trust-region search can creep along a valley, each step lowering the cost by more
+#: than ``ftol`` and all of them together by less than 1e-4, until its evaluations run out
+#: (800 evaluations, 23 s of a 59-s campaign diagnosis, for 6e-5 of the cost).
+STALL_EVALUATIONS_PER_PARAMETER = 15
+STALL_MIN_EVALUATIONS = 40
 
 #: Largest condition number of the column-scaled Jacobian for which intervals are trusted.
 MAX_CONDITION = 1e8
@@ -528,11 +537,30 @@ def residuals(recordings: Sequence[Recording], calibration: Calibration,
     return out
 
 
-class _Problem:
-    """Residuals and their Jacobian for a set of free parameters, one batch call per point."""
+class _SearchStalledError(Exception):
+    """A watched search stalled (:data:`STALL_EVALUATIONS_PER_PARAMETER`); carries its best
+    point as a :class:`~mecanum_hil.identify.lsq.Solution` with status 5."""
 
-    def __init__(self, data, calibration, robot, free, lower, upper, pose_weight):
+    def __init__(self, solution) -> None:
+        super().__init__(solution.message)
+        self.solution = solution
+
+
+class _Problem:
+    """Residuals and their Jacobian for a set of free parameters.
+
+    The residuals at a point are one simulation; its Jacobian (forward differences) is one
+    batch call for the perturbed points, made only when the solver asks for it. A trust-region
+    search evaluates many trial points it rejects (about a third in ``diagnose``), whose
+    Jacobian it never uses. A point whose Jacobian is asked for first gets both in one batch,
+    and so does every point when not ``lazy``: the paper's model on a short recording runs in
+    numpy (:func:`_paper_rows`), whose cost per call is mostly per time step, not per point.
+    """
+
+    def __init__(self, data, calibration, robot, free, lower, upper, pose_weight,
+                 lazy: bool = True):
         self.data = data
+        self.lazy = lazy
         self.calibration = calibration
         self.robot = robot
         self.free = list(free)
@@ -543,6 +571,33 @@ class _Problem:
         self._x: np.ndarray | None = None
         self._r: np.ndarray | None = None
         self._J: np.ndarray | None = None
+        # a watched search: its best cost after each evaluation, and its best point
+        self._trace: list[float] | None = None
+        self._best: tuple[float, np.ndarray] | None = None
+
+    def watch(self) -> None:
+        """Start watching a search for a stall (:data:`STALL_EVALUATIONS_PER_PARAMETER`)."""
+        self._trace, self._best = [], None
+
+    def unwatch(self) -> None:
+        self._trace = self._best = None
+
+    def _watched(self, x: np.ndarray, r: np.ndarray) -> None:
+        """Record an evaluation of a watched search; raise on a stall."""
+        if self._trace is None:
+            return
+        cost = 0.5 * float(r @ r)
+        if math.isfinite(cost) and (self._best is None or cost < self._best[0]):
+            self._best = (cost, x.copy())
+        self._trace.append(self._best[0] if self._best is not None else math.inf)
+        window = max(STALL_MIN_EVALUATIONS, STALL_EVALUATIONS_PER_PARAMETER * len(self.free))
+        if len(self._trace) > window:
+            before = self._trace[-1 - window]
+            if math.isfinite(before) and self._trace[-1] > (1.0 - RESTART_GAIN) * before:
+                from .lsq import solution
+
+                cost, x_best = self._best
+                raise _SearchStalledError(solution(x_best, cost, 5, len(self._trace)))
 
     def calibration_at(self, x) -> Calibration:
         return with_parameters(self.calibration, dict(zip(self.free, map(float, x), strict=True)))
@@ -553,28 +608,43 @@ class _Problem:
         # step into the feasible region (a parameter on its bound is differentiated one-sidedly)
         return np.where(x + h > self.upper, -h, h)
 
-    def evaluate(self, x: np.ndarray) -> None:
-        x = np.array(x, dtype=float)
-        h = self.steps(x)
-        points = [x] + [x + h[j] * np.eye(x.size)[j] for j in range(x.size)]
+    def _rows(self, points: Sequence[np.ndarray]) -> np.ndarray:
         try:
             calibs = [self.calibration_at(pt) for pt in points]
         except ConfigError as err:
             raise FitError(f"the fit reached an invalid model: {err}") from err
-        rows = _residual_rows(self.data, calibs, self.robot, self.pose_weight)
+        return _residual_rows(self.data, calibs, self.robot, self.pose_weight)
+
+    def evaluate(self, x: np.ndarray, jacobian: bool = True) -> None:
+        """Residuals at ``x`` and, with ``jacobian``, their Jacobian (one batch call)."""
+        x = np.array(x, dtype=float)
+        h = self.steps(x)
+        rows = self._rows([x] + (self._perturbed(x, h) if jacobian else []))
         self.nfev += 1
-        self._x, self._r = x, rows[0]
+        self._x, self._r, self._J = x, rows[0], None
+        if jacobian:
+            self._J = self._jacobian(rows[1:], h)
+        self._watched(x, self._r)
+
+    @staticmethod
+    def _perturbed(x: np.ndarray, h: np.ndarray) -> list[np.ndarray]:
+        return [x + h[j] * np.eye(x.size)[j] for j in range(x.size)]
+
+    def _jacobian(self, perturbed: np.ndarray, h: np.ndarray) -> np.ndarray:
         # residuals are measured - model, so d(residual)/dx = (r(x + h) - r(x)) / h
-        self._J = ((rows[1:] - rows[0]) / h[:, None]).T
+        return ((perturbed - self._r) / h[:, None]).T
 
     def fun(self, x) -> np.ndarray:
         if self._x is None or not np.array_equal(self._x, x):
-            self.evaluate(x)
+            self.evaluate(x, jacobian=not self.lazy)
         return self._r
 
     def jac(self, x) -> np.ndarray:
         if self._x is None or not np.array_equal(self._x, x):
             self.evaluate(x)
+        elif self._J is None:
+            h = self.steps(self._x)
+            self._J = self._jacobian(self._rows(self._perturbed(self._x, h)), h)
         return self._J
 
 
@@ -900,8 +970,10 @@ def _fit_parameters(recordings, calibration, robot, free, x0, bounds, pose_weigh
     live = [n for n in free if n not in fixed]
     idx = [free.index(n) for n in live]
     base = with_parameters(calibration, fixed)
-    problem = _Problem(data, base, robot, live, lo[idx], hi[idx], pose_weight)
-    solve = _solver(base, live, _fits_pose(data, pose_weight))
+    pose = _fits_pose(data, pose_weight)
+    problem = _Problem(data, base, robot, live, lo[idx], hi[idx], pose_weight,
+                       lazy=not _smooth(base, live, pose))
+    solve = _solver(base, live, pose)
     best = None
     failures = []
     for start in _starts(data, base, robot, live, x0, lo[idx], hi[idx]):
@@ -950,6 +1022,12 @@ def _unseen(data: Sequence[_Prepared], free: Sequence[str], pose_weight: float) 
     return out if len(out) < len(free) else []
 
 
+def _smooth(calibration: Calibration, live: Sequence[str], pose: bool) -> bool:
+    """Whether a problem is the paper's model alone (no effect, only A, B, C free, wheel speeds
+    only): a smooth cost."""
+    return calibration.effects == _NO_EFFECTS and set(live) <= set(_COEFFICIENTS) and not pose
+
+
 def _solver(calibration: Calibration, live: Sequence[str], pose: bool):
     """The least-squares method for a problem: ``solve(problem, x0, lower, upper, max_nfev)``.
 
@@ -958,9 +1036,10 @@ def _solver(calibration: Calibration, live: Sequence[str], pose: bool):
     costs more than such a fit). Everything else: SciPy's trust-region reflective method,
     whose handling of the kinks an effect's limit puts in the cost ``diagnose`` relies on.
     """
-    if calibration.effects == _NO_EFFECTS and set(live) <= set(_COEFFICIENTS) and not pose:
+    if _smooth(calibration, live, pose):
         from .lsq import levenberg_marquardt
 
+        @_stall_stopped
         def solve(problem, x0, lo, hi, max_nfev):
             size = problem.fun(x0).size
 
@@ -974,12 +1053,27 @@ def _solver(calibration: Calibration, live: Sequence[str], pose: bool):
             return levenberg_marquardt(fun, problem.jac, x0, lo, hi, max_nfev=max_nfev)
         return solve
 
+    @_stall_stopped
     def solve(problem, x0, lo, hi, max_nfev):
         from scipy.optimize import least_squares
 
         return least_squares(problem.fun, x0, jac=problem.jac, bounds=(lo, hi), x_scale="jac",
                              method="trf", max_nfev=max_nfev)
     return solve
+
+
+def _stall_stopped(solve):
+    """``solve`` that watches its problem and ends a stalled search at its best point."""
+    @functools.wraps(solve)
+    def run(problem, x0, lo, hi, max_nfev):
+        problem.watch()
+        try:
+            return solve(problem, x0, lo, hi, max_nfev)
+        except _SearchStalledError as stop:
+            return stop.solution
+        finally:
+            problem.unwatch()
+    return run
 
 
 def _restarted(problem, sol, lo, hi, max_nfev: int, solve):

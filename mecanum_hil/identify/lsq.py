@@ -32,6 +32,7 @@ _MESSAGES = {
     2: "ftol termination condition is satisfied",
     3: "xtol termination condition is satisfied",
     4: "both ftol and xtol termination conditions are satisfied",
+    5: "stalled: the cost fell by less than the stall tolerance over the last evaluations",
 }
 
 
@@ -47,7 +48,8 @@ class Solution:
         Half the sum of squared residuals at ``x``.
     status : int
         SciPy's codes: 0 evaluations exhausted, 1 gtol, 2 ftol, 3 xtol, 4 ftol and xtol; -1
-        every step refused because the residuals there are not finite (a failure).
+        every step refused because the residuals there are not finite (a failure); and 5, a
+        search stopped by its caller because it stalled (``mecanum_hil.identify.fit``).
     nfev : int
         Residual evaluations.
     message : str
@@ -108,9 +110,9 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
         # a component pushing against the bound it sits on is no reason to go on
         free = ~(((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
         if np.max(np.abs(g * free) / scale, initial=0.0) < gtol * max(1.0, 2.0 * cost) ** 0.5:
-            return _done(x, cost, 1, nfev)
+            return solution(x, cost, 1, nfev)
         if nfev >= max_nfev:
-            return _done(x, cost, 0, nfev)
+            return solution(x, cost, 0, nfev)
         JtJ = J.T @ J
         if mu is None:
             mu = 1e-3 * float(np.max(np.diag(JtJ) / scale ** 2))
@@ -139,22 +141,24 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             if small_cost or small_step:
-                return _done(x, cost, 4 if small_cost and small_step else 2 if small_cost else 3,
+                return solution(x, cost, 4 if small_cost and small_step else 2 if small_cost else 3,
                              nfev)
         else:
             if small_step and np.isfinite(cost_new):
-                return _done(x, cost, 3, nfev)
+                return solution(x, cost, 3, nfev)
             mu *= nu
             nu *= 2.0
             if not math.isfinite(mu) or mu > 1e300:
                 # no step, however short, lowers the cost: where the residuals are finite
                 # around x that is a minimum (the step test); where every trial point failed
                 # (non-finite residuals) it is not, and the search failed
-                return _done(x, cost, 3 if np.isfinite(cost_new) else -1, nfev)
+                return solution(x, cost, 3 if np.isfinite(cost_new) else -1, nfev)
 
 
-def _done(x: np.ndarray, cost: float, status: int, nfev: int) -> Solution:
-    return Solution(x.copy(), float(cost), status, nfev, _MESSAGES[status])
+def solution(x: np.ndarray, cost: float, status: int, nfev: int) -> Solution:
+    """A :class:`Solution` with ``status``'s message (``x`` copied)."""
+    return Solution(np.array(x, dtype=float), float(cost), status, nfev, _MESSAGES[status])
+
 
 
 @functools.lru_cache(maxsize=1024)

@@ -139,29 +139,44 @@ def _memo(key, make):
 
 
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
-    """Refine the time grid so a dead time is exact; return grid, delayed commands, sample index."""
-    grid, src, sample_idx = _memo(("delay", t.tobytes(), float(delay_s)),
-                                  lambda: _delay_plan(t, float(delay_s)))
+    """Refine the time grid so a dead time is exact; return grid, delayed commands, sample index.
+
+    The grid gains a point where a delayed command changes (the first sample's command, and
+    each sample whose command differs from the one before it, ``delay_s`` later), for all
+    robots of ``cmd`` (N, T, 3): between two such points every robot's delayed command is
+    constant, so the samples' own grid needs nothing else (a step response at 1 kHz gains one
+    point, not one per sample).
+    """
+    changed = np.zeros(t.size, dtype=bool)
+    changed[0] = True
+    if t.size > 1:
+        changed[1:] = np.any(cmd[:, 1:] != cmd[:, :-1], axis=(0, 2))
+    grid, src, sample_idx = _memo(
+        ("delay", t.tobytes(), np.packbits(changed).tobytes(), float(delay_s)),
+        lambda: _delay_plan(t, float(delay_s), changed))
     delayed = np.where((src >= 0)[None, :, None], cmd[:, np.clip(src, 0, None), :],
                        initial_command[:, None, :])
     return grid, delayed, sample_idx
 
 
-def _delay_plan(t: np.ndarray, delay_s: float):
+def _delay_plan(t: np.ndarray, delay_s: float, changed: np.ndarray):
     """The refined grid, each grid point's source sample (-1: before the first) and the
-    samples' places on the grid."""
+    samples' places on the grid; ``changed``: the samples whose command differs from the one
+    before (the first always counts: it replaces the command in force before the start)."""
     # rounding of t + delay: 1 ns, or a few float steps where the times are large (a fraction
     # of the recording's end time merged the 10 ms samples of a recording with a months-long
     # gap: 2e7 s gave 20 ms)
     eps = max(1e-9, 16.0 * float(np.spacing(max(abs(t[0]), abs(t[-1])))))
-    shifted = t + delay_s
+    shifted = t[changed] + delay_s
     shifted = shifted[shifted < t[-1]]
     # A delayed command change within rounding of a sample time is taken at that sample time, so
     # every sample time stays on the grid and no step is (almost) empty.
     j = np.searchsorted(t, shifted)
     near = (np.abs(t[np.clip(j, 0, t.size - 1)] - shifted) <= eps) | (
         np.abs(t[np.clip(j - 1, 0, t.size - 1)] - shifted) <= eps)
-    grid = np.union1d(t, shifted[~near])
+    # few points (the command's changes) into the sorted samples: an insertion, not a sort
+    extra = shifted[~near]
+    grid = np.insert(t, np.searchsorted(t, extra), extra)
     grid = grid[np.concatenate([[True], np.diff(grid) > eps])]
     src = np.searchsorted(t, grid - delay_s + 2 * eps, side="right") - 1
     sample_idx = np.searchsorted(grid, t - eps)

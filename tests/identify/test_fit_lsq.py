@@ -202,3 +202,76 @@ def test_a_level_short_of_the_target_puts_c_at_its_bound_and_points_at_diagnose(
     assert res.calibration.C <= 1e-4, res.calibration
     assert any(w.startswith("C = ") and "mecanum-hil diagnose" in w for w in res.warnings), \
         res.warnings
+
+
+def _problem(free=("A", "B", "C")):
+    from mecanum_hil.identify import fit as fit_module
+
+    data = fit_module.prepare([measured(*step(), TRUE)], ROBOT, None)
+    lo, hi = fit_module._bounds(list(free), None)
+    return fit_module._Problem(data, TRUE, ROBOT, list(free), lo, hi, 0.0)
+
+
+def test_the_jacobian_is_simulated_only_when_the_search_asks_for_it(monkeypatch):
+    from mecanum_hil.identify import fit as fit_module
+
+    batches = []
+    real = fit_module._residual_rows
+
+    def counted(data, calibs, *args):
+        batches.append(len(calibs))
+        return real(data, calibs, *args)
+
+    monkeypatch.setattr(fit_module, "_residual_rows", counted)
+    x = np.array([20.0, 9.0, 500.0])
+    lazy = _problem()
+    r = lazy.fun(x)
+    assert batches == [1]  # a trial point: its residuals only
+    J = lazy.jac(x)
+    assert batches == [1, 3]  # its Jacobian when asked: the three perturbed points
+    assert lazy.nfev == 1
+    eager = _problem()
+    J_eager = eager.jac(x)  # asked first: point and Jacobian in one batch
+    assert batches == [1, 3, 4]
+    np.testing.assert_array_equal(eager.fun(x), r)
+    np.testing.assert_array_equal(J_eager, J)
+
+
+def test_a_search_that_creeps_is_stopped_at_its_best_point():
+    from mecanum_hil.identify import fit as fit_module
+
+    p = _problem()
+    window = max(fit_module.STALL_MIN_EVALUATIONS, 3 * fit_module.STALL_EVALUATIONS_PER_PARAMETER)
+
+    def feed(i, cost):
+        p._watched(np.full(3, float(i)), np.array([math.sqrt(2.0 * cost)]))
+
+    p.watch()
+    for i in range(3 * window):  # 1 % a step: never a stall
+        feed(i, 100.0 * 0.99 ** i)
+    p.watch()
+    for i in range(window):  # 1e-4 over the window in all, a trial point refused on the way
+        feed(i, 100.0 * (1.0 - 0.9e-4 * i / window) + (5.0 if i == 3 else 0.0))
+    with pytest.raises(fit_module._SearchStalledError) as stop:
+        feed(window, 100.0 * (1.0 - 0.9e-4))
+    sol = stop.value.solution
+    assert sol.status == 5 and "stalled" in sol.message
+    assert sol.cost == pytest.approx(100.0 * (1.0 - 0.9e-4))
+    np.testing.assert_array_equal(sol.x, np.full(3, float(window)))
+    p.unwatch()
+    for i in range(3 * window):  # not watched: never raises
+        feed(i, 100.0)
+
+
+def test_a_stalled_search_counts_as_converged(monkeypatch):
+    from mecanum_hil.identify import fit as fit_module
+
+    # every search stalls after a few evaluations: the fit ends there, without an error
+    monkeypatch.setattr(fit_module, "STALL_MIN_EVALUATIONS", 3)
+    monkeypatch.setattr(fit_module, "STALL_EVALUATIONS_PER_PARAMETER", 0)
+    monkeypatch.setattr(fit_module, "RESTART_GAIN", 0.999)
+    rec = measured(*step(), TRUE)
+    start = {"A": 20.0, "B": 9.0, "C": 500.0, "dead_time_s": 0.0}
+    res = fit_parameters([rec], Calibration(effects=Effects(dead_time_s=0.01)), ROBOT,
+                         ["A", "B", "C", "dead_time_s"], x0=start)
+    assert res.calibration.info["evaluations"] <= 8
