@@ -350,7 +350,7 @@ def _fit_controller_period(ev: _Evaluator, base: Calibration, base_free: Sequenc
         return res.sse, with_parameters(cal, res.parameters), res
 
     # a dense grid of half sample periods up to 16 samples (a tenth of the recordings at most),
-    # scored by simulation alone (one batch); the best few refitted, then a finer grid
+    # each scored after a brief refit; the best few refitted further, then a finer grid
     top = max(min(16.0 * dt, dur / 10.0), dt)
     coarse = np.arange(0.5 * dt, top + 1e-12, 0.5 * dt)
     sse0 = []
