@@ -269,12 +269,17 @@ def simulate_batch(
     final_pose = np.empty((n_rob, 3))
     outputs = (wheels, pose, final_state, final_pose)
 
-    # Robots are simulated in groups sharing a time grid: the same dead time (its grid is split at
-    # the delayed command changes) and the same path (sub-stepped or closed-form), so a robot's
-    # result never depends on which other robots share its batch.
-    keys = [(c.effects.dead_time_s, c.effects.nonlinear) for c in calibs]
+    # Robots are simulated in groups sharing a time grid: the same dead time and, with one, the
+    # same samples where the command changes (the grid is split a dead time after each), and the
+    # same path (sub-stepped or closed-form), so a robot's result never depends on which other
+    # robots share its batch.
+    changes = _change_patterns(cmd, shared) if any(
+        c.effects.dead_time_s > 0 for c in calibs) else None
+    keys = [(c.effects.dead_time_s, c.effects.nonlinear,
+             changes[0 if shared else i] if changes is not None and c.effects.dead_time_s > 0
+             else b"") for i, c in enumerate(calibs)]
     for key in sorted(set(keys)):
-        delay, nonlinear = key
+        delay, nonlinear, _ = key
         members = np.flatnonzero([k == key for k in keys])
         whole = members.size == n_rob
         group = calibs if whole else [calibs[i] for i in members]
@@ -285,6 +290,14 @@ def simulate_batch(
                               pose0 if whole else np.ascontiguousarray(pose0[members]))
         _run_group(args, members, whole, grid.size, sample_idx, outputs)
     return Trajectory(t, np.asarray(cmd), wheels, pose, final_state)
+
+
+def _change_patterns(cmd: np.ndarray, shared: bool) -> list[bytes]:
+    """Per robot (one for all when ``shared``), the samples whose command differs from the one
+    before, packed: robots with a dead time share a grid only when these are the same."""
+    rows = cmd[:1] if shared else cmd
+    changed = np.any(rows[:, 1:] != rows[:, :-1], axis=2)
+    return [r.tobytes() for r in np.packbits(changed, axis=1)]
 
 
 def _robots_and_commands(commands, t: np.ndarray, calibration):

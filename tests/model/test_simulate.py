@@ -246,3 +246,23 @@ def test_dead_time_adds_grid_points_only_where_a_delayed_command_changes():
     # one robot on its own: its change only
     grid1 = _delay_grid(t, cmd[None], 0.0137, np.zeros((1, 3)))[0]
     assert grid1.size == t.size + 2
+
+
+def test_a_robot_with_a_dead_time_is_simulated_alike_whatever_its_batch():
+    # robots sharing a dead time but not their command changes: each one's grid is cut only
+    # where its own delayed command changes, as when it runs alone (the pose and the
+    # sub-stepped limits depend on where steps are cut)
+    t = uniform_time(1.0, 500)
+    rng = np.random.default_rng(5)
+    cmds = np.empty((4, t.size, 3))
+    for i in range(4):
+        cmds[i] = hold(30, 20, 45, t)
+        for k in rng.choice(np.arange(10, t.size - 10), size=3, replace=False):
+            cmds[i, k:] = [rng.uniform(0, 80), rng.uniform(-40, 40), rng.uniform(0, 360)]
+    ramped = replace(PAPER, effects=Effects(dead_time_s=0.0137, rate_limit_rpm_per_s=400.0))
+    cals = [ramped] * 2 + [replace(PAPER, effects=Effects(dead_time_s=0.0137))] * 2
+    batch = simulate_batch(cmds, t, cals)
+    for i in range(4):
+        single = simulate(cmds[i], t, cals[i])
+        np.testing.assert_array_equal(batch.wheel_rpm[i], single.wheel_rpm[0])
+        np.testing.assert_array_equal(batch.pose[i], single.pose[0])
