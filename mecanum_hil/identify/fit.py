@@ -575,9 +575,13 @@ class _Problem:
         self._trace: list[float] | None = None
         self._best: tuple[float, np.ndarray] | None = None
 
-    def watch(self) -> None:
-        """Start watching a search for a stall (:data:`STALL_EVALUATIONS_PER_PARAMETER`)."""
+    def watch(self, x0: np.ndarray) -> None:
+        """Start watching a search from ``x0`` for a stall
+        (:data:`STALL_EVALUATIONS_PER_PARAMETER`); a start already evaluated (a restart from
+        where the last search ended) counts as the search's first evaluation."""
         self._trace, self._best = [], None
+        if self._x is not None and np.array_equal(self._x, np.asarray(x0, dtype=float)):
+            self._watched(self._x, self._r)
 
     def unwatch(self) -> None:
         self._trace = self._best = None
@@ -833,9 +837,11 @@ def finish(data, calibration, robot, free, x, method, *, J=None, r=None, pose_we
     """Metrics, intervals and provenance for parameters ``x`` of ``free`` (shared by methods)."""
     x = np.asarray(x, dtype=float)
     if J is None or r is None:
+        # residuals and Jacobian at one point: one batch
         problem = _Problem(data, calibration, robot, free,
                            np.array([DEFAULT_BOUNDS[n][0] for n in free]),
-                           np.array([DEFAULT_BOUNDS[n][1] for n in free]), pose_weight)
+                           np.array([DEFAULT_BOUNDS[n][1] for n in free]), pose_weight,
+                           lazy=False)
         r, J = problem.fun(x), problem.jac(x)
     if lower is None or upper is None:
         lower = np.array([DEFAULT_BOUNDS[n][0] for n in free])
@@ -1066,7 +1072,7 @@ def _stall_stopped(solve):
     """``solve`` that watches its problem and ends a stalled search at its best point."""
     @functools.wraps(solve)
     def run(problem, x0, lo, hi, max_nfev):
-        problem.watch()
+        problem.watch(x0)
         try:
             return solve(problem, x0, lo, hi, max_nfev)
         except _SearchStalledError as stop:

@@ -139,44 +139,29 @@ def _memo(key, make):
 
 
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
-    """Refine the time grid so a dead time is exact; return grid, delayed commands, sample index.
-
-    The grid gains a point where a delayed command changes (the first sample's command, and
-    each sample whose command differs from the one before it, ``delay_s`` later), for all
-    robots of ``cmd`` (N, T, 3): between two such points every robot's delayed command is
-    constant, so the samples' own grid needs nothing else (a step response at 1 kHz gains one
-    point, not one per sample).
-    """
-    changed = np.zeros(t.size, dtype=bool)
-    changed[0] = True
-    if t.size > 1:
-        changed[1:] = np.any(cmd[:, 1:] != cmd[:, :-1], axis=(0, 2))
-    grid, src, sample_idx = _memo(
-        ("delay", t.tobytes(), np.packbits(changed).tobytes(), float(delay_s)),
-        lambda: _delay_plan(t, float(delay_s), changed))
+    """Refine the time grid so a dead time is exact; return grid, delayed commands, sample index."""
+    grid, src, sample_idx = _memo(("delay", t.tobytes(), float(delay_s)),
+                                  lambda: _delay_plan(t, float(delay_s)))
     delayed = np.where((src >= 0)[None, :, None], cmd[:, np.clip(src, 0, None), :],
                        initial_command[:, None, :])
     return grid, delayed, sample_idx
 
 
-def _delay_plan(t: np.ndarray, delay_s: float, changed: np.ndarray):
+def _delay_plan(t: np.ndarray, delay_s: float):
     """The refined grid, each grid point's source sample (-1: before the first) and the
-    samples' places on the grid; ``changed``: the samples whose command differs from the one
-    before (the first always counts: it replaces the command in force before the start)."""
+    samples' places on the grid."""
     # rounding of t + delay: 1 ns, or a few float steps where the times are large (a fraction
     # of the recording's end time merged the 10 ms samples of a recording with a months-long
     # gap: 2e7 s gave 20 ms)
     eps = max(1e-9, 16.0 * float(np.spacing(max(abs(t[0]), abs(t[-1])))))
-    shifted = t[changed] + delay_s
+    shifted = t + delay_s
     shifted = shifted[shifted < t[-1]]
     # A delayed command change within rounding of a sample time is taken at that sample time, so
     # every sample time stays on the grid and no step is (almost) empty.
     j = np.searchsorted(t, shifted)
     near = (np.abs(t[np.clip(j, 0, t.size - 1)] - shifted) <= eps) | (
         np.abs(t[np.clip(j - 1, 0, t.size - 1)] - shifted) <= eps)
-    # few points (the command's changes) into the sorted samples: an insertion, not a sort
-    extra = shifted[~near]
-    grid = np.insert(t, np.searchsorted(t, extra), extra)
+    grid = np.union1d(t, shifted[~near])
     grid = grid[np.concatenate([[True], np.diff(grid) > eps])]
     src = np.searchsorted(t, grid - delay_s + 2 * eps, side="right") - 1
     sample_idx = np.searchsorted(grid, t - eps)
@@ -269,17 +254,12 @@ def simulate_batch(
     final_pose = np.empty((n_rob, 3))
     outputs = (wheels, pose, final_state, final_pose)
 
-    # Robots are simulated in groups sharing a time grid: the same dead time and, with one, the
-    # same samples where the command changes (the grid is split a dead time after each), and the
-    # same path (sub-stepped or closed-form), so a robot's result never depends on which other
-    # robots share its batch.
-    changes = _change_patterns(cmd, shared) if any(
-        c.effects.dead_time_s > 0 for c in calibs) else None
-    keys = [(c.effects.dead_time_s, c.effects.nonlinear,
-             changes[0 if shared else i] if changes is not None and c.effects.dead_time_s > 0
-             else b"") for i, c in enumerate(calibs)]
+    # Robots are simulated in groups sharing a time grid: the same dead time (its grid is split at
+    # the delayed command changes) and the same path (sub-stepped or closed-form), so a robot's
+    # result never depends on which other robots share its batch.
+    keys = [(c.effects.dead_time_s, c.effects.nonlinear) for c in calibs]
     for key in sorted(set(keys)):
-        delay, nonlinear, _ = key
+        delay, nonlinear = key
         members = np.flatnonzero([k == key for k in keys])
         whole = members.size == n_rob
         group = calibs if whole else [calibs[i] for i in members]
@@ -290,14 +270,6 @@ def simulate_batch(
                               pose0 if whole else np.ascontiguousarray(pose0[members]))
         _run_group(args, members, whole, grid.size, sample_idx, outputs)
     return Trajectory(t, np.asarray(cmd), wheels, pose, final_state)
-
-
-def _change_patterns(cmd: np.ndarray, shared: bool) -> list[bytes]:
-    """Per robot (one for all when ``shared``), the samples whose command differs from the one
-    before, packed: robots with a dead time share a grid only when these are the same."""
-    rows = cmd[:1] if shared else cmd
-    changed = np.any(rows[:, 1:] != rows[:, :-1], axis=2)
-    return [r.tobytes() for r in np.packbits(changed, axis=1)]
 
 
 def _robots_and_commands(commands, t: np.ndarray, calibration):

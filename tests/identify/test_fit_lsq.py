@@ -246,10 +246,10 @@ def test_a_search_that_creeps_is_stopped_at_its_best_point():
     def feed(i, cost):
         p._watched(np.full(3, float(i)), np.array([math.sqrt(2.0 * cost)]))
 
-    p.watch()
+    p.watch(np.zeros(3))
     for i in range(3 * window):  # 1 % a step: never a stall
         feed(i, 100.0 * 0.99 ** i)
-    p.watch()
+    p.watch(np.zeros(3))
     for i in range(window):  # 1e-4 over the window in all, a trial point refused on the way
         feed(i, 100.0 * (1.0 - 0.9e-4 * i / window) + (5.0 if i == 3 else 0.0))
     with pytest.raises(fit_module._SearchStalledError) as stop:
@@ -261,6 +261,11 @@ def test_a_search_that_creeps_is_stopped_at_its_best_point():
     p.unwatch()
     for i in range(3 * window):  # not watched: never raises
         feed(i, 100.0)
+    # a restart from the point evaluated last: that point is its first evaluation
+    x = np.array([20.0, 9.0, 500.0])
+    r = p.fun(x)
+    p.watch(x)
+    assert p._trace == [0.5 * float(r @ r)]
 
 
 def test_a_stalled_search_counts_as_converged(monkeypatch):

@@ -80,11 +80,14 @@ def test_step_plan_splits_at_the_delayed_command_change():
         step_plan(0.0, Effects())
 
 
+@pytest.mark.parametrize("held", [1, 5], ids=["new-command-each-period", "held-5-periods"])
 @pytest.mark.parametrize("name", sorted(EFFECTS))
-def test_stepping_equals_one_simulate_call(name):
+def test_stepping_equals_one_simulate_call(name, held):
+    # commands held for several periods too (an agent's action repeated): the simulator's grid
+    # and the stepper's cuts must stay the same where the delayed command does not change
     rng = np.random.default_rng(7)
     T, h = 120, 0.02
-    cmd = _commands(rng, T)
+    cmd = np.repeat(_commands(rng, -(-T // held)), held, axis=0)[:T]
     cal = Calibration(effects=EFFECTS[name])
     ref = simulate(cmd, np.arange(T) * h, cal, initial_pose=(0.5, -1.0, 30.0))
     st = BatchStepper(1, h, cal)

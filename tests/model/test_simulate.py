@@ -227,31 +227,10 @@ def test_bad_inputs_are_config_errors():
         simulate(hold(1, 0, 90, t), t[::-1], PAPER)
 
 
-def test_dead_time_adds_grid_points_only_where_a_delayed_command_changes():
-    from mecanum_hil.model.simulate import _delay_grid
-
-    t = np.arange(1001) / 1000.0  # 1 kHz
-    cmd = hold(0, 0, 90, t)
-    cmd[100:, 0] = 60
-    other = cmd.copy()
-    other[500:, 0] = -30  # a second robot's change counts for the group
-    grid, delayed, idx = _delay_grid(t, np.stack([cmd, other]), 0.0137, np.zeros((2, 3)))
-    # the start's command (replacing the one before it), and the changes at 0.1 s and 0.5 s
-    np.testing.assert_allclose(np.setdiff1d(grid, t), [0.0137, 0.1137, 0.5137], atol=1e-12)
-    np.testing.assert_array_equal(grid[idx], t)
-    for g, row in zip(grid, delayed[1], strict=True):
-        earlier = t[t <= g - 0.0137 + 1e-12]
-        expected = other[earlier.size - 1] if earlier.size else np.zeros(3)
-        np.testing.assert_array_equal(row, expected)
-    # one robot on its own: its change only
-    grid1 = _delay_grid(t, cmd[None], 0.0137, np.zeros((1, 3)))[0]
-    assert grid1.size == t.size + 2
-
-
 def test_a_robot_with_a_dead_time_is_simulated_alike_whatever_its_batch():
-    # robots sharing a dead time but not their command changes: each one's grid is cut only
-    # where its own delayed command changes, as when it runs alone (the pose and the
-    # sub-stepped limits depend on where steps are cut)
+    # robots sharing a dead time but not their commands: each one's result is the same as when
+    # it runs alone, bit for bit (the pose and the sub-stepped limits depend on where steps are
+    # cut, so the grid must not depend on the batch mates' commands)
     t = uniform_time(1.0, 500)
     rng = np.random.default_rng(5)
     cmds = np.empty((4, t.size, 3))
