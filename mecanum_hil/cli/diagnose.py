@@ -24,7 +24,7 @@ def command(
     candidates: Annotated[str | None, typer.Option(
         "--candidates", help="Comma-separated effects to consider (default: the whole library: "
                              "dead_time, saturation, rate_limit, deadband, wheel_gain, "
-                             "controller_period, drive_lag, breakaway, slip).")
+                             "controller_period, drive_lag, breakaway, braking_limit, slip).")
     ] = None,
     json_out: JsonOpt = False,
 ) -> None:

@@ -55,7 +55,7 @@ PARAMETER_NAMES: tuple[str, ...] = (
     "A", "B", "C", "dead_time_s", "top_speed_rpm", "rate_limit_rpm_per_s", "deadband_rpm",
     "gains[0]", "gains[1]", "gains[2]", "gains[3]",
     "efficiency[0]", "efficiency[1]", "efficiency[2]",
-    "controller_period_s", "drive_lag_s", "breakaway_rpm_per_s",
+    "controller_period_s", "drive_lag_s", "breakaway_rpm_per_s", "braking_limit_rpm_per_s",
 )
 
 _INDEXED = re.compile(r"^(gains|efficiency)\[(\d)\]$")
@@ -79,6 +79,7 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "controller_period_s": (0.0, 1.0),
     "drive_lag_s": (0.0, 5.0),
     "breakaway_rpm_per_s": (0.0, math.inf),
+    "braking_limit_rpm_per_s": (1e-6, math.inf),
 }
 
 # Typical magnitude below which a finite-difference step stops shrinking with the value.

@@ -91,7 +91,63 @@ def _drive_at_rest(per, a, A, C, u, z, h, dl):
 
 
 @njit(cache=True, inline="always")
-def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q, eb, g, ea):
+def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
+    """The part of a piece in which the drive cannot slow wheel ``i`` as fast as the loop asks.
+
+    A wheel whose acceleration towards rest, ``-(c - B y) sign(y)`` with drive output ``c``,
+    exceeds ``brake`` [rpm/s] slows at exactly ``brake`` (a drive that coasts instead of
+    braking: slow-decay PWM, a diode bridge). The phase ends when the wheel reaches rest or
+    when the motor's own deceleration has fallen to ``brake``: exactly for a held output
+    (controller period, no lag), where that deceleration falls at ``B brake``; to first order in
+    the piece otherwise (the drive's rate of change at the phase's start). Advances ``y``,
+    ``z``, ``dl`` and ``q`` over the phase; returns its length [s] (0 when the limit is not
+    reached).
+    """
+    yi = y[i]
+    if yi == 0.0 or not brake < np.inf:
+        return 0.0
+    sg = 1.0 if yi > 0.0 else -1.0
+    clipped = False
+    if a < np.inf:
+        c = dl[i]
+        cin = hold[i] if per > 0 else A * (u - yi) + C * z[i]
+        cin = min(max(cin, -dmax), dmax)
+        rate = sg * a * (cin - c)  # the lagged drive's rate of change, towards the wheel's sign
+    elif per > 0:
+        c = hold[i]
+        cin = c
+        rate = 0.0
+    else:
+        c = A * (u - yi) + C * z[i]
+        clipped = c > dmax or c < -dmax
+        c = min(max(c, -dmax), dmax)
+        cin = c
+        rate = 0.0 if clipped else A * brake + sg * C * (u - yi)
+    excess = -brake - sg * (c - B * yi)  # > 0: the loop asks for more braking than there is
+    if excess <= 0.0:
+        return 0.0
+    t_l = abs(yi) / brake  # until the wheel is at rest
+    at_rest = True
+    rate += B * brake
+    if rate > 0.0 and excess / rate < t_l:
+        t_l = excess / rate
+        at_rest = False
+    if t_l > ts:
+        t_l = ts
+        at_rest = False
+    y_new = 0.0 if at_rest else yi - sg * brake * t_l
+    q[i] += (yi - 0.5 * sg * brake * t_l) * t_l
+    if per <= 0 and (not clipped or (c > 0) != (u - yi > 0)):
+        z[i] += (u - yi) * t_l + 0.5 * sg * brake * t_l * t_l
+    if a < np.inf:
+        dl[i] = cin + (dl[i] - cin) * math.exp(-a * t_l)
+    y[i] = y_new
+    return t_l
+
+
+@njit(cache=True, inline="always")
+def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, y, z, hold, dl, tab, q, eb, g,
+                 ea):
     """Advance wheel ``i`` over ``ts`` seconds on the path of the drive's own dynamics.
 
     Between controller ticks (``per > 0``) the held output drives the motor exactly; a
@@ -99,12 +155,17 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q, e
     discretisation over ``ts`` when ``ts`` is a whole sub-step, recomputed otherwise); a
     continuous PI with a lag holds its output over the piece (first order in the piece). A
     wheel at rest with ``brk > 0`` stays at rest until the drive's magnitude exceeds ``brk``,
-    at the instant it does (found in closed form, so the model is smooth in ``brk``).
-    Accumulates the integral of the speed over the piece into ``q[i]``. ``eb, g, ea``:
-    :func:`_lag_factors` of ``ts`` (when the path needs them).
+    at the instant it does (found in closed form, so the model is smooth in ``brk``). A wheel
+    the loop would slow faster than ``brake`` [rpm/s] slows at ``brake`` first
+    (:func:`_braking_phase`). Accumulates the integral of the speed over the piece into
+    ``q[i]``. ``eb, g, ea``: :func:`_lag_factors` of ``ts`` (when the path needs them).
     """
-    yi = y[i]
     rem = ts
+    if brake < np.inf:
+        rem = ts - _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q)
+        if rem <= 1e-12:
+            return
+    yi = y[i]
     if brk > 0.0 and yi == 0.0:
         # stuck: find when the drive leaves [-brk, brk] within the piece
         d0 = _drive_at_rest(per, a, A, C, u, z[i], hold[i], dl[i])
@@ -135,7 +196,7 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q, e
                     t_go = np.inf
             else:
                 t_go = np.inf
-        t_rest = min(t_go, ts)
+        t_rest = min(t_go, rem)
         if t_rest > 0:
             if per <= 0:
                 z[i] += u * t_rest
@@ -143,7 +204,7 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, dmax, y, z, hold, dl, tab, q, e
                 c = hold[i] if per > 0 else A * u + C * z[i]
                 c = min(max(c, -dmax), dmax)
                 dl[i] = c + (dl[i] - c) * math.exp(-a * t_rest)
-            rem = ts - t_rest
+            rem -= t_rest
             if rem <= 1e-12:
                 return
     # moving
@@ -338,7 +399,7 @@ def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A,
 
 @njit(cache=True, inline="always")
 def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                            saturating, per, a_lag, brk, A, B, C, dmax):
+                            saturating, per, a_lag, brk, brake, A, B, C, dmax):
     """Advance the four wheels over one sub-step on the path of the drive's own dynamics.
 
     The sub-step is cut into pieces that end at the controller's ticks (period ``per`` [s]),
@@ -364,7 +425,7 @@ def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tic
         else:  # the closed-form PI path (tab) needs none
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
-            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, dmax,
+            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax,
                          y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
@@ -416,9 +477,10 @@ def simulate_kernel(
     deadband, top_speed, rate_limit : (N,) float64
         Effect parameters (0, inf and inf when absent); ``rate_limit`` in [rpm/s].
     gains : (N, 4) float64;  efficiency : (N, 3) float64
-    dyn : (N, 3) float64
+    dyn : (N, 4) float64
         The drive's own dynamics: ``controller_period_s`` [s], ``drive_lag_s`` [s],
-        ``breakaway_rpm_per_s`` [rpm/s] (0 when absent).
+        ``breakaway_rpm_per_s`` [rpm/s] (0 when absent), ``braking_limit_rpm_per_s`` [rpm/s]
+        (inf when absent).
     state : (N, 21) float64
         Initial wheel state (see ``STATE_WIDTH``).
     pose0 : (N, 3) float64
@@ -445,7 +507,8 @@ def simulate_kernel(
         lag = dyn[r, 1]
         a_lag = 1.0 / lag if lag > 0 else np.inf
         brk = dyn[r, 2]
-        dynamics = per > 0 or lag > 0 or brk > 0
+        brake = dyn[r, 3]
+        dynamics = per > 0 or lag > 0 or brk > 0 or brake < np.inf
         X = pose0[r, 0]
         Y = pose0[r, 1]
         phi = math.radians(pose0[r, 2])
@@ -483,7 +546,7 @@ def simulate_kernel(
                 if dynamics:
                     until_tick = _drive_dynamics_substep(
                         tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                        saturating, per, a_lag, brk, A, B, C, dmax)
+                        saturating, per, a_lag, brk, brake, A, B, C, dmax)
                 else:
                     _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating,
                                          A, B, C, drive_max, top)

@@ -40,6 +40,8 @@ File layout::
     drive_lag_s = 0.02
     [effects.breakaway]
     breakaway_rpm_per_s = 3000.0
+    [effects.braking_limit]
+    braking_limit_rpm_per_s = 2000.0
 """
 
 from __future__ import annotations
@@ -71,7 +73,11 @@ class Effects:
     a first-order lag of ``drive_lag_s`` (winding inductance, an output filter); with
     ``breakaway`` a wheel at rest stays at rest until the drive output exceeds
     ``breakaway_rpm_per_s`` (static friction; the integrator keeps winding up meanwhile), and a
-    wheel that comes to rest while the drive is below it sticks. ``slip`` scales the body
+    wheel that comes to rest while the drive is below it sticks; with ``braking_limit`` the
+    drive slows a turning wheel by at most ``braking_limit_rpm_per_s`` (where the loop asks for
+    a steeper deceleration, ``c - B y`` beyond it towards rest, the wheel slows at exactly that
+    rate: a drive that coasts instead of braking, as slow-decay PWM or a bridge without active
+    braking does; acceleration is not limited). ``slip`` scales the body
     twist ``(vx, vy, wz)`` by ``efficiency`` before the pose is integrated; it does not change
     wheel speeds.
 
@@ -97,6 +103,9 @@ class Effects:
     breakaway_rpm_per_s : float
         Drive output (as an acceleration) a wheel at rest needs to start moving [rpm/s]; 0 when
         absent.
+    braking_limit_rpm_per_s : float
+        Largest deceleration of a turning wheel towards rest the drive can produce [rpm/s];
+        ``inf`` when absent.
     """
 
     dead_time_s: float = 0.0
@@ -108,6 +117,7 @@ class Effects:
     controller_period_s: float = 0.0
     drive_lag_s: float = 0.0
     breakaway_rpm_per_s: float = 0.0
+    braking_limit_rpm_per_s: float = math.inf
 
     def active(self) -> dict[str, dict[str, Any]]:
         """The effects that are present, by name, with their parameters."""
@@ -126,9 +136,10 @@ class Effects:
 
     @property
     def drive_dynamics(self) -> bool:
-        """Whether an effect of the drive's own dynamics (period, lag, breakaway) is present."""
+        """Whether an effect of the drive's own dynamics (period, lag, breakaway, braking limit)
+        is present."""
         return (self.controller_period_s > 0 or self.drive_lag_s > 0
-                or self.breakaway_rpm_per_s > 0)
+                or self.breakaway_rpm_per_s > 0 or math.isfinite(self.braking_limit_rpm_per_s))
 
     def without(self, name: str) -> Effects:
         """A copy with effect ``name`` removed."""
@@ -173,6 +184,9 @@ EFFECTS: dict[str, EffectSpec] = {
     "breakaway": EffectSpec(
         "breakaway", ("breakaway_rpm_per_s",), {"breakaway_rpm_per_s": 0.0},
         "static friction: a wheel at rest moves only once the drive exceeds this [rpm/s]"),
+    "braking_limit": EffectSpec(
+        "braking_limit", ("braking_limit_rpm_per_s",), {"braking_limit_rpm_per_s": math.inf},
+        "the drive slows a turning wheel at most this fast (it coasts, not brakes) [rpm/s]"),
 }
 
 
@@ -228,17 +242,19 @@ def exchange_drive_lag(calibration: Calibration) -> Calibration | None:
     ``1 / (tau B)`` give exactly the same wheel speeds for every command, with every effect
     that acts on the target or on the controller output (dead time, deadband, gains, rate limit,
     saturation, controller period). Wheel speeds alone cannot tell the two apart; breakaway,
-    which acts on the lagged drive, can.
+    which acts on the lagged drive, and a braking limit, which acts on the motor's
+    acceleration, can.
 
     Returns
     -------
     Calibration or None
         The twin (intervals and metrics dropped); ``None`` without a drive lag, with ``B <= 0``
-        or with breakaway (no exact twin).
+        or with breakaway or a braking limit (no exact twin).
     """
     fx = calibration.effects
     tau, B = fx.drive_lag_s, calibration.B
-    if not (tau > 0 and B > 0) or fx.breakaway_rpm_per_s > 0:
+    if not (tau > 0 and B > 0) or fx.breakaway_rpm_per_s > 0 or \
+            math.isfinite(fx.braking_limit_rpm_per_s):
         return None
     k = 1.0 / (tau * B)
     twin = calibration.with_coefficients(calibration.A * k, 1.0 / tau, calibration.C * k)
@@ -304,6 +320,9 @@ def _read_effects(reader: TableReader | None) -> Effects:
             values["drive_lag_s"] = sub.number("drive_lag_s", minimum=0.0, maximum=5.0)
         elif name == "breakaway":
             values["breakaway_rpm_per_s"] = sub.number("breakaway_rpm_per_s", minimum=0.0)
+        elif name == "braking_limit":
+            values["braking_limit_rpm_per_s"] = sub.number(
+                "braking_limit_rpm_per_s", minimum=0, strict_minimum=True)
     return Effects(**values)
 
 

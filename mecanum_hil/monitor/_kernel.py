@@ -48,7 +48,8 @@ P_CMD0 = 38  # 3 values: command in force before the first sample (start from re
 P_TOL = 41  # timing tolerance [s]
 P_SAFETY = 42  # noise estimate margin [standard errors]
 P_PER, P_LAG, P_BRK = 43, 44, 45  # the drive's own dynamics (0 when absent)
-P_WIDTH = 46
+P_BRAKE = 46  # the braking limit [rpm/s] (inf when absent)
+P_WIDTH = 47
 
 # --- float state ``fs`` ------------------------------------------------------------------------
 S_Y, S_Z, S_UE, S_TGT = 0, 4, 8, 12  # 4 values each
@@ -108,7 +109,7 @@ def _advance_piece(pp, fs, h, tab, q):
     saturating = top < np.inf
     ramping = rl < np.inf
     per = pp[P_PER]
-    dynamics = per > 0 or pp[P_LAG] > 0 or pp[P_BRK] > 0
+    dynamics = per > 0 or pp[P_LAG] > 0 or pp[P_BRK] > 0 or pp[P_BRAKE] < np.inf
     nsub = 1
     if saturating or ramping or dynamics:
         nsub = max(1, math.ceil(h / pp[P_SUB] - 1e-9))
@@ -175,13 +176,15 @@ def _advance_piece(pp, fs, h, tab, q):
 @njit(cache=True)
 def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
     """One sub-step of the wheels with the drive's own dynamics (controller period, drive
-    lag, breakaway), exactly as the simulator's kernel advances it (pieces end at ticks)."""
+    lag, breakaway, braking limit), exactly as the simulator's kernel advances it (pieces end at
+    ticks)."""
     A = pp[P_A]
     B = pp[P_B]
     C = pp[P_C]
     per = pp[P_PER]
     a_lag = 1.0 / pp[P_LAG] if pp[P_LAG] > 0 else np.inf
     brk = pp[P_BRK]
+    brake = pp[P_BRAKE]
     dmax = drive_max if saturating else np.inf
     rl = pp[P_RL]
     ub = np.empty(4)
@@ -212,8 +215,8 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
         else:
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
-            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, dmax, y, z, hold, dl, tab,
-                         q, eb_p, g_p, ea_p)
+            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, y, z, hold,
+                         dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
             fs[S_UNTIL] -= piece
@@ -340,7 +343,13 @@ def _slope(pp, fs, i):
             drive = -lim
     if y == 0.0 and abs(drive) <= pp[P_BRK]:
         return 0.0  # held by static friction
-    return drive - pp[P_B] * y
+    slope = drive - pp[P_B] * y
+    brake = pp[P_BRAKE]
+    if y > 0.0 and slope < -brake:
+        return -brake  # the drive cannot slow the wheel faster
+    if y < 0.0 and slope > brake:
+        return brake
+    return slope
 
 
 @njit(cache=True)

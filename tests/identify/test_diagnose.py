@@ -68,7 +68,8 @@ HIDDEN = {
 }
 
 
-# the drive's own dynamics (issue 12): controller period within 1 ms, lag and breakaway 20 %.
+# the drive's own dynamics (issue 12): controller period within 1 ms, lag, breakaway and braking
+# limit 20 %.
 # (A 20 ms period on the paper's slow loop is fitted to the noise floor by a 20 ms dead time as
 # well: the two cannot be told apart there; at 50 ms the held output's steps show.)
 HIDDEN_DRIVE = {
@@ -78,6 +79,9 @@ HIDDEN_DRIVE = {
     # nothing A, B, C cannot absorb. Named up to its exact twin (lag <-> motor pole, below).
     "drive_lag": (Effects(drive_lag_s=0.12), {"drive_lag_s": (0.12, 0.024)}),
     "breakaway": (Effects(breakaway_rpm_per_s=1500.0), {"breakaway_rpm_per_s": (1500.0, 300.0)}),
+    # a drive that coasts: the paper's loop stops a wheel at up to ~3000 rpm/s
+    "braking_limit": (Effects(braking_limit_rpm_per_s=800.0),
+                      {"braking_limit_rpm_per_s": (800.0, 160.0)}),
 }
 
 

@@ -142,10 +142,11 @@ def test_real_micromouse_recording_alone(shared_real_data, name):
         return float(np.sqrt(np.nanmean((rec.wheel_rpm - a.wheel_rpm) ** 2)))
 
     if name == "testPid7":
-        # 19 % only: what remains is beyond a linear model (docs/diagnose.md): the generic
-        # reference model of higher order does no better than the named effects
-        assert rmse(diagnosed) <= 0.85 * rmse(alone)
-        assert d.explained_share >= 0.9
+        # 28 % only (docs/diagnose.md): wheel gains and a drive that coasts (braking limit);
+        # the final model does better than the generic linear reference of higher order
+        assert "braking_limit" in d.effects
+        assert rmse(diagnosed) <= 0.75 * rmse(alone)
+        assert d.explained_share >= 1.0
     else:
         assert rmse(diagnosed) <= 0.7 * rmse(alone)
     doc = d.to_json()

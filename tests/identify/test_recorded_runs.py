@@ -42,12 +42,21 @@ def test_start_values_read_the_measurements_not_the_command_rows(recorded):
     for effect in ("rate_limit", "saturation"):
         got = candidates._start_values(effect, with_rows, 0.25)
         assert got == pytest.approx(candidates._start_values(effect, without, 0.25)), effect
+    # the braking limit's window is the rise time, timed from the command's own row when the
+    # recording has it (without, from the next measured row): close, not equal
+    got = candidates._start_values("braking_limit", with_rows, 0.25)
+    assert got == pytest.approx(candidates._start_values("braking_limit", without, 0.25),
+                                rel=0.1)
     # the steepest measured slope, not one diluted by rows read as zero: the 120 rpm step
     # rises at more than 1000 rpm/s (the first-order model's initial slope is A x 120)
     assert candidates._start_values("rate_limit", with_rows, 0.25)[
         "rate_limit_rpm_per_s"] > 1000.0
     assert candidates._start_values("saturation", with_rows, 0.25)[
         "top_speed_rpm"] == pytest.approx(1.02 * 110.0, abs=2.0)
+    # the stop from the ceiling: the paper's loop brakes 110 rpm at more than 1000 rpm/s over
+    # its rise time; read over that window, not over one noisy sample pair
+    assert 1000.0 < candidates._start_values("braking_limit", with_rows, 0.25)[
+        "braking_limit_rpm_per_s"] < 4000.0
 
 
 def test_fit_start_values_read_the_measurements_not_the_command_rows(recorded):
@@ -60,7 +69,7 @@ def test_fit_start_values_read_the_measurements_not_the_command_rows(recorded):
     assert got["rate_limit_rpm_per_s"] > 100.0
 
 
-@pytest.mark.parametrize("effect", ["rate_limit", "breakaway"])
+@pytest.mark.parametrize("effect", ["rate_limit", "breakaway", "braking_limit"])
 def test_a_candidate_never_ends_worse_than_the_model_without_it(recorded, monkeypatch,
                                                                   effect):
     """The searches from the data's start values can end in a local minimum worse than the
@@ -69,7 +78,8 @@ def test_a_candidate_never_ends_worse_than_the_model_without_it(recorded, monkey
     ev = _Evaluator(recorded, ROBOT)
     base = with_parameters(Calibration(), {"top_speed_rpm": 110.0})
     harmful = {"rate_limit": {"rate_limit_rpm_per_s": 50.0},
-               "breakaway": {"breakaway_rpm_per_s": 5000.0}}[effect]
+               "breakaway": {"breakaway_rpm_per_s": 5000.0},
+               "braking_limit": {"braking_limit_rpm_per_s": 30.0}}[effect]
 
     def stuck(ev, effect, base, cal, guess, bounds, base_free, free, sources, two_stage):
         return candidates._Fitted(effect, with_parameters(base, harmful), tuple(free), {}, ())

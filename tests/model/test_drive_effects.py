@@ -1,4 +1,5 @@
-"""The drive's own dynamics in the simulator: controller period, drive lag, breakaway."""
+"""The drive's own dynamics in the simulator: controller period, drive lag, breakaway, braking
+limit."""
 
 from __future__ import annotations
 
@@ -70,9 +71,82 @@ def test_controller_period_holds_the_output():
     assert w[-1] == pytest.approx(60.0, abs=0.5)
 
 
+def _reference(u_rpm, A, B, C, brake, period_s=0.0, h=2e-6):
+    """Wheel speed [rpm] at T of a PI loop around a first-order motor with the braking limit,
+    by forward Euler on a fine grid (the truth the kernel's pieces are checked against):
+    ``u_rpm`` is the target in force from each sample of T."""
+    y = z = hold = 0.0
+    next_tick = 0.0
+    out = np.empty(T.size)
+    out[0] = 0.0
+    k = 0
+    for m in range(1, T.size):
+        u = u_rpm[m - 1]
+        for _ in range(round((T[m] - T[m - 1]) / h)):
+            if period_s > 0 and k * h >= next_tick - 1e-12:
+                z += (u - y) * period_s
+                hold = A * (u - y) + C * z
+                next_tick += period_s
+            c = hold if period_s > 0 else A * (u - y) + C * z
+            acc = c - B * y
+            if y > 0 and acc < -brake:
+                acc = -brake
+            elif y < 0 and acc > brake:
+                acc = brake
+            if period_s <= 0:
+                z += (u - y) * h
+            y += acc * h
+            k += 1
+        out[m] = y
+    return out
+
+
+def _stop_commands():
+    cmd = _commands(n_rpm=80.0)
+    cmd[300:, 0] = 0.0  # a stop from 80 rpm: the loop brakes hard
+    cmd[600:, 0] = -40.0  # then a reversal
+    return cmd
+
+
+@pytest.mark.parametrize("period_s", [0.0, 0.008])
+def test_braking_limit_caps_the_deceleration_and_not_the_acceleration(period_s):
+    # a stiff loop (A 30 1/s, B 20 1/s, C 600 1/s^2) stops from 80 rpm at up to ~4000 rpm/s
+    # (2300 rpm/s over the first 2-ms sample); a drive that coasts slows it at 800 rpm/s at most
+    A, B, C, brake = 30.0, 20.0, 600.0, 800.0
+    cmd = _stop_commands()
+    cal = Calibration(A=A, B=B, C=C, effects=Effects(braking_limit_rpm_per_s=brake,
+                                                     controller_period_s=period_s))
+    free = Calibration(A=A, B=B, C=C, effects=Effects(controller_period_s=period_s))
+    w = simulate(cmd, T, cal).wheel_rpm[0, :, 0]
+    w0 = simulate(cmd, T, free).wheel_rpm[0, :, 0]
+    # the rise is not touched (it accelerates away from rest)
+    np.testing.assert_allclose(w[:300], w0[:300], atol=1e-9)
+    slope = np.diff(w) / np.diff(T)
+    slope0 = np.diff(w0) / np.diff(T)
+    assert -slope0[300:330].min() > 2.5 * brake  # without the limit it brakes far harder
+    moving = (np.abs(w[:-1]) > 1.0) & (w[:-1] * w[1:] > 0)  # a sample that crosses rest
+    # accelerates away from it in its second part
+    towards_rest = -np.sign(w[:-1]) * slope
+    assert towards_rest[moving].max() <= brake * (1 + 1e-9)
+    assert towards_rest[300:320].min() == pytest.approx(brake, rel=1e-6)  # at the limit
+    assert w[599] == pytest.approx(0.0, abs=0.5) and w[-1] == pytest.approx(-40.0, abs=0.5)
+    # exact with a held output (the phase ends in closed form); first order in the 1 ms
+    # sub-step with the continuous PI
+    ref = _reference(cmd[:, 0], A, B, C, brake, period_s)
+    assert np.abs(w - ref).max() < (0.05 if period_s else 0.3)
+
+
+def test_a_braking_limit_beyond_every_deceleration_is_the_paper_model():
+    ref = _wheel(Effects(), reverse_at=400)
+    np.testing.assert_allclose(_wheel(Effects(braking_limit_rpm_per_s=1e7), reverse_at=400),
+                               ref, atol=1e-9)
+
+
 @pytest.mark.parametrize("effects", [
     Effects(controller_period_s=0.012), Effects(drive_lag_s=0.02),
-    Effects(breakaway_rpm_per_s=2500.0),
+    Effects(breakaway_rpm_per_s=2500.0), Effects(braking_limit_rpm_per_s=400.0),
+    Effects(braking_limit_rpm_per_s=500.0, controller_period_s=0.007, drive_lag_s=0.01,
+            breakaway_rpm_per_s=1200.0),
     Effects(controller_period_s=0.005, drive_lag_s=0.01, breakaway_rpm_per_s=1500.0,
             top_speed_rpm=70.0, rate_limit_rpm_per_s=800.0),
 ])
@@ -94,10 +168,11 @@ def test_a_wheels_only_state_is_accepted():
 
 
 def test_new_effects_round_trip_through_a_calibration_file(tmp_path):
-    eff = Effects(controller_period_s=0.004, drive_lag_s=0.015, breakaway_rpm_per_s=2200.0)
+    eff = Effects(controller_period_s=0.004, drive_lag_s=0.015, breakaway_rpm_per_s=2200.0,
+                  braking_limit_rpm_per_s=1800.0)
     path = save_calibration(Calibration(effects=eff), tmp_path / "c.toml")
     text = path.read_text()
-    for name in ("controller_period", "drive_lag", "breakaway"):
+    for name in ("controller_period", "drive_lag", "breakaway", "braking_limit"):
         assert f"[effects.{name}]" in text
     assert load_calibration(path).effects == eff
 
@@ -123,4 +198,9 @@ def test_drive_lag_and_motor_pole_are_interchangeable(effects):
 
 def test_breakaway_tells_the_lag_from_the_motor_pole():
     fx = Effects(drive_lag_s=0.03, breakaway_rpm_per_s=1500.0)
+    assert exchange_drive_lag(Calibration(effects=fx)) is None
+
+
+def test_a_braking_limit_tells_the_lag_from_the_motor_pole():
+    fx = Effects(drive_lag_s=0.03, braking_limit_rpm_per_s=1500.0)
     assert exchange_drive_lag(Calibration(effects=fx)) is None

@@ -17,6 +17,8 @@ EFFECTS = {
     "all_effects": Effects(dead_time_s=0.013, top_speed_rpm=90.0, rate_limit_rpm_per_s=300.0,
                            deadband_rpm=3.0, gains=(1.0, 0.9, 1.0, 1.1),
                            efficiency=(0.9, 0.8, 0.95)),
+    "drive_dynamics": Effects(controller_period_s=0.006, breakaway_rpm_per_s=900.0,
+                              braking_limit_rpm_per_s=700.0, dead_time_s=0.02),
 }
 
 

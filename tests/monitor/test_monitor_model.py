@@ -43,6 +43,9 @@ EFFECT_CASES = {
     "breakaway": Effects(breakaway_rpm_per_s=2500.0),
     "drive_all": Effects(controller_period_s=0.005, drive_lag_s=0.02, breakaway_rpm_per_s=1500.0,
                          dead_time_s=0.02, top_speed_rpm=70.0, rate_limit_rpm_per_s=300.0),
+    "braking_limit": Effects(braking_limit_rpm_per_s=600.0),
+    "braking_all": Effects(braking_limit_rpm_per_s=800.0, controller_period_s=0.006,
+                           breakaway_rpm_per_s=1200.0, drive_lag_s=0.015, dead_time_s=0.02),
 }
 
 

@@ -8,9 +8,10 @@ The method, one file per step (``docs/diagnose.md`` has the details and the reas
    level ``sigma`` from the residual's differences, and the final residual's shape (onset,
    overshoot, settling; dominant frequency and damping if it rings).
 2. :mod:`.candidates` -- the effect library (:data:`CANDIDATES`: dead time, saturation, rate
-   limit, deadband, wheel gain, controller period, drive lag, breakaway, slip), each fitted
-   *together with* A, B, C and the effects already kept, from start values read off the data
-   (latency, rise time, steepest slope, peak, steady-state ratio, the drive at breakaway).
+   limit, deadband, wheel gain, controller period, drive lag, breakaway, braking limit, slip),
+   each fitted *together with* A, B, C and the effects already kept, from start values read
+   off the data (latency, rise time, steepest slope, peak, steady-state ratio, the drive at
+   breakaway, the steepest deceleration).
 3. :mod:`.heldout` -- the held-out score: approximate leave-one-recording-out (one
    Gauss-Newton step from the full fit without the recording, then the recording simulated
    exactly), or held-out time blocks inside the recordings when there are too few recordings.

@@ -23,7 +23,8 @@ from .heldout import in_sample_ms
 from .localise import _Evaluator
 
 CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "rate_limit", "deadband", "wheel_gain",
-                               "controller_period", "drive_lag", "breakaway", "slip")
+                               "controller_period", "drive_lag", "breakaway",
+                               "braking_limit", "slip")
 
 _COEFFICIENTS = ("A", "B", "C")
 
@@ -72,6 +73,33 @@ def _steepest_rpm_per_s(t: np.ndarray, w: np.ndarray) -> float:
     d = np.abs(measured_differences(_smoothed(w), t))
     d = d[np.isfinite(d)]
     return float(d.max()) if d.size else 0.0
+
+
+def _steepest_braking_rpm_per_s(t: np.ndarray, w: np.ndarray, noise_rpm: float,
+                                 window_s: float) -> float:
+    """The largest deceleration towards rest of the measured wheel speeds [rpm/s], each taken
+    over ``window_s`` [s] (from every measured sample to the first at least that much later:
+    over consecutive samples of a 1 kHz log the encoder's noise alone makes thousands of rpm/s),
+    where the speed is clear of rest (beyond four noise levels, same sign at both ends); 0 when
+    there is none."""
+    best = 0.0
+    for i in range(w.shape[1]):
+        ok = np.flatnonzero(np.isfinite(w[:, i]))
+        if ok.size < 2:
+            continue
+        tt, v = t[ok], w[ok, i]
+        j = np.searchsorted(tt, tt + window_s - 1e-12)
+        a = np.flatnonzero(j < tt.size)
+        b = j[a]
+        if not a.size:
+            continue
+        clear = (np.abs(v[a]) > 4.0 * noise_rpm) & (np.abs(v[b]) > 4.0 * noise_rpm) & \
+            (np.sign(v[a]) == np.sign(v[b]))
+        toward = -np.sign(v[a]) * (v[b] - v[a]) / (tt[b] - tt[a])
+        toward = toward[clear]
+        if toward.size:
+            best = max(best, float(toward.max()))
+    return best
 
 
 def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
@@ -181,6 +209,13 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
         return {"drive_lag_s": max(0.15 * _rise_time_s(ev, noise_rpm), _sample_period_s(ev))}
     if effect == "breakaway":
         return {"breakaway_rpm_per_s": 0.0}  # read off the data in fit_candidate (needs A, C)
+    if effect == "braking_limit":
+        # a drive that cannot brake harder caps the measured deceleration: start at the
+        # steepest one, over the data's own time scale (the rise time, at least two samples)
+        window = max(_rise_time_s(ev, noise_rpm), 2.0 * _sample_period_s(ev))
+        best = max([1.0] + [_steepest_braking_rpm_per_s(r.t_s, r.wheel_rpm, noise_rpm, window)
+                            for r in recs])
+        return {"braking_limit_rpm_per_s": best}
     if effect == "controller_period":
         return {"controller_period_s": _sample_period_s(ev)}
     return {}
@@ -220,6 +255,9 @@ def _candidate_bounds(effect: str, guess: Mapping[str, float],
     if effect == "breakaway":
         g = guess["breakaway_rpm_per_s"]
         return {"breakaway_rpm_per_s": (0.0, max(20.0 * g, 100.0))}
+    if effect == "braking_limit":
+        g = guess["braking_limit_rpm_per_s"]
+        return {"braking_limit_rpm_per_s": (min(1.0, 0.05 * g), 20.0 * g)}
     return {}
 
 
@@ -513,14 +551,14 @@ def _resolved(ev: _Evaluator, fitted: _Fitted, base: Calibration, base_free: Seq
 def _least_values(effect: str, bounds: Mapping[str, tuple[float, float]]
                    ) -> dict[str, float]:
     """An effect's parameters where, within its search range, it does least: no delay, lag or
-    breakaway (0), unit gains and efficiencies, the highest ceiling and ramp limit (which may
-    still act: a ramp limit on the set-point acts on every step)."""
+    breakaway (0), unit gains and efficiencies, the highest ceiling, ramp limit and braking
+    limit (which may still act: a ramp limit on the set-point acts on every step)."""
     out = {}
     for n in effect_parameters(effect):
         lo, hi = bounds.get(n, (-math.inf, math.inf))
         if n.startswith(("gains", "efficiency")):
             v = 1.0
-        elif n in ("top_speed_rpm", "rate_limit_rpm_per_s"):
+        elif n in ("top_speed_rpm", "rate_limit_rpm_per_s", "braking_limit_rpm_per_s"):
             v = hi
         else:
             v = 0.0
