@@ -116,6 +116,12 @@ def _compile_module(name: str) -> None:
         _compiled_modules.add(name)
 
 
+def is_compiled(module: str) -> bool:
+    """Whether the kernels of ``module`` (a dotted name) are numba's by now: then a helper of
+    theirs costs nothing more to run compiled."""
+    return module in _compiled_modules
+
+
 def compiled(kernel) -> Callable:
     """numba's dispatcher for ``kernel`` (a :class:`Kernel`, or a module global that already is
     the dispatcher: compiling a module replaces its kernels by numba's)."""

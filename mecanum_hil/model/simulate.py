@@ -154,6 +154,12 @@ def _delay_plan(t: np.ndarray, delay_s: float):
     # of the recording's end time merged the 10 ms samples of a recording with a months-long
     # gap: 2e7 s gave 20 ms)
     eps = max(1e-9, 16.0 * float(np.spacing(max(abs(t[0]), abs(t[-1])))))
+    if _kernels_compiled():
+        # the same numbers in one compiled pass (a fit plans a grid per trial dead time)
+        from .._jit import compiled
+        from ._kernels import delay_plan_kernel
+
+        return compiled(delay_plan_kernel)(t, float(delay_s), eps)
     shifted = t + delay_s
     shifted = shifted[shifted < t[-1]]
     # A delayed command change within rounding of a sample time is taken at that sample time, so
@@ -198,8 +204,28 @@ def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
     # step lengths equal to rounding share one table row
     # as floats: an int64 overflows for a gap over 9.2e6 s (106 days between two samples)
     key = np.round(h * 1e12)
+    if _kernels_compiled():
+        from .._jit import compiled
+        from ._kernels import unique_keys_kernel
+
+        first, didx, ok = compiled(unique_keys_kernel)(key, _FEW_LENGTHS)
+        if ok:
+            return didx, nsub, h[first]
     _, first, didx = np.unique(key, return_index=True, return_inverse=True)
     return didx.astype(np.int64).reshape(-1), nsub, h[first]
+
+
+#: Distinct step lengths up to which the compiled scan replaces ``np.unique``'s sort (a
+#: uniform log and its dead time give a handful; a real clock's, thousands).
+_FEW_LENGTHS = 32
+
+
+def _kernels_compiled() -> bool:
+    """Whether the simulator's kernels are numba's by now (then the grid helpers run compiled
+    too: :func:`~mecanum_hil.model._kernels.delay_plan_kernel`); in the interpreter, numpy."""
+    from .._jit import is_compiled, mode
+
+    return mode() != "never" and is_compiled("mecanum_hil.model._kernels")
 
 
 def simulate_batch(

@@ -245,3 +245,42 @@ def test_a_robot_with_a_dead_time_is_simulated_alike_whatever_its_batch():
         single = simulate(cmds[i], t, cals[i])
         np.testing.assert_array_equal(batch.wheel_rpm[i], single.wheel_rpm[0])
         np.testing.assert_array_equal(batch.pose[i], single.pose[0])
+
+
+def test_compiled_grid_helpers_equal_numpy(monkeypatch):
+    """Once the kernels are compiled, the dead time's grid and the step-length table come from
+    one compiled pass each (``_kernels.delay_plan_kernel``, ``unique_keys_kernel``): the same
+    arrays, bit for bit, as the numpy code the interpreter uses, on uniform, jittered,
+    millisecond-rounded and near-coincident sample times, for delays at, near and between
+    samples and beyond the end."""
+    import importlib
+
+    from mecanum_hil._jit import compiled
+    from mecanum_hil.model._kernels import delay_plan_kernel, unique_keys_kernel
+
+    sim = importlib.import_module("mecanum_hil.model.simulate")
+    compiled(delay_plan_kernel)
+    compiled(unique_keys_kernel)
+    rng = np.random.default_rng(7)
+    fast = sim._kernels_compiled
+    for trial in range(400):
+        n = int(rng.integers(1, 200))
+        t = [np.arange(n) * 0.01,
+             np.cumsum(rng.uniform(0.001, 0.02, n)),
+             np.round(np.cumsum(rng.choice([0.002, 0.002, 0.013], n)), 3) + 1e5,
+             np.cumsum(rng.uniform(1e-9, 0.004, n))][trial % 4]
+        delay = float(rng.choice([0.01, 0.02, 0.0351, 1e-10, 2e-9, 0.002 + 5e-10, 10.0,
+                                  rng.uniform(0.0, 0.1)]))
+        got = {}
+        for on in (False, True):
+            monkeypatch.setattr(sim, "_kernels_compiled", (lambda: True) if on else
+                                (lambda: False))
+            grid = sim._delay_plan(t, delay)
+            got[on] = (*grid, *sim._step_lengths(np.diff(grid[0]), 1e-3))
+        for a, b in zip(got[False], got[True], strict=True):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    monkeypatch.setattr(sim, "_kernels_compiled", fast)
+    # past _FEW_LENGTHS distinct lengths the scan gives up and numpy's sort is used
+    key = np.arange(sim._FEW_LENGTHS + 1, dtype=float)[::-1]
+    assert not compiled(unique_keys_kernel)(key, sim._FEW_LENGTHS)[2]
