@@ -140,3 +140,22 @@ def test_an_hour_long_pause_skips_the_reference_grid_instead_of_filling_it(recor
     res = paused.wheel_rpm - predict(paused, Calibration(), ROBOT).wheel_rpm
     shape = residual_shape([paused], [res], ROBOT)
     assert sum(shape.shares.values()) == pytest.approx(1.0)
+
+
+def test_braking_limit_starts_at_the_data_scale_when_no_wheel_slows():
+    """A recording in which no wheel is seen slowing (an overdamped rise) has no deceleration
+    to read: the braking limit starts at the steepest measured slope, not at 1 rpm/s (which
+    would bind on the model's first stop)."""
+    from mecanum_hil.io.recording import Recording
+    from mecanum_hil.model.simulate import simulate
+
+    t = np.arange(501) / 100.0
+    cmd = np.tile([0.0, 0.0, 90.0], (t.size, 1))
+    cmd[10:, 0] = 60.0
+    w = simulate(cmd, t, Calibration(A=20.0, B=2.0, C=5.0)).wheel_rpm[0]
+    assert np.all(np.diff(w[:, 0]) >= 0)
+    ev = _Evaluator([Recording(t, cmd, w, np.full((t.size, 3), np.nan))], ROBOT)
+    got = candidates._start_values("braking_limit", ev, 0.2)["braking_limit_rpm_per_s"]
+    assert got == pytest.approx(candidates._start_values("rate_limit", ev, 0.2)[
+        "rate_limit_rpm_per_s"])
+    assert got > 500.0

@@ -213,8 +213,12 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
         # a drive that cannot brake harder caps the measured deceleration: start at the
         # steepest one, over the data's own time scale (the rise time, at least two samples)
         window = max(_rise_time_s(ev, noise_rpm), 2.0 * _sample_period_s(ev))
-        best = max([1.0] + [_steepest_braking_rpm_per_s(r.t_s, r.wheel_rpm, noise_rpm, window)
+        best = max([0.0] + [_steepest_braking_rpm_per_s(r.t_s, r.wheel_rpm, noise_rpm, window)
                             for r in recs])
+        if best <= 0.0:
+            # no wheel is seen slowing: the steepest measured slope is the data's scale (a
+            # limit far below it would bind on the first stop the model makes)
+            best = max([1.0] + [_steepest_rpm_per_s(r.t_s, r.wheel_rpm) for r in recs])
         return {"braking_limit_rpm_per_s": best}
     if effect == "controller_period":
         return {"controller_period_s": _sample_period_s(ev)}
