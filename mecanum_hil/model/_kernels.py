@@ -111,6 +111,7 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
     if a < np.inf:
         c = dl[i]
         cin = hold[i] if per > 0 else A * (u - yi) + C * z[i]
+        clipped = per <= 0 and (cin > dmax or cin < -dmax)
         cin = min(max(cin, -dmax), dmax)
         rate = sg * a * (cin - c)  # the lagged drive's rate of change, towards the wheel's sign
     elif per > 0:
@@ -137,7 +138,7 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
         at_rest = False
     y_new = 0.0 if at_rest else yi - sg * brake * t_l
     q[i] += (yi - 0.5 * sg * brake * t_l) * t_l
-    if per <= 0 and (not clipped or (c > 0) != (u - yi > 0)):
+    if per <= 0 and (not clipped or (cin > 0) != (u - yi > 0)):
         z[i] += (u - yi) * t_l + 0.5 * sg * brake * t_l * t_l
     if a < np.inf:
         dl[i] = cin + (dl[i] - cin) * math.exp(-a * t_l)

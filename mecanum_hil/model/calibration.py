@@ -119,6 +119,12 @@ class Effects:
     breakaway_rpm_per_s: float = 0.0
     braking_limit_rpm_per_s: float = math.inf
 
+    def __post_init__(self) -> None:
+        # 0 would hold a turning wheel at its speed for ever, a negative limit or NaN is no limit
+        if not self.braking_limit_rpm_per_s > 0:
+            raise ConfigError("braking_limit_rpm_per_s must be > 0 (inf when absent), got "
+                              f"{self.braking_limit_rpm_per_s!r}")
+
     def active(self) -> dict[str, dict[str, Any]]:
         """The effects that are present, by name, with their parameters."""
         out: dict[str, dict[str, Any]] = {}

@@ -71,11 +71,14 @@ def test_controller_period_holds_the_output():
     assert w[-1] == pytest.approx(60.0, abs=0.5)
 
 
-def _reference(u_rpm, A, B, C, brake, period_s=0.0, h=2e-6):
-    """Wheel speed [rpm] at T of a PI loop around a first-order motor with the braking limit,
-    by forward Euler on a fine grid (the truth the kernel's pieces are checked against):
-    ``u_rpm`` is the target in force from each sample of T."""
-    y = z = hold = 0.0
+def _reference(u_rpm, A, B, C, brake, period_s=0.0, lag_s=0.0, top_rpm=np.inf, h=2e-6):
+    """Wheel speed [rpm] at T of a PI loop (output limited to ``B top_rpm``, integrating only
+    while the error does not push further into the limit) through an optional drive lag around
+    a first-order motor with the braking limit, by forward Euler on a fine grid (the truth the
+    kernel's pieces are checked against): ``u_rpm`` is the target in force from each sample of
+    T."""
+    dmax = B * top_rpm
+    y = z = hold = dl = 0.0
     next_tick = 0.0
     out = np.empty(T.size)
     out[0] = 0.0
@@ -83,18 +86,28 @@ def _reference(u_rpm, A, B, C, brake, period_s=0.0, h=2e-6):
     for m in range(1, T.size):
         u = u_rpm[m - 1]
         for _ in range(round((T[m] - T[m - 1]) / h)):
-            if period_s > 0 and k * h >= next_tick - 1e-12:
-                z += (u - y) * period_s
-                hold = A * (u - y) + C * z
-                next_tick += period_s
-            c = hold if period_s > 0 else A * (u - y) + C * z
+            e = u - y
+            if period_s > 0:
+                if k * h >= next_tick - 1e-12:
+                    c = A * e + C * (z + e * period_s)
+                    if abs(c) <= dmax or (c > 0) != (e > 0):
+                        z += e * period_s
+                    hold = min(max(c, -dmax), dmax)
+                    next_tick += period_s
+                c = hold
+            else:
+                c = A * e + C * z
+                if abs(c) <= dmax or (c > 0) != (e > 0):
+                    z += e * h
+                c = min(max(c, -dmax), dmax)
+            if lag_s > 0:
+                dl += (c - dl) * h / lag_s
+                c = dl
             acc = c - B * y
             if y > 0 and acc < -brake:
                 acc = -brake
             elif y < 0 and acc > brake:
                 acc = brake
-            if period_s <= 0:
-                z += (u - y) * h
             y += acc * h
             k += 1
         out[m] = y
@@ -134,6 +147,22 @@ def test_braking_limit_caps_the_deceleration_and_not_the_acceleration(period_s):
     # sub-step with the continuous PI
     ref = _reference(cmd[:, 0], A, B, C, brake, period_s)
     assert np.abs(w - ref).max() < (0.05 if period_s else 0.3)
+
+
+@pytest.mark.parametrize("period_s", [0.0, 0.006])
+def test_braking_limit_with_a_lag_and_a_ceiling_follows_the_reference(period_s):
+    # a saturated PI through a drive lag, braking into a reversal: while the limit holds the
+    # drive at its ceiling, the integrator must stop winding up in the braking phase as well
+    # (a second reading found it did not: 17 rpm off after the reversal)
+    A, B, C, brake = 30.0, 20.0, 600.0, 800.0
+    cmd = _commands(n_rpm=80.0)
+    cmd[300:, 0] = -60.0
+    cmd[550:, 0] = 50.0
+    fx = Effects(braking_limit_rpm_per_s=brake, drive_lag_s=0.01, top_speed_rpm=70.0,
+                 controller_period_s=period_s)
+    w = simulate(cmd, T, Calibration(A=A, B=B, C=C, effects=fx)).wheel_rpm[0, :, 0]
+    ref = _reference(cmd[:, 0], A, B, C, brake, period_s, lag_s=0.01, top_rpm=70.0)
+    assert np.abs(w - ref).max() < 0.5
 
 
 def test_a_braking_limit_beyond_every_deceleration_is_the_paper_model():
@@ -204,3 +233,11 @@ def test_breakaway_tells_the_lag_from_the_motor_pole():
 def test_a_braking_limit_tells_the_lag_from_the_motor_pole():
     fx = Effects(drive_lag_s=0.03, braking_limit_rpm_per_s=1500.0)
     assert exchange_drive_lag(Calibration(effects=fx)) is None
+
+
+@pytest.mark.parametrize("bad", [0.0, -100.0, float("nan")])
+def test_a_braking_limit_must_be_positive(bad):
+    from mecanum_hil.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="braking_limit_rpm_per_s must be > 0"):
+        Effects(braking_limit_rpm_per_s=bad)

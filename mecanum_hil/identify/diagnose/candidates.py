@@ -76,12 +76,13 @@ def _steepest_rpm_per_s(t: np.ndarray, w: np.ndarray) -> float:
 
 
 def _steepest_braking_rpm_per_s(t: np.ndarray, w: np.ndarray, noise_rpm: float,
-                                 window_s: float) -> float:
+                                 window_s: float, either_way: bool = False) -> float:
     """The largest deceleration towards rest of the measured wheel speeds [rpm/s], each taken
     over ``window_s`` [s] (from every measured sample to the first at least that much later:
     over consecutive samples of a 1 kHz log the encoder's noise alone makes thousands of rpm/s),
     where the speed is clear of rest (beyond four noise levels, same sign at both ends); 0 when
-    there is none."""
+    there is none. With ``either_way``, the largest change of speed over the window in either
+    direction, from rest too (the data's scale)."""
     best = 0.0
     for i in range(w.shape[1]):
         ok = np.flatnonzero(np.isfinite(w[:, i]))
@@ -93,10 +94,13 @@ def _steepest_braking_rpm_per_s(t: np.ndarray, w: np.ndarray, noise_rpm: float,
         b = j[a]
         if not a.size:
             continue
-        clear = (np.abs(v[a]) > 4.0 * noise_rpm) & (np.abs(v[b]) > 4.0 * noise_rpm) & \
-            (np.sign(v[a]) == np.sign(v[b]))
-        toward = -np.sign(v[a]) * (v[b] - v[a]) / (tt[b] - tt[a])
-        toward = toward[clear]
+        slope = (v[b] - v[a]) / (tt[b] - tt[a])
+        if either_way:
+            toward = np.abs(slope)
+        else:
+            clear = (np.abs(v[a]) > 4.0 * noise_rpm) & (np.abs(v[b]) > 4.0 * noise_rpm) & \
+                (np.sign(v[a]) == np.sign(v[b]))
+            toward = (-np.sign(v[a]) * slope)[clear]
         if toward.size:
             best = max(best, float(toward.max()))
     return best
@@ -140,6 +144,12 @@ MULTI_START: dict[str, tuple[float, ...]] = {"breakaway": (1.0, 2.0), "drive_lag
 #: Effects whose search also restarts A, B, C from the engine's coarse grid (with the effect
 #: held at its start): a ceiling moves the best coefficients far from a fit without it.
 GRID_RESTART: tuple[str, ...] = ("saturation",)
+
+
+#: A braking limit starts at the steepest measured deceleration only when that is at least
+#: this share of the steepest change of speed over the same window, and beyond what the noise
+#: makes over it (else at the steepest change).
+BRAKING_SEEN = 0.1
 
 
 def _sample_period_s(ev: _Evaluator) -> float:
@@ -215,10 +225,15 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
         window = max(_rise_time_s(ev, noise_rpm), 2.0 * _sample_period_s(ev))
         best = max([0.0] + [_steepest_braking_rpm_per_s(r.t_s, r.wheel_rpm, noise_rpm, window)
                             for r in recs])
-        if best <= 0.0:
-            # no wheel is seen slowing: the steepest measured slope is the data's scale (a
-            # limit far below it would bind on the first stop the model makes)
-            best = max([1.0] + [_steepest_rpm_per_s(r.t_s, r.wheel_rpm) for r in recs])
+        scale = max([1.0] + [_steepest_braking_rpm_per_s(r.t_s, r.wheel_rpm, noise_rpm, window,
+                                                         either_way=True) for r in recs])
+        # the noise alone, four standard deviations of a difference over the window
+        floor = 4.0 * math.sqrt(2.0) * noise_rpm / window
+        if best < max(BRAKING_SEEN * scale, floor):
+            # no wheel is seen slowing (only noise or a creeping settle against the rise):
+            # the steepest change of speed is the data's scale; a limit far below it would
+            # bind on the first stop the model makes
+            best = scale
         return {"braking_limit_rpm_per_s": best}
     if effect == "controller_period":
         return {"controller_period_s": _sample_period_s(ev)}
