@@ -142,7 +142,7 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
             nu = 2.0
             if small_cost or small_step:
                 return solution(x, cost, 4 if small_cost and small_step else 2 if small_cost else 3,
-                             nfev)
+                                nfev)
         else:
             if small_step and np.isfinite(cost_new):
                 return solution(x, cost, 3, nfev)
@@ -158,7 +158,6 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
 def solution(x: np.ndarray, cost: float, status: int, nfev: int) -> Solution:
     """A :class:`Solution` with ``status``'s message (``x`` copied)."""
     return Solution(np.array(x, dtype=float), float(cost), status, nfev, _MESSAGES[status])
-
 
 
 @functools.lru_cache(maxsize=1024)

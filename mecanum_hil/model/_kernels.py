@@ -101,10 +101,10 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
     (controller period, no lag), where that deceleration falls at ``B brake``; to first order in
     the piece otherwise (the drive's rate of change at the phase's start). Advances ``y``,
     ``z``, ``dl`` and ``q`` over the phase; returns its length [s] (0 when the limit is not
-    reached).
+    reached). Called only with a finite ``brake``.
     """
     yi = y[i]
-    if yi == 0.0 or not brake < np.inf:
+    if yi == 0.0:
         return 0.0
     sg = 1.0 if yi > 0.0 else -1.0
     clipped = False
@@ -556,7 +556,6 @@ def simulate_kernel(
         pose_final[r, 0] = X
         pose_final[r, 1] = Y
         pose_final[r, 2] = math.degrees(phi)
-
 
 
 @njit(cache=True)

@@ -75,15 +75,15 @@ def _steepest_rpm_per_s(t: np.ndarray, w: np.ndarray) -> float:
     return float(d.max()) if d.size else 0.0
 
 
-def _steepest_braking_rpm_per_s(t: np.ndarray, w: np.ndarray, noise_rpm: float,
-                                 window_s: float, either_way: bool = False) -> float:
-    """The largest deceleration towards rest of the measured wheel speeds [rpm/s], each taken
-    over ``window_s`` [s] (from every measured sample to the first at least that much later:
-    over consecutive samples of a 1 kHz log the encoder's noise alone makes thousands of rpm/s),
-    where the speed is clear of rest (beyond four noise levels, same sign at both ends); 0 when
-    there is none. With ``either_way``, the largest change of speed over the window in either
-    direction, from rest too (the data's scale)."""
-    best = 0.0
+def _steepest_changes_rpm_per_s(t: np.ndarray, w: np.ndarray, noise_rpm: float,
+                                window_s: float) -> tuple[float, float]:
+    """The measured wheel speeds' changes over ``window_s`` [s] (from every measured sample to
+    the first at least that much later: over consecutive samples of a 1 kHz log the encoder's
+    noise alone makes thousands of rpm/s), as rates [rpm/s]: the largest deceleration towards
+    rest where the speed is clear of it (beyond four noise levels, same sign at both ends), and
+    the largest change in either direction, from rest too (the data's scale); 0 where there is
+    none."""
+    braking = scale = 0.0
     for i in range(w.shape[1]):
         ok = np.flatnonzero(np.isfinite(w[:, i]))
         if ok.size < 2:
@@ -95,15 +95,13 @@ def _steepest_braking_rpm_per_s(t: np.ndarray, w: np.ndarray, noise_rpm: float,
         if not a.size:
             continue
         slope = (v[b] - v[a]) / (tt[b] - tt[a])
-        if either_way:
-            toward = np.abs(slope)
-        else:
-            clear = (np.abs(v[a]) > 4.0 * noise_rpm) & (np.abs(v[b]) > 4.0 * noise_rpm) & \
-                (np.sign(v[a]) == np.sign(v[b]))
-            toward = (-np.sign(v[a]) * slope)[clear]
+        scale = max(scale, float(np.abs(slope).max()))
+        clear = (np.abs(v[a]) > 4.0 * noise_rpm) & (np.abs(v[b]) > 4.0 * noise_rpm) & \
+            (np.sign(v[a]) == np.sign(v[b]))
+        toward = (-np.sign(v[a]) * slope)[clear]
         if toward.size:
-            best = max(best, float(toward.max()))
-    return best
+            braking = max(braking, float(toward.max()))
+    return braking, scale
 
 
 def _latency_s(ev: _Evaluator, noise_rpm: float) -> float:
@@ -223,10 +221,10 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
         # a drive that cannot brake harder caps the measured deceleration: start at the
         # steepest one, over the data's own time scale (the rise time, at least two samples)
         window = max(_rise_time_s(ev, noise_rpm), 2.0 * _sample_period_s(ev))
-        best = max([0.0] + [_steepest_braking_rpm_per_s(r.t_s, r.wheel_rpm, noise_rpm, window)
-                            for r in recs])
-        scale = max([1.0] + [_steepest_braking_rpm_per_s(r.t_s, r.wheel_rpm, noise_rpm, window,
-                                                         either_way=True) for r in recs])
+        changes = [_steepest_changes_rpm_per_s(r.t_s, r.wheel_rpm, noise_rpm, window)
+                   for r in recs]
+        best = max([0.0] + [braking for braking, _ in changes])
+        scale = max([1.0] + [change for _, change in changes])
         # the noise alone, four standard deviations of a difference over the window
         floor = 4.0 * math.sqrt(2.0) * noise_rpm / window
         if best < max(BRAKING_SEEN * scale, floor):
