@@ -165,3 +165,39 @@ def test_braking_limit_starts_at_the_data_scale_when_no_wheel_slows():
     ev = _Evaluator([Recording(t, cmd, w, np.full((t.size, 3), np.nan))], ROBOT)
     assert candidates._start_values("braking_limit", ev, 2.0)[
         "braking_limit_rpm_per_s"] > 500.0
+
+
+def test_stop_delay_of_a_braking_limit():
+    """How much later a braking limit makes a wheel stop: nothing for a limit no stop reaches,
+    the coast's own time for a limit far below the loop's deceleration (100 rpm at 100 rpm/s
+    reaches 10 % after 0.9 s; the loop alone gets there in a fraction of that)."""
+    paper = Calibration()
+    assert candidates.stop_delay_s(paper, ROBOT, 100.0) == 0.0
+    fast = with_parameters(paper, {"braking_limit_rpm_per_s": 1e5})
+    assert candidates.stop_delay_s(fast, ROBOT, 100.0) == 0.0
+    slow = with_parameters(paper, {"braking_limit_rpm_per_s": 100.0})
+    assert 0.7 < candidates.stop_delay_s(slow, ROBOT, 100.0) < 0.9
+
+
+def test_a_braking_limit_within_two_samples_of_a_stop_is_not_resolved(recorded):
+    """A limit that delays the largest stop by less than two sample periods (10 ms each here) is
+    what a stop that starts a few ms late looks like (a loaded link's latency): the data cannot
+    name it, and the candidate is the model without it. One that delays it by more stays."""
+    ev = _Evaluator(recorded, ROBOT)
+    base = with_parameters(Calibration(), {"top_speed_rpm": 110.0})
+    free = ("A", "B", "C", "top_speed_rpm")
+
+    def fitted(limit):
+        return candidates._Fitted("braking_limit",
+                                  with_parameters(base, {"braking_limit_rpm_per_s": limit}),
+                                  (*free, "braking_limit_rpm_per_s"), {}, ())
+
+    jump = candidates._largest_stop_rpm(ev, 0.25)
+    assert jump == pytest.approx(120.0)  # the step's stop
+    near = fitted(1200.0)
+    assert 0.0 < candidates.stop_delay_s(near.calibration, ROBOT, jump) < 0.02
+    got = candidates._resolved(ev, near, base, free, 0.25)
+    assert got.calibration is base and "cannot tell it from a latency" in got.absent
+    far = fitted(300.0)
+    assert candidates.stop_delay_s(far.calibration, ROBOT, jump) > 0.02
+    assert candidates._resolved(ev, far, base, free, 0.25) is far

@@ -12,6 +12,7 @@ import numpy as np
 from ...errors import ConfigError, FitError
 from ...model.calibration import EFFECTS, Calibration
 from ...model.kinematics import command_to_wheels
+from ...model.simulate import simulate
 from ..fit import (
     FitResult,
     fit_parameters,
@@ -546,10 +547,79 @@ def _typical_jump_rpm(ev: _Evaluator, noise_rpm: float) -> float:
     return float(np.median(jumps)) if jumps else math.nan
 
 
+def _largest_stop_rpm(ev: _Evaluator, noise_rpm: float) -> float:
+    """The largest drop of a measured wheel's target towards rest [rpm] (a stop from v, or a
+    reversal from v: v; a slowdown from v to u: v - u), of the jumps :func:`_typical_jump_rpm`
+    counts; NaN without one. A braking limit binds hardest on it: the loop brakes in
+    proportion to the drop."""
+    drops = []
+    for r in ev.recs:
+        tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
+        tg = tg[:, np.isfinite(r.wheel_rpm).any(axis=0)]
+        before, after = tg[:-1], tg[1:]
+        toward = np.where(before * after > 0.0, np.abs(before) - np.abs(after), np.abs(before))
+        big = np.abs(after - before) >= max(20.0 * noise_rpm, 5.0)
+        drops.extend(toward[big & (toward > 0.0)].tolist())
+    return float(max(drops)) if drops else math.nan
+
+
+def stop_delay_s(calibration: Calibration, robot, jump_rpm: float) -> float:
+    """How much later a braking limit makes a wheel stop [s].
+
+    The wheel runs in steady state at the target ``jump_rpm`` and is then commanded to rest;
+    the delay is the largest difference, over the levels from 90 % down to 10 % of the speed it
+    ran at, between the times ``calibration`` and the same model without its braking limit
+    cross them (1 kHz, linearly interpolated). Infinite when the limited wheel never reaches a
+    level the unlimited one does; 0 when the calibration has no finite braking limit.
+    """
+    if not math.isfinite(calibration.effects.braking_limit_rpm_per_s):
+        return 0.0
+    free = with_parameters(calibration, {"braking_limit_rpm_per_s": math.inf})
+    settle_s = 5.0 / max(min(calibration.B + calibration.A, 1e3), 1.0) + 0.5
+    t = np.arange(0.0, settle_s + 2.0, 1e-3)
+    cmd = np.zeros((t.size, 3))
+    cmd[:, 2] = 90.0  # straight ahead: every wheel's target is n
+    cmd[t < settle_s, 0] = jump_rpm
+    stop = int(np.searchsorted(t, settle_s))
+    speeds = [simulate(cmd, t, cal, robot).wheel_rpm[0][stop - 1:, 0]
+              for cal in (calibration, free)]
+    level0 = speeds[1][0]
+    if not (math.isfinite(level0) and abs(level0) > 0.0):
+        return 0.0
+    delay = 0.0
+    for level in np.linspace(0.9, 0.1, 17) * level0:
+        crossings = []
+        for w in speeds:
+            below = np.flatnonzero(np.sign(level0) * (w - level) <= 0.0)
+            if not below.size:
+                crossings.append(math.inf)
+                continue
+            k = int(below[0])
+            frac = (w[k - 1] - level) / (w[k - 1] - w[k]) if k else 0.0
+            crossings.append(1e-3 * (k - 1 + frac) if k else 0.0)
+        if math.isfinite(crossings[1]):
+            delay = max(delay, crossings[0] - crossings[1])
+    return delay
+
+
 def _resolved(ev: _Evaluator, fitted: _Fitted, base: Calibration, base_free: Sequence[str],
               noise_rpm: float) -> _Fitted:
     """``fitted``, or the model without its effect when the data cannot resolve it: a ramp
-    limit shorter than :data:`MIN_RAMP_SAMPLES` sample periods over a typical jump."""
+    limit shorter than :data:`MIN_RAMP_SAMPLES` sample periods over a typical jump, or a
+    braking limit that delays the largest stop by less than that (a stop that starts late by a
+    latency, or read half a period late, looks the same)."""
+    if fitted.effect == "braking_limit":
+        jump, period = _largest_stop_rpm(ev, noise_rpm), _sample_period_s(ev)
+        if not (math.isfinite(jump) and math.isfinite(period) and period > 0):
+            return fitted
+        delay = stop_delay_s(fitted.calibration, ev.robot, jump)
+        if delay >= MIN_RAMP_SAMPLES * period:
+            return fitted
+        return _Fitted(fitted.effect, base, tuple(base_free), {}, (), absent=(
+            f"the limit it fits delays the largest stop ({jump:.4g} rpm) by "
+            f"{1000 * delay:.3g} ms, less than {MIN_RAMP_SAMPLES:g} samples "
+            f"({1000 * period:.3g} ms each): the data cannot tell it from a latency or the "
+            "speed reading's own lag"))
     if fitted.effect != "rate_limit":
         return fitted
     rate = fitted.calibration.effects.rate_limit_rpm_per_s
