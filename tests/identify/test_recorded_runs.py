@@ -167,22 +167,50 @@ def test_braking_limit_starts_at_the_data_scale_when_no_wheel_slows():
         "braking_limit_rpm_per_s"] > 500.0
 
 
-def test_stop_delay_of_a_braking_limit():
-    """How much later a braking limit makes a wheel stop: nothing for a limit no stop reaches,
-    the coast's own time for a limit far below the loop's deceleration (100 rpm at 100 rpm/s
-    reaches 10 % after 0.9 s; the loop alone gets there in a fraction of that)."""
+def _steps_recording(targets, hold_s: float = 1.0, rate_hz: float = 100.0):
+    """Straight-ahead commands through ``targets`` [rpm], each held ``hold_s``, with the paper
+    model's wheel speeds as the measurements."""
+    from mecanum_hil.io.recording import Recording
+    from mecanum_hil.model.simulate import simulate
+
+    t = np.arange(int(len(targets) * hold_s * rate_hz)) / rate_hz
+    cmd = np.tile([0.0, 0.0, 90.0], (t.size, 1))
+    cmd[:, 0] = np.asarray(targets, dtype=float)[(t // hold_s).astype(int)]
+    w = simulate(cmd, t, Calibration()).wheel_rpm[0]
+    return Recording(t, cmd, w, np.full((t.size, 3), np.nan))
+
+
+def test_braking_delay_on_the_recordings_own_commands():
+    """How much later a braking limit makes the wheels slow down, on the recording's commands:
+    nothing for a limit no slowdown reaches; the coast's own time for a limit far below the
+    loop's deceleration (100 rpm at 100 rpm/s reaches 10 % after 0.9 s, the loop alone in a
+    fraction of that); and a reversal brakes on the whole jump (120 -> -120 rpm: the loop
+    brakes twice as hard as on a stop, so a limit the stop hardly feels delays it); and the
+    falls of a ringing loop's overshoots, with no stop commanded."""
     paper = Calibration()
-    assert candidates.stop_delay_s(paper, ROBOT, 100.0) == 0.0
+    stop = [_steps_recording([0.0, 100.0, 0.0])]
+    assert candidates.braking_delay_s(stop, paper, ROBOT) == 0.0
     fast = with_parameters(paper, {"braking_limit_rpm_per_s": 1e5})
-    assert candidates.stop_delay_s(fast, ROBOT, 100.0) == 0.0
+    assert candidates.braking_delay_s(stop, fast, ROBOT) == pytest.approx(0.0, abs=1e-9)
     slow = with_parameters(paper, {"braking_limit_rpm_per_s": 100.0})
-    assert 0.7 < candidates.stop_delay_s(slow, ROBOT, 100.0) < 0.9
+    assert 0.7 < candidates.braking_delay_s(stop, slow, ROBOT) < 0.9
+    limit = with_parameters(paper, {"braking_limit_rpm_per_s": 1500.0})
+    on_stop = candidates.braking_delay_s([_steps_recording([0.0, 120.0, 0.0])], limit, ROBOT)
+    on_reversal = candidates.braking_delay_s([_steps_recording([0.0, 120.0, -120.0])], limit,
+                                             ROBOT)
+    assert on_stop < 0.005 and on_reversal > 0.02
+    # no stop at all: the overshoots' falls of a ringing loop (testPid7's, a single step)
+    ringing = Calibration(A=3.8, B=3.0, C=1246.0)
+    step = [_steps_recording([200.0, 200.0], rate_hz=500.0)]
+    limited = with_parameters(ringing, {"braking_limit_rpm_per_s": 3149.0})
+    assert candidates.braking_delay_s(step, limited, ROBOT) > 0.004
 
 
-def test_a_braking_limit_within_two_samples_of_a_stop_is_not_resolved(recorded):
-    """A limit that delays the largest stop by less than two sample periods (10 ms each here) is
-    what a stop that starts a few ms late looks like (a loaded link's latency): the data cannot
-    name it, and the candidate is the model without it. One that delays it by more stays."""
+def test_a_braking_limit_within_two_samples_of_a_slowdown_is_not_resolved(recorded):
+    """A limit that delays the model's slowdowns on the recordings by less than two sample
+    periods (10 ms each here) is what a stop that starts a few ms late looks like (a loaded
+    link's latency): the data cannot name it, and the candidate is the model without it. One
+    that delays them by more stays."""
     ev = _Evaluator(recorded, ROBOT)
     base = with_parameters(Calibration(), {"top_speed_rpm": 110.0})
     free = ("A", "B", "C", "top_speed_rpm")
@@ -192,12 +220,10 @@ def test_a_braking_limit_within_two_samples_of_a_stop_is_not_resolved(recorded):
                                   with_parameters(base, {"braking_limit_rpm_per_s": limit}),
                                   (*free, "braking_limit_rpm_per_s"), {}, ())
 
-    jump = candidates._largest_stop_rpm(ev, 0.25)
-    assert jump == pytest.approx(120.0)  # the step's stop
     near = fitted(1200.0)
-    assert 0.0 < candidates.stop_delay_s(near.calibration, ROBOT, jump) < 0.02
+    assert 0.0 < candidates.braking_delay_s(ev.recs, near.calibration, ROBOT) < 0.02
     got = candidates._resolved(ev, near, base, free, 0.25)
-    assert got.calibration is base and "cannot tell it from a latency" in got.absent
+    assert got.calibration is base and "cannot tell it from a stop that starts late" in got.absent
     far = fitted(300.0)
-    assert candidates.stop_delay_s(far.calibration, ROBOT, jump) > 0.02
+    assert candidates.braking_delay_s(ev.recs, far.calibration, ROBOT) > 0.02
     assert candidates._resolved(ev, far, base, free, 0.25) is far

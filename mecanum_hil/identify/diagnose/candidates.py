@@ -10,9 +10,12 @@ from typing import Any
 import numpy as np
 
 from ...errors import ConfigError, FitError
+from ...io.recording import Recording
 from ...model.calibration import EFFECTS, Calibration
 from ...model.kinematics import command_to_wheels
+from ...model.robot import RobotProfile
 from ...model.simulate import simulate
+from ...prediction import initial_state, initial_wheel_rpm
 from ..fit import (
     FitResult,
     fit_parameters,
@@ -547,58 +550,73 @@ def _typical_jump_rpm(ev: _Evaluator, noise_rpm: float) -> float:
     return float(np.median(jumps)) if jumps else math.nan
 
 
-def _largest_stop_rpm(ev: _Evaluator, noise_rpm: float) -> float:
-    """The largest drop of a measured wheel's target towards rest [rpm] (a stop from v, or a
-    reversal from v: v; a slowdown from v to u: v - u), of the jumps :func:`_typical_jump_rpm`
-    counts; NaN without one. A braking limit binds hardest on it: the loop brakes in
-    proportion to the drop."""
-    drops = []
-    for r in ev.recs:
-        tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)
-        tg = tg[:, np.isfinite(r.wheel_rpm).any(axis=0)]
-        before, after = tg[:-1], tg[1:]
-        toward = np.where(before * after > 0.0, np.abs(before) - np.abs(after), np.abs(before))
-        big = np.abs(after - before) >= max(20.0 * noise_rpm, 5.0)
-        drops.extend(toward[big & (toward > 0.0)].tolist())
-    return float(max(drops)) if drops else math.nan
+def _fine_wheel_rpm(rec: Recording, calibration: Calibration, robot: RobotProfile
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The model's measured wheels on a recording's own commands (held from their rows) on a
+    1 ms grid (the recording's own where finer), from the state
+    :func:`~mecanum_hil.prediction.predict` starts it in: times [s], speeds (T, wheels) [rpm]."""
+    measured = np.isfinite(rec.wheel_rpm).any(axis=0)
+    dt = min(1e-3, float(np.median(np.diff(rec.t_s))))
+    t = np.arange(rec.t_s[0], rec.t_s[-1] + 0.5 * dt, dt)
+    rows = np.searchsorted(rec.t_s, t, side="right") - 1
+    moving = initial_wheel_rpm(rec).any()
+    y = simulate(rec.commands[rows], t, calibration, robot,
+                 initial_state=initial_state(rec, calibration, robot),
+                 initial_command=rec.commands[0] if moving else None).wheel_rpm[0]
+    return t, y[:, measured]
 
 
-def stop_delay_s(calibration: Calibration, robot, jump_rpm: float) -> float:
-    """How much later a braking limit makes a wheel stop [s].
+def _first_crossing_s(t: np.ndarray, y: np.ndarray, level: float, sign: float) -> float:
+    """First time [s] ``y`` reaches ``level`` going in direction ``-sign`` (interpolated
+    linearly between samples); inf when it never does."""
+    hit = np.flatnonzero(sign * (y - level) <= 0.0)
+    if not hit.size:
+        return math.inf
+    k = int(hit[0])
+    if k == 0:
+        return float(t[0])
+    frac = (y[k - 1] - level) / (y[k - 1] - y[k])
+    return float(t[k - 1] + frac * (t[k] - t[k - 1]))
 
-    The wheel runs in steady state at the target ``jump_rpm`` and is then commanded to rest;
-    the delay is the largest difference, over the levels from 90 % down to 10 % of the speed it
-    ran at, between the times ``calibration`` and the same model without its braking limit
-    cross them (1 kHz, linearly interpolated). Infinite when the limited wheel never reaches a
-    level the unlimited one does; 0 when the calibration has no finite braking limit.
+
+def braking_delay_s(recordings: Sequence[Recording], calibration: Calibration,
+                    robot: RobotProfile) -> float:
+    """How much later a braking limit makes the model's wheels slow down [s], on the
+    recordings' own commands.
+
+    The model with and without its braking limit runs each recording (1 ms grid,
+    :func:`_fine_wheel_rpm`). Wherever a measured wheel slows at the limit, the slowdown of
+    the model without it that this phase cuts short (from the phase's start to where that
+    model's speed turns: a stop, a reversal, an overshoot's fall) is timed at 10 %, 20 %, ...
+    90 % of its drop in both models; the delay is the largest difference over
+    all of them. 0 when the calibration has no finite braking limit or no wheel reaches it;
+    infinite when the limited model never gets as far as the other.
     """
-    if not math.isfinite(calibration.effects.braking_limit_rpm_per_s):
+    limit = calibration.effects.braking_limit_rpm_per_s
+    if not math.isfinite(limit):
         return 0.0
     free = with_parameters(calibration, {"braking_limit_rpm_per_s": math.inf})
-    settle_s = 5.0 / max(min(calibration.B + calibration.A, 1e3), 1.0) + 0.5
-    t = np.arange(0.0, settle_s + 2.0, 1e-3)
-    cmd = np.zeros((t.size, 3))
-    cmd[:, 2] = 90.0  # straight ahead: every wheel's target is n
-    cmd[t < settle_s, 0] = jump_rpm
-    stop = int(np.searchsorted(t, settle_s))
-    speeds = [simulate(cmd, t, cal, robot).wheel_rpm[0][stop - 1:, 0]
-              for cal in (calibration, free)]
-    level0 = speeds[1][0]
-    if not (math.isfinite(level0) and abs(level0) > 0.0):
-        return 0.0
     delay = 0.0
-    for level in np.linspace(0.9, 0.1, 17) * level0:
-        crossings = []
-        for w in speeds:
-            below = np.flatnonzero(np.sign(level0) * (w - level) <= 0.0)
-            if not below.size:
-                crossings.append(math.inf)
-                continue
-            k = int(below[0])
-            frac = (w[k - 1] - level) / (w[k - 1] - w[k]) if k else 0.0
-            crossings.append(1e-3 * (k - 1 + frac) if k else 0.0)
-        if math.isfinite(crossings[1]):
-            delay = max(delay, crossings[0] - crossings[1])
+    for rec in recordings:
+        if len(rec.t_s) < 2 or not np.isfinite(rec.wheel_rpm).any():
+            continue
+        t, limited = _fine_wheel_rpm(rec, calibration, robot)
+        _, unlimited = _fine_wheel_rpm(rec, free, robot)
+        for yl, yf in zip(limited.T, unlimited.T, strict=True):
+            slowing = -np.sign(yl[:-1]) * np.diff(yl) / np.diff(t)
+            at = (np.abs(slowing - limit) <= 1e-6 * limit) & (yl[:-1] != 0.0)
+            starts = np.flatnonzero(np.diff(np.concatenate(([0], at.astype(np.int8)))) == 1)
+            for s in starts:
+                sign = np.sign(yf[s])
+                turns = np.flatnonzero(sign * np.diff(yf[s:]) >= 0.0)
+                end = s + (int(turns[0]) if turns.size else yf.size - 1 - s)
+                hi, lo = yf[s], yf[end]
+                if sign * (hi - lo) <= 0.0:
+                    continue
+                for level in hi + (lo - hi) * np.linspace(0.1, 0.9, 9):
+                    tf = _first_crossing_s(t[s:end + 1], yf[s:end + 1], level, sign)
+                    tl = _first_crossing_s(t[s:], yl[s:], level, sign)
+                    delay = max(delay, tl - tf)
     return delay
 
 
@@ -606,20 +624,20 @@ def _resolved(ev: _Evaluator, fitted: _Fitted, base: Calibration, base_free: Seq
               noise_rpm: float) -> _Fitted:
     """``fitted``, or the model without its effect when the data cannot resolve it: a ramp
     limit shorter than :data:`MIN_RAMP_SAMPLES` sample periods over a typical jump, or a
-    braking limit that delays the largest stop by less than that (a stop that starts late by a
-    latency, or read half a period late, looks the same)."""
+    braking limit that delays the model's slowdowns on the recordings by less than that
+    (:func:`braking_delay_s`: a stop that starts late by a latency, or is read half a period
+    late, looks the same)."""
     if fitted.effect == "braking_limit":
-        jump, period = _largest_stop_rpm(ev, noise_rpm), _sample_period_s(ev)
-        if not (math.isfinite(jump) and math.isfinite(period) and period > 0):
+        period = _sample_period_s(ev)
+        delay = braking_delay_s(ev.recs, fitted.calibration, ev.robot)
+        if not (math.isfinite(period) and period > 0) or delay >= MIN_RAMP_SAMPLES * period:
             return fitted
-        delay = stop_delay_s(fitted.calibration, ev.robot, jump)
-        if delay >= MIN_RAMP_SAMPLES * period:
-            return fitted
+        limit = fitted.calibration.effects.braking_limit_rpm_per_s
         return _Fitted(fitted.effect, base, tuple(base_free), {}, (), absent=(
-            f"the limit it fits delays the largest stop ({jump:.4g} rpm) by "
-            f"{1000 * delay:.3g} ms, less than {MIN_RAMP_SAMPLES:g} samples "
-            f"({1000 * period:.3g} ms each): the data cannot tell it from a latency or the "
-            "speed reading's own lag"))
+            f"the limit it fits ({limit:.4g} rpm/s) delays the wheels' slowdowns by "
+            f"{1000 * delay:.3g} ms at most, less than {MIN_RAMP_SAMPLES:g} samples "
+            f"({1000 * period:.3g} ms each): the data cannot tell it from a stop that starts "
+            "late (a latency) or the speed reading's own lag"))
     if fitted.effect != "rate_limit":
         return fitted
     rate = fitted.calibration.effects.rate_limit_rpm_per_s
