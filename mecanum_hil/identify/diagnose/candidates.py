@@ -154,32 +154,6 @@ GRID_RESTART: tuple[str, ...] = ("saturation",)
 BRAKING_SEEN = 0.1
 
 
-#: A ceiling is a speed the wheels hold: `saturation` is tried only where some measured wheel
-#: stays near the fastest measured speed for at least this many rise times (and two samples).
-#: Where the fastest readings are an overshoot's peak, passed through, no ceiling below them
-#: can be (the wheel got there), and one at them would have held the wheel there.
-CEILING_HELD_RISE_TIMES = 2.0
-
-
-def _top_speed_held_s(ev: _Evaluator, noise_rpm: float) -> tuple[float, float, float]:
-    """The fastest smoothed measured wheel speed [rpm], the tolerance around it
-    (max(2 noise, 1 %)) [rpm], and the longest time [s] a measured wheel stays within it."""
-    smooth = [np.abs(_smoothed(r.wheel_rpm)) for r in ev.recs]
-    peak = max(float(np.nanmax(s)) for s in smooth)
-    tol = max(2.0 * noise_rpm, 0.01 * peak)
-    held = 0.0
-    for r, s in zip(ev.recs, smooth, strict=True):
-        for col in s.T:
-            ok = np.isfinite(col)
-            if not ok.any():
-                continue
-            t, near = r.t_s[ok], (col[ok] >= peak - tol).astype(np.int8)
-            edges = np.flatnonzero(np.diff(np.concatenate(([0], near, [0]))))
-            for a, b in zip(edges[::2], edges[1::2], strict=True):
-                held = max(held, float(t[b - 1] - t[a]))
-    return peak, tol, held
-
-
 def _sample_period_s(ev: _Evaluator) -> float:
     """Median period of the measurements [s] (:attr:`Recording.measured_period_s`; of all rows
     where no recording has two measured ones)."""
@@ -351,8 +325,7 @@ class _Fitted:
     free: tuple[str, ...]
     ci95: dict[str, tuple[float, float]]
     warnings: tuple[str, ...]
-    #: Why the candidate is the model without the effect (no fit in its range did better, the
-    #: data cannot resolve it, or they show no sign of it).
+    #: Why the candidate is the model without the effect (no fit in its range did better).
     absent: str = ""
 
 
@@ -507,16 +480,6 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
         return _fit_deadband(ev, base, base_free, sources)
     if effect == "controller_period":
         return _fit_controller_period(ev, base, base_free, sources)
-    if effect == "saturation":
-        peak, tol, held = _top_speed_held_s(ev, noise_rpm)
-        need = max(CEILING_HELD_RISE_TIMES * _rise_time_s(ev, noise_rpm),
-                   MIN_RAMP_SAMPLES * _sample_period_s(ev))
-        if held < need:
-            return _Fitted(effect, base, tuple(base_free), {}, (), absent=(
-                f"no wheel holds its fastest speed: the fastest readings ({peak:.4g} rpm) are a "
-                f"peak passed in {1000 * held:.3g} ms (within {tol:.3g} rpm), less than "
-                f"{CEILING_HELD_RISE_TIMES:g} rise times ({1000 * need:.3g} ms); a ceiling would "
-                "hold the wheel there"))
     new = effect_parameters(effect)
     guess = _start_values(effect, ev, noise_rpm)
     if effect == "breakaway":
