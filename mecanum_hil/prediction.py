@@ -190,6 +190,16 @@ def with_tick_phase(state: np.ndarray, calibration: Calibration, clock_s: float 
     return state
 
 
+def model_start(rec: Recording, calibration: Calibration, robot: RobotProfile) -> dict:
+    """How the model starts a recording, as keyword arguments of
+    :func:`~mecanum_hil.model.simulate.simulate`: in steady state at the measured speeds and
+    with the first command already acting when it starts in motion (:func:`initial_state`);
+    at rest otherwise."""
+    moving = initial_wheel_rpm(rec).any()
+    return {"initial_state": initial_state(rec, calibration, robot),
+            "initial_command": rec.commands[0] if moving else None}
+
+
 def predict(rec: Recording, calibration: Calibration, robot: RobotProfile,
             initial_pose=None, source: str = "recording") -> Recording:
     """Simulate the model on a recording's commands and times.
@@ -201,11 +211,8 @@ def predict(rec: Recording, calibration: Calibration, robot: RobotProfile,
     require_commands(rec, source)
     if initial_pose is None:
         initial_pose = start_pose(rec)
-    state = initial_state(rec, calibration, robot)
-    moving = initial_wheel_rpm(rec).any()
     traj = simulate(rec.commands, rec.t_s, calibration, robot, initial_pose=initial_pose,
-                    initial_state=state,
-                    initial_command=rec.commands[0] if moving else None)
+                    **model_start(rec, calibration, robot))
     meta = {
         "source": "mecanum-hil simulate",
         "commands_from": source,

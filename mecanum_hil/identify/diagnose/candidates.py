@@ -15,7 +15,7 @@ from ...model.calibration import EFFECTS, Calibration
 from ...model.kinematics import command_to_wheels
 from ...model.robot import RobotProfile
 from ...model.simulate import simulate
-from ...prediction import initial_state, initial_wheel_rpm
+from ...prediction import model_start
 from ..fit import (
     FitResult,
     fit_parameters,
@@ -553,16 +553,15 @@ def _typical_jump_rpm(ev: _Evaluator, noise_rpm: float) -> float:
 def _fine_wheel_rpm(rec: Recording, calibration: Calibration, robot: RobotProfile
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The model's measured wheels on a recording's own commands (held from their rows) on a
-    1 ms grid (the recording's own where finer), from the state
-    :func:`~mecanum_hil.prediction.predict` starts it in: times [s], speeds (T, wheels) [rpm]."""
+    1 ms grid (the recording's own where finer), started as
+    :func:`~mecanum_hil.prediction.predict` starts it (:func:`~mecanum_hil.prediction.model_start`):
+    times [s], speeds (T, wheels) [rpm]."""
     measured = np.isfinite(rec.wheel_rpm).any(axis=0)
     dt = min(1e-3, float(np.median(np.diff(rec.t_s))))
     t = np.arange(rec.t_s[0], rec.t_s[-1] + 0.5 * dt, dt)
     rows = np.searchsorted(rec.t_s, t, side="right") - 1
-    moving = initial_wheel_rpm(rec).any()
     y = simulate(rec.commands[rows], t, calibration, robot,
-                 initial_state=initial_state(rec, calibration, robot),
-                 initial_command=rec.commands[0] if moving else None).wheel_rpm[0]
+                 **model_start(rec, calibration, robot)).wheel_rpm[0]
     return t, y[:, measured]
 
 
