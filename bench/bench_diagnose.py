@@ -20,7 +20,9 @@ side by side with the load average (the machine is shared), and the real recordi
 diagnosed as a user runs them, one fresh ``mecanum-hil diagnose`` process each (imports and
 loading the compiled kernels included).
 
-Run: ``python bench/bench_diagnose.py [--quick] [--issue12]`` (``--quick``: fewer recordings).
+Run: ``python bench/bench_diagnose.py [--quick] [--issue12] [--jobs N]`` (``--quick``: fewer
+recordings; ``--jobs``: processes for diagnose's candidates, default its own choice).
+CPU time is this process's: a helper process's (``--jobs 2``) is not in it.
 """
 
 from __future__ import annotations
@@ -73,7 +75,7 @@ def _load() -> str:
         return "n/a"
 
 
-def _cli_diagnose(csv, robot_toml) -> tuple[float, float]:
+def _cli_diagnose(csv, robot_toml, jobs: int | None = None) -> tuple[float, float]:
     """Wall and CPU time [s] of ``mecanum-hil fit`` + ``diagnose`` as a user runs them (a fresh
     process each: imports and loading the compiled kernels included); the diagnose alone."""
     import resource
@@ -90,15 +92,18 @@ def _cli_diagnose(csv, robot_toml) -> tuple[float, float]:
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         subprocess.run([*exe, "diagnose", str(csv), "--robot", str(robot_toml), "-c", fit_toml,
-                        "-o", str(Path(tmp) / "diag.toml")], check=True, capture_output=True)
+                        "-o", str(Path(tmp) / "diag.toml"),
+                        *(["--jobs", str(jobs)] if jobs else [])], check=True,
+                       capture_output=True)
         wall = time.perf_counter() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return wall, cpu
 
 
-def issue12() -> None:
-    """The two timing targets of issue 12, each with a fit of the same data as the baseline."""
+def issue12(jobs: int | None = None) -> None:
+    """The two timing targets of issue 12, each with a fit of the same data as the baseline;
+    ``jobs`` as ``diagnose`` takes it (default: its own choice by the load)."""
     from pathlib import Path
 
     from mecanum_hil.io.recording import Recording, read_recording
@@ -124,11 +129,11 @@ def issue12() -> None:
     hidden = sim_effects_for(Effects(top_speed_rpm=110.0), wheel_rpm_std=0.25, seed=1)
     camp = paper_campaign(hidden, robot, seed=1)
     cases.append((f"campaign of {len(camp)} recordings (ceiling)", camp, robot))
-    print(f"load average before: {_load()}")
+    print(f"load average before: {_load()}; jobs: {jobs or 'default (by the load)'}")
     for label, recs, rob in cases:
         fitted, t_fit, c_fit = _timed_cpu(lambda recs=recs, rob=rob: fit(recs, rob))
         d, t_diag, c_diag = _timed_cpu(
-            lambda recs=recs, rob=rob, c=fitted.calibration: diagnose(recs, c, rob))
+            lambda recs=recs, rob=rob, c=fitted.calibration: diagnose(recs, c, rob, jobs=jobs))
         rows.append((label, sum(len(r) for r in recs), t_fit, c_fit, t_diag, c_diag, d,
                      _load()))
     print("In process (the first case also loads the compiled kernels):")
@@ -144,7 +149,7 @@ def issue12() -> None:
         print("| recording | diagnose wall / CPU [s] | load after |")
         print("|---|---|---|")
         for p in sorted(real.glob("*.csv")):
-            wall, cpu = _cli_diagnose(p, real / "robot.toml")
+            wall, cpu = _cli_diagnose(p, real / "robot.toml", jobs)
             print(f"| {p.stem} | {wall:.1f} / {cpu:.1f} | {_load()} |")
 
 
@@ -152,9 +157,11 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--issue12", action="store_true")
+    ap.add_argument("--jobs", type=int, default=None,
+                    help="diagnose's --jobs (default: its own choice by the load)")
     args = ap.parse_args()
     if args.issue12:
-        issue12()
+        issue12(args.jobs)
         return
     robot = RobotProfile()
     steps = (4.0, 30.0, 120.0) if args.quick else (4.0, 8.0, 30.0, 100.0, 120.0)

@@ -26,6 +26,10 @@ def command(
                              "dead_time, saturation, rate_limit, deadband, wheel_gain, "
                              "controller_period, drive_lag, breakaway, braking_limit, slip).")
     ] = None,
+    jobs: Annotated[int | None, typer.Option(
+        "--jobs", min=1, help="Processes that fit each round's candidates, this one included "
+                              "(default: 2 where a second core is idle, else 1; the result is "
+                              "the same).")] = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Find where model and recordings disagree, name the missing effects, refit, show the gap.
@@ -57,7 +61,7 @@ def command(
     if not pool:
         raise ConfigError(f"--candidates names no effect; the library: {', '.join(CANDIDATES)}")
     echo = None if json_out else typer.echo
-    diag = diagnose(recs, cal, rob, names=names, candidates=pool, echo=echo)
+    diag = diagnose(recs, cal, rob, names=names, candidates=pool, echo=echo, jobs=jobs)
     if out is not None:
         save_calibration(diag.calibration, out,
                          f"extended by mecanum-hil diagnose from {calibration} on "

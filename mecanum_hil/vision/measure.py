@@ -11,7 +11,6 @@ circle, unwrapped across gaps and differentiated (:func:`~mecanum_hil.vision.spe
 from __future__ import annotations
 
 import math
-import os
 import queue
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
+from .._cores import idle_cores as _idle_cores
 from ..errors import VideoError
 from ..io.recording import Recording, empty_like_times
 from .detect import BlobDetector, MarkerSpec
@@ -220,20 +220,6 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
 #: second core (load 1) beside was 0-10 % slower than in turns; asking for a whole idle core
 #: (load 0.00) left an idle desktop's 0.1 in turns (review, 2026-11-23).
 BESIDE_IDLE_CORES = 0.5
-
-
-def _idle_cores() -> float:
-    """Cores this process may run on beyond its own one that other jobs leave free: the count
-    less the 1-minute load average (all of them where the load is unknown)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    try:
-        load = os.getloadavg()[0]
-    except (AttributeError, OSError):  # Windows
-        load = 0.0
-    return cores - 1 - load
 
 
 def _runs_in_turns(cap, free: queue.Queue, detectors: Sequence) -> Iterator[list]:

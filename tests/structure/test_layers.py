@@ -24,7 +24,7 @@ LAYERS = {
     "envs": 5,
     "model": 4, "prediction": 4, "profiles": 4,
     "io": 3, "plots": 3,
-    "units": 1, "errors": 1, "_jit": 1, "__init__": 0, "_version": 0,
+    "units": 1, "errors": 1, "_jit": 1, "_cores": 1, "__init__": 0, "_version": 0,
 }
 
 

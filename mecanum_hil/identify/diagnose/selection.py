@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -31,6 +33,7 @@ from .candidates import (
     fit_candidate,
 )
 from .heldout import HeldOut, heldout_score, in_sample_ms
+from .helper import Helper, helpers_for, release, warm_up
 from .localise import (
     Finding,
     ResidualCheck,
@@ -299,6 +302,7 @@ def diagnose(
     candidates: Sequence[str] = CANDIDATES,
     max_rounds: int = 4,
     echo: Callable[[str], None] | None = None,
+    jobs: int | None = None,
 ) -> Diagnosis:
     """Find and add the effects the model lacks (method in the module docstring).
 
@@ -321,6 +325,10 @@ def diagnose(
         Most effects to add.
     echo : callable, optional
         Progress lines (``print``).
+    jobs : int, optional
+        Processes that fit a round's candidates, this one included (:mod:`.helper`): 1 fits
+        them all here; default: 2 where most of a second core is idle (1-minute load
+        average), else 1. The diagnosis is the same either way.
 
     Returns
     -------
@@ -331,8 +339,13 @@ def diagnose(
     DiagnoseError
         Fewer than two recordings, no measured wheel speeds, or an unknown candidate.
     """
-    with one_blas_thread():  # many small products of tall matrices (identify/fit.py)
-        return _diagnose(recordings, calibration, robot, names, candidates, max_rounds, echo)
+    helpers = helpers_for(jobs, warm_up)
+    try:
+        with one_blas_thread():  # many small products of tall matrices (identify/fit.py)
+            return _diagnose(recordings, calibration, robot, names, candidates, max_rounds,
+                             echo, tuple(helpers))
+    finally:
+        release(helpers)
 
 
 @dataclass(frozen=True)
@@ -350,6 +363,10 @@ class _Context:
         Recording names.
     say : callable
         Progress lines.
+    helpers : tuple of Helper
+        Processes that fit candidates beside this one (:mod:`.helper`; none: all here).
+    cost_s : dict of str to float
+        Seconds each candidate's job took last (the order in which jobs are handed out).
     """
 
     ev: _Evaluator
@@ -357,6 +374,8 @@ class _Context:
     robot: RobotProfile
     names: tuple[str, ...]
     say: Callable[[str], None]
+    helpers: tuple[Helper, ...] = ()
+    cost_s: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -391,13 +410,14 @@ class _Model:
     carried: tuple[Calibration, tuple, HeldOut] | None = None
 
 
-def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, echo) -> Diagnosis:
+def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, echo,
+              helpers=()) -> Diagnosis:
     """The method: localise the model as given, refit its own parameters (the baseline), add
     candidates round by round while one qualifies, then describe what remains."""
     say = echo or (lambda _msg: None)
     rob = robot or RobotProfile()
     recs, names = _checked_recordings(recordings, names, candidates)
-    ctx = _Context(_Evaluator(recs, rob), recs, rob, names, say)
+    ctx = _Context(_Evaluator(recs, rob), recs, rob, names, say, helpers)
     loc0 = _localise_given(ctx, calibration)
     accepted = [e for e in EFFECTS if e in calibration.effects.active()]
     baseline, free, ci95 = _refit_own_parameters(ctx, calibration, accepted)
@@ -564,64 +584,126 @@ def _score_candidates(ctx: _Context, model: _Model, pool: Sequence[str], channel
                       noise: float, scale2: float, s0: float, f0: float
                       ) -> tuple[list[CandidateScore], dict[str, _Fitted], dict[str, HeldOut]]:
     """Fit and score every candidate of the round; returns the scores, the fits and the
-    held-out scores of those scored held out, by effect."""
-    scores: list[CandidateScore] = []
-    fits: dict[str, _Fitted] = {}
-    held: dict[str, HeldOut] = {}
-    for effect in pool:
-        score, fitted, h1 = _score_candidate(ctx, model, effect, channel, noise, scale2, s0, f0)
-        scores.append(score)
-        if fitted is not None:
-            fits[effect] = fitted
-        if h1 is not None:
-            held[effect] = h1
+    held-out scores of those scored held out, by effect.
+
+    The candidates are independent jobs: where :mod:`.helper` processes are ready, each takes
+    the costliest job left (by the time each took last round) while this process works
+    through the rest; the lines are said in the pool's order, and the results are the same
+    either way."""
+    def expected_s(effect: str) -> float:
+        return ctx.cost_s.get(effect, _COST_PRIOR.get(effect, 0.0))
+
+    order = sorted(pool, key=lambda e: -expected_s(e))
+    done: dict[str, tuple[CandidateScore, _Fitted | None, HeldOut | None, str, float]] = {}
+    away: dict[str, tuple[Future, Helper, float]] = {}
+    said = 0
+
+    def args(effect: str) -> tuple:
+        return (ctx.ev, effect, model.current, tuple(model.free), ctx.names, channel, noise,
+                scale2, s0, f0)
+
+    def collect(block: bool) -> None:
+        for effect, (fut, h, sent) in list(away.items()):
+            if not (block or fut.done()):
+                continue
+            late = sent + HELPER_LATE_FACTOR * expected_s(effect) + HELPER_LATE_S
+            result = None
+            try:
+                result = fut.result(timeout=max(0.0, late - time.perf_counter()))
+            except TimeoutError:
+                pass  # late: the job runs here; the helper gets no job until it answers
+            except Exception as err:  # it failed (helper.py): not used again
+                h.stop(err)
+            del away[effect]
+            done[effect] = result or _timed_candidate(*args(effect))
+            ctx.cost_s[effect] = done[effect][4]
+
+    while order or away:
+        for h in ctx.helpers:
+            if order and h.idle():
+                away[order[0]] = (h.submit(_timed_candidate, *args(order[0])), h,
+                                  time.perf_counter())
+                order.pop(0)
+        if order:
+            effect = order.pop(0)
+            done[effect] = _timed_candidate(*args(effect))
+            ctx.cost_s[effect] = done[effect][4]
+        collect(block=not order)
+        while said < len(pool) and pool[said] in done:
+            ctx.say(done[pool[said]][3])
+            said += 1
+    scores = [done[e][0] for e in pool]
+    fits = {e: done[e][1] for e in pool if done[e][1] is not None}
+    held = {e: done[e][2] for e in pool if done[e][2] is not None}
     return scores, fits, held
 
 
-def _score_candidate(ctx: _Context, model: _Model, effect: str, channel: str, noise: float,
-                     scale2: float, s0: float, f0: float
-                     ) -> tuple[CandidateScore, _Fitted | None, HeldOut | None]:
+#: A helper's job is late (and is run here instead) once the diagnosing process has nothing
+#: else to do and the job has taken this many times what it took last round ...
+HELPER_LATE_FACTOR = 3.0
+#: ... plus this many seconds [s]: a helper that stalls costs a bounded wait, never a hang.
+HELPER_LATE_S = 1.0
+
+#: Seconds each candidate took on ``controllerDelayImpact1ms`` (docs/benchmarks/diagnose.md,
+#: per round): the order of the first round's jobs, costliest first, before any is timed.
+_COST_PRIOR = {"saturation": 1.0, "controller_period": 0.8, "drive_lag": 0.5,
+               "rate_limit": 0.25, "braking_limit": 0.25, "breakaway": 0.2, "dead_time": 0.1}
+
+
+def _timed_candidate(ev: _Evaluator, effect: str, current: Calibration, free: Sequence[str],
+                     names: Sequence[str], channel: str, noise: float, scale2: float,
+                     s0: float, f0: float
+                     ) -> tuple[CandidateScore, _Fitted | None, HeldOut | None, str, float]:
+    """:func:`_score_candidate` and the seconds it took (a job a helper process can run:
+    module level, its inputs and outputs pickle)."""
+    t0 = time.perf_counter()
+    return (*_score_candidate(ev, effect, current, list(free), names, channel, noise, scale2,
+                              s0, f0), time.perf_counter() - t0)
+
+
+def _score_candidate(ev: _Evaluator, effect: str, current: Calibration, free: list[str],
+                     names: Sequence[str], channel: str, noise: float, scale2: float,
+                     s0: float, f0: float
+                     ) -> tuple[CandidateScore, _Fitted | None, HeldOut | None, str]:
     """One candidate fitted with the model's parameters and scored in sample, then held out
-    when it can qualify; returns its score, its fit and its held-out score (None where
-    missing)."""
+    when it can qualify; returns its score, its fit, its held-out score (None where missing)
+    and the line that says it."""
     try:
-        f = fit_candidate(ctx.ev, effect, model.current, model.free, ctx.names, noise)
-        f1 = in_sample_ms(ctx.ev, f.calibration, channel) / scale2
+        f = fit_candidate(ev, effect, current, free, names, noise)
+        f1 = in_sample_ms(ev, f.calibration, channel) / scale2
         in_sample = (f0 - f1) / (f0 - 1.0)
         # held out only what can qualify: one that removes too little of the
         # in-sample excess is rejected whatever its held-out score
-        h1 = heldout_score(ctx.ev, f.calibration, _moving(f.free, channel), channel) \
+        h1 = heldout_score(ev, f.calibration, _moving(f.free, channel), channel) \
             if in_sample >= MIN_EXPLAINED else None
     except (FitError, ConfigError) as err:
         score = CandidateScore(effect, {}, {}, math.nan, math.nan, -math.inf, -math.inf,
                                note=str(err), in_sample=-math.inf)
-        ctx.say(f"  {effect:11s} failed: {err}")
-        return score, None, None
+        return score, None, None, f"  {effect:11s} failed: {err}"
     ci = {n: f.ci95[n] for n in (*effect_parameters(effect),) if n in f.ci95}
     if f.absent:
         score = CandidateScore(effect, {}, {}, math.sqrt(f1 * scale2), math.nan, math.nan,
                                math.nan,
                                note=f.absent, in_sample=0.0)
-        ctx.say(f"  {effect:11s} explains    0.0 %: {f.absent}")
-        return score, f, None
+        return score, f, None, f"  {effect:11s} explains    0.0 %: {f.absent}"
     if h1 is None:
         score = CandidateScore(effect, _effect_values(f.calibration, effect), ci,
                                math.sqrt(f1 * scale2), math.nan, math.nan, math.nan,
                                in_sample=in_sample)
-        ctx.say(f"  {effect:11s} explains {100 * in_sample:6.1f} % of the excess in "
-                f"sample (< {100 * MIN_EXPLAINED:.0f} %: not scored held out)  "
-                f"{_effect_values(f.calibration, effect)}")
-        return score, f, None
+        return score, f, None, (
+            f"  {effect:11s} explains {100 * in_sample:6.1f} % of the excess in "
+            f"sample (< {100 * MIN_EXPLAINED:.0f} %: not scored held out)  "
+            f"{_effect_values(f.calibration, effect)}")
     s1 = _score(h1, scale2)
     explained = (s0 - s1) / max(s0 - 1.0, 1e-12)
     relative = (s0 - s1) / s0
     score = CandidateScore(effect, _effect_values(f.calibration, effect), ci,
                            math.sqrt(h1.fit_ms), math.sqrt(h1.heldout_ms), explained, relative,
                            in_sample=in_sample)
-    ctx.say(f"  {effect:11s} held-out score {s1:8.3f}  explains {100 * explained:6.1f} % "
-            f"of the excess ({100 * in_sample:6.1f} % in sample)  "
-            f"{_effect_values(f.calibration, effect)}")
-    return score, f, h1
+    return score, f, h1, (
+        f"  {effect:11s} held-out score {s1:8.3f}  explains {100 * explained:6.1f} % "
+        f"of the excess ({100 * in_sample:6.1f} % in sample)  "
+        f"{_effect_values(f.calibration, effect)}")
 
 
 def _qualifying(scores: Sequence[CandidateScore], f0: float) -> list[CandidateScore]:

@@ -1,0 +1,190 @@
+"""diagnose with a helper process: the same diagnosis, faster; a helper that fails costs nothing.
+
+A helper is a real second process (``python -c``, pickles over its pipes:
+``mecanum_hil/identify/diagnose/helper.py``). Each test waits until the helper has started
+(its warm-up done) before diagnosing, so that it takes part whatever the machine's speed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from mecanum_hil.identify.diagnose import diagnose
+from mecanum_hil.identify.diagnose import helper as helper_mod
+from mecanum_hil.identify.fit import fit
+from mecanum_hil.io.recording import Recording
+from mecanum_hil.model import Calibration, Effects, RobotProfile
+from mecanum_hil.model.simulate import simulate
+
+ROBOT = RobotProfile()
+# two candidates that take part (breakaway and the wheels' gains are hidden) and two that do not
+POOL = ("wheel_gain", "breakaway", "dead_time", "saturation")
+
+
+def _step_recording() -> Recording:
+    """A 2-s, 500 Hz step of the model with a hidden breakaway and per-wheel gains, 2 rpm of
+    noise (bench/bench_diagnose.py's case)."""
+    t = np.arange(1001) / 500.0
+    cmd = np.tile([0.0, 0.0, 90.0], (t.size, 1))
+    cmd[10:, 0] = 200.0
+    truth = Calibration(A=3.0, B=8.0, C=500.0, effects=Effects(
+        breakaway_rpm_per_s=4000.0, gains=(0.9, 0.95, 1.0, 1.0)))
+    w = simulate(cmd, t, truth, ROBOT).wheel_rpm[0]
+    w = w + np.random.default_rng(0).normal(0.0, 2.0, w.shape)
+    return Recording(t, cmd, w, np.full((t.size, 3), np.nan))
+
+
+def _started(jobs: int = 2) -> list[helper_mod.Helper]:
+    helpers = helper_mod.helpers_for(jobs, helper_mod.warm_up)
+    deadline = time.monotonic() + 120.0
+    while not all(h.ready() for h in helpers):
+        assert time.monotonic() < deadline, "the helper did not start within 120 s"
+        assert not any(h.broken for h in helpers), "the helper process failed to start"
+        time.sleep(0.05)
+    return helpers
+
+
+def _diagnosed(rec, cal, jobs, echo=None):
+    lines: list[str] = []
+
+    def say(line: str) -> None:
+        lines.append(line)
+        if echo is not None:
+            echo(line)
+
+    d = diagnose([rec], cal, ROBOT, candidates=POOL, jobs=jobs, echo=say)
+    out = d.to_json()
+    # the generic reference model's search is not part of the selection (and its last digits
+    # vary between runs in one process): compared apart, loosely
+    ref = out.pop("rmse_reference"), out.pop("explained_share")
+    return out, ref, lines
+
+
+@pytest.fixture(scope="module")
+def step_case():
+    rec = _step_recording()
+    return rec, fit([rec], ROBOT).calibration
+
+
+def test_a_helper_gives_the_same_diagnosis(step_case):
+    rec, cal = step_case
+    alone, ref1, lines1 = _diagnosed(rec, cal, jobs=1)
+    (h,) = _started()
+    before = h.answered
+    beside, ref2, lines2 = _diagnosed(rec, cal, jobs=2)
+    assert h.answered > before, "the helper fitted no candidate"
+    assert json.dumps(beside, sort_keys=True) == json.dumps(alone, sort_keys=True)
+    assert lines2 == lines1  # the same lines, in the pool's order
+    np.testing.assert_allclose(ref2, ref1, rtol=1e-3)
+    assert [e["effect"] for e in alone["effects"]] == ["wheel_gain", "breakaway"]
+
+
+def test_a_helper_that_dies_mid_diagnosis_costs_nothing(step_case):
+    rec, cal = step_case
+    alone, _, _ = _diagnosed(rec, cal, jobs=1)
+    (h,) = _started()
+
+    def kill_in_round_one(line: str) -> None:
+        if line.startswith("round 1"):
+            h._proc.kill()  # the helper gets its first job now and never answers it
+
+    beside, _, _ = _diagnosed(rec, cal, jobs=2, echo=kill_in_round_one)
+    assert json.dumps(beside, sort_keys=True) == json.dumps(alone, sort_keys=True)
+    assert h.broken
+    # the next diagnosis starts a new helper, and the broken one is gone
+    (h2,) = _started()
+    assert h2 is not h and not h2.broken
+    assert h._proc.poll() is not None
+
+
+def test_a_helper_that_stalls_costs_a_bounded_wait_not_a_hang(step_case):
+    rec, cal = step_case
+    alone, _, _ = _diagnosed(rec, cal, jobs=1)
+    (h,) = _started()
+
+    def stall_in_round_one(line: str) -> None:
+        if line.startswith("round 1"):
+            os.kill(h._proc.pid, signal.SIGSTOP)  # alive, holding its job, never answering
+
+    try:
+        beside, _, _ = _diagnosed(rec, cal, jobs=2, echo=stall_in_round_one)
+    finally:
+        os.kill(h._proc.pid, signal.SIGCONT)
+        h.stop("test over")
+    assert json.dumps(beside, sort_keys=True) == json.dumps(alone, sort_keys=True)
+
+
+def test_own_load_follows_this_process_like_the_load_average():
+    from mecanum_hil import _cores
+
+    _cores.own_load()
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 0.5:  # busy
+        pass
+    busy = _cores.own_load()
+    assert 0.0 < busy < 1.0
+    time.sleep(0.5)  # idle: the share decays, as the kernel's average does
+    assert _cores.own_load() < busy
+
+
+def test_a_job_that_fails_in_the_helper_reports_the_error_and_the_helper_goes_on():
+    (h,) = _started()
+    fut = h.submit(int, "not a number")
+    with pytest.raises(RuntimeError, match="the helper failed: ValueError"):
+        fut.result(timeout=60)
+    assert h.submit(max, 3, 4).result(timeout=60) == 4
+    assert h.ready()
+
+
+def test_jobs_1_starts_no_helper(monkeypatch):
+    monkeypatch.setattr(helper_mod, "idle_cores", lambda: 8.0)
+    assert helper_mod.helpers_for(1) == []
+    monkeypatch.setattr(helper_mod, "idle_cores", lambda: 0.2)
+    monkeypatch.setattr(helper_mod, "_shared", None)
+    assert helper_mod.helpers_for(None) == []  # a busy machine: none by default
+
+
+def test_a_script_without_a_main_guard_runs_once(tmp_path):
+    """The helper imports the package only: a user's script that diagnoses at top level is not
+    run again in it (as multiprocessing's spawn would)."""
+    marker = tmp_path / "runs.txt"
+    script = tmp_path / "user_script.py"
+    script.write_text(textwrap.dedent(f"""
+        import numpy as np
+        from mecanum_hil.identify.diagnose import diagnose
+        from mecanum_hil.identify.diagnose import helper
+        from mecanum_hil.io.recording import Recording
+        from mecanum_hil.model import Calibration, Effects, RobotProfile
+        from mecanum_hil.model.simulate import simulate
+
+        with open({str(marker)!r}, "a") as f:
+            f.write("ran\\n")
+        (h,) = helper.helpers_for(2, helper.warm_up)
+        while not h.ready():
+            assert not h.broken
+        t = np.arange(400) / 100.0
+        cmd = np.tile([0.0, 0.0, 90.0], (t.size, 1))
+        cmd[20:, 0] = 60.0
+        cmd[200:, 0] = -30.0
+        truth = Calibration(A=14.7, B=16.1, C=303.0)
+        hidden = Calibration(A=14.7, B=16.1, C=303.0, effects=Effects(dead_time_s=0.1))
+        w = simulate(cmd, t, hidden, RobotProfile()).wheel_rpm[0]
+        w = w + np.random.default_rng(1).normal(0.0, 0.5, w.shape)
+        rec = Recording(t, cmd, w, np.full((t.size, 3), np.nan))
+        diagnose([rec], truth, candidates=("dead_time", "saturation"), max_rounds=1, jobs=2)
+        print("helper answered", h.answered)
+    """))
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert marker.read_text() == "ran\n"
+    assert int(out.stdout.split()[-1]) >= 2  # the warm-up and at least one candidate
