@@ -77,13 +77,15 @@ def run_diagnose(recordings: Sequence[Any], names: Sequence[str], robot, calibra
     """``fit`` then ``diagnose --calibration <the fit>`` on one group (the README's pipeline).
 
     The coefficients, intervals and RMSE are the final (extended) model's; ``effects`` the
-    effects ``diagnose`` named.
+    effects ``diagnose`` named. One process per group (``jobs=1``): the fleet already runs
+    groups side by side on every core, and the workers all start at once, while the load
+    average still says the machine is idle; a helper each would run two processes per core.
     """
     from ..identify.diagnose import CANDIDATES, diagnose
 
     _, fitted = run_fit(recordings, names, robot, calibration, method)
     diag = diagnose(list(recordings), fitted, robot, names=list(names),
-                    candidates=tuple(candidates) if candidates else CANDIDATES)
+                    candidates=tuple(candidates) if candidates else CANDIDATES, jobs=1)
     final = diag.calibration
     row = _coefficients(final, {k: tuple(v) for k, v in dict(final.ci95).items()
                                 if k in COEFFICIENTS})
