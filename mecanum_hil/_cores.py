@@ -9,6 +9,13 @@ import os
 import threading
 import time
 
+#: Idle cores (beyond this process's own) from which a stage works beside itself: half a core,
+#: i.e. a 1-minute load average of the other jobs up to 0.5 on two cores. Measured for
+#: measure-video: with another job busy on the second core (load 1) decoding beside was 0-10 %
+#: slower than in turns; asking for a whole idle core (load 0.00) left an idle desktop's 0.1 in
+#: turns (review, 2026-11-23). diagnose's helper process follows the same rule.
+SPARE_CORE = 0.5
+
 #: This process's share of the load average as last computed, with the wall and CPU clocks
 #: then [s] (from the package's import, when it was 0).
 _own = [0.0, time.monotonic(), time.process_time()]

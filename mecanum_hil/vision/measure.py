@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .. import __version__
+from .._cores import SPARE_CORE
 from .._cores import idle_cores as _idle_cores
 from ..errors import VideoError
 from ..io.recording import Recording, empty_like_times
@@ -215,11 +216,9 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     return info, np.array(stamps, dtype=float), results, detectors
 
 
-#: Idle cores (beyond this process's own) from which decoding goes beside the analysis: half a
-#: core, i.e. a 1-minute load average up to 0.5 on two cores. With another job busy on the
-#: second core (load 1) beside was 0-10 % slower than in turns; asking for a whole idle core
-#: (load 0.00) left an idle desktop's 0.1 in turns (review, 2026-11-23).
-BESIDE_IDLE_CORES = 0.5
+#: Idle cores (beyond this process's own) from which decoding goes beside the analysis: the
+#: package's rule for working beside itself (:data:`mecanum_hil._cores.SPARE_CORE`, half a core).
+BESIDE_IDLE_CORES = SPARE_CORE
 
 
 def _runs_in_turns(cap, free: queue.Queue, detectors: Sequence) -> Iterator[list]:

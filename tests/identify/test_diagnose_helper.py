@@ -43,22 +43,20 @@ def _step_recording() -> Recording:
     return Recording(t, cmd, w, np.full((t.size, 3), np.nan))
 
 
+def _wait(h: helper_mod.Helper, until: str, limit_s: float) -> None:
+    """Wait until ``h.<until>()`` (``ready``: started; ``idle``: every job sent answered)."""
+    deadline = time.monotonic() + limit_s
+    while not getattr(h, until)():
+        assert time.monotonic() < deadline, f"the helper was not {until} within {limit_s} s"
+        assert not h.broken, "the helper process failed"
+        time.sleep(0.05)
+
+
 def _started(jobs: int = 2) -> list[helper_mod.Helper]:
     helpers = helper_mod.helpers_for(jobs, helper_mod.warm_up)
-    deadline = time.monotonic() + 120.0
-    while not all(h.ready() for h in helpers):
-        assert time.monotonic() < deadline, "the helper did not start within 120 s"
-        assert not any(h.broken for h in helpers), "the helper process failed to start"
-        time.sleep(0.05)
+    for h in helpers:
+        _wait(h, "ready", 120.0)
     return helpers
-
-
-def _until_idle(h: helper_mod.Helper) -> None:
-    deadline = time.monotonic() + 300.0
-    while not h.idle():
-        assert time.monotonic() < deadline, "the helper did not answer within 300 s"
-        assert not h.broken
-        time.sleep(0.05)
 
 
 def _diagnosed(rec, cal, jobs, echo=None):
@@ -89,7 +87,8 @@ def test_a_helper_gives_the_same_diagnosis(step_case):
     (h,) = _started()
     before = h.answered
     beside, ref2, lines2 = _diagnosed(rec, cal, jobs=2)
-    _until_idle(h)  # a job it was late with (numba compiling on a fresh checkout) ran here too
+    # a job it was late with (numba compiling on a fresh checkout) also ran here
+    _wait(h, "idle", 300.0)
     assert h.answered > before, "the helper fitted no candidate"
     assert json.dumps(beside, sort_keys=True) == json.dumps(alone, sort_keys=True)
     assert lines2 == lines1  # the same lines, in the pool's order

@@ -5,7 +5,7 @@ plus one effect): independent jobs, each a few hundred milliseconds to seconds. 
 with a core to spare, a helper process takes the costliest job left while this process works
 through the others, so a round takes about half the time on two cores.
 
-Why a process started with ``python -m`` and pickles over its pipes, and not
+Why a process started with ``python -c`` and pickles over its pipes, and not
 :mod:`multiprocessing`: forking a process whose numba kernels have started OpenMP threads is
 unsafe, and the ``spawn`` and ``forkserver`` methods import the user's main script again in
 the child (running it, where it lacks an ``if __name__ == "__main__"`` guard). The helper
@@ -36,13 +36,14 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-from ..._cores import idle_cores
+from ..._cores import SPARE_CORE, idle_cores
 
 #: Idle cores (beyond this process's own, by the 1-minute load average) from which ``diagnose``
-#: starts a helper by default: half a core, the rule measure-video decodes beside its analysis
-#: by (a load average up to 0.5 on two cores). A helper costs about 1.3 s of CPU to start
-#: (imports, numba's kernels loaded), on the other core.
-HELPER_IDLE_CORES = 0.5
+#: starts a helper by default: the package's rule for working beside itself
+#: (:data:`mecanum_hil._cores.SPARE_CORE`, half a core, as measure-video decodes beside its
+#: analysis). A helper costs about 1.3 s of CPU to start (imports, numba's kernels loaded), on
+#: the other core.
+HELPER_IDLE_CORES = SPARE_CORE
 
 #: Seconds a helper is given to finish its current job when this process exits.
 _EXIT_WAIT_S = 1.0
