@@ -1,18 +1,19 @@
 """Benchmark of measure-video: frames per second against decoding alone, same file, same run.
 
-Usage: ``python bench/bench_video.py [--seconds 10] [--repeat 5]``. Renders 640x480, 30 fps
-videos of one wheel as .mp4 (mp4v) and .avi (MJPG): "step" (a 90 rpm step of the model, noise,
-motion blur, distractors) and "conditions" (the slow-start scenario with a fender, camera shake
-and drift, flicker, a shifting marker colour, an oblique view, noise and blur), then times, best
-of ``--repeat`` interleaved runs: decoding every frame alone, and the whole ``measure_video``
-(decode + hub + detect + first pass and path + speed), decoding in a helper thread beside the
-analysis (what it does by default when a second core is free) and in turns in one thread (the
-least CPU time; what it does on one core or a busy machine). Prints the cost on top of
-decoding in wall time (frames per second, what the user waits for) and in CPU time (all
-threads, ``time.process_time``), as ratios against decoding measured in the same run (OpenCV's
-default decoding; in CPU time also one-thread decoding, which is how measure-video decodes),
-and the real-time factor (targets: <= 30 % on top of decoding, >= 10x real time), with the
-machine's load average."""
+Usage: ``python bench/bench_video.py [--seconds 10] [--repeat 5]``. Renders 640x480, 30 fps videos
+of one wheel as .mp4 (mp4v) and .avi (MJPG): "step" (a 90 rpm step of the model, noise, motion blur,
+distractors) and "conditions" (the slow-start scenario with a fender, camera shake and drift,
+flicker, a shifting marker colour, an oblique view, noise and blur), then times, best of
+``--repeat`` interleaved runs: decoding every frame alone, and the whole ``measure_video`` (decode +
+hub + detect + first pass and path + speed), decoding beside the analysis in helper threads (what it
+does by default when a second core is free: two decoders, each on every other part of the video,
+where the video is long enough; also timed with one decoder) and in turns in one thread (the least
+CPU time; what it does on one core or a busy machine). Prints the cost on top of decoding in wall
+time (frames per second, what the user waits for) and in CPU time (all threads,
+``time.process_time``), as ratios against decoding measured in the same run (OpenCV's default
+decoding; in CPU time also one-thread decoding, which is how measure-video decodes), and the
+real-time factor (targets: <= 30 % on top of decoding, >= 10x real time), with the machine's load
+average."""
 
 from __future__ import annotations
 
@@ -206,6 +207,7 @@ def main() -> None:
     # the modes named: by default measure-video picks by the load average, which this
     # benchmark itself raises
     beside, in_turns = MeasureOptions(decode_beside=True), MeasureOptions(decode_beside=False)
+    one_decoder = MeasureOptions(decode_beside=True, decoders=1)
     still = MeasureOptions(track_hub=False, decode_beside=True)
     with tempfile.TemporaryDirectory() as tmp:
         print(f"measure-video benchmark: 640x480, 30 fps, about {args.seconds:.0f} s of video, "
@@ -219,11 +221,13 @@ def main() -> None:
                 n = res.frame_t_s.size
                 measure_video(path)  # warm-up: imports, OpenCV's first-use costs
                 (c_dec, t_dec, n_dec), (c_one, _, n_one), (c_meas, t_meas, meas), \
-                    (c_still, t_still, _), (c_turns, t_turns, _) = best_times(
+                    (c_still, t_still, _), (c_turns, t_turns, _), (c_1dec, t_1dec, _) = \
+                    best_times(
                         [lambda p=path: decode_only(p), lambda p=path: decode_only(p, 1),
                          lambda p=path: measure_video(p, beside),
                          lambda p=path: measure_video(p, still),
-                         lambda p=path: measure_video(p, in_turns)], args.repeat)
+                         lambda p=path: measure_video(p, in_turns),
+                         lambda p=path: measure_video(p, one_decoder)], args.repeat)
                 assert n_dec == n_one == n
                 err = meas.recording.wheel_rpm[:, 0] - res.wheel_rpm[:, 0]
                 if name == "step":
@@ -233,10 +237,12 @@ def main() -> None:
                     settled = res.recording_t_s > 6.3  # the hold at 60 rpm
                 print(f"{name:10s} {suffix[1:]:4s} cost on top of decoding: wall "
                       f"{100 * (t_meas / t_dec - 1):+5.1f} % (without the hub "
-                      f"{100 * (t_still / t_dec - 1):+5.1f} %; in turns "
+                      f"{100 * (t_still / t_dec - 1):+5.1f} %; one decoder "
+                      f"{100 * (t_1dec / t_dec - 1):+5.1f} %; in turns "
                       f"{100 * (t_turns / t_dec - 1):+5.1f} %), CPU "
                       f"{100 * (c_meas / c_dec - 1):+5.1f} % (without the hub "
-                      f"{100 * (c_still / c_dec - 1):+5.1f} %; in turns "
+                      f"{100 * (c_still / c_dec - 1):+5.1f} %; one decoder "
+                      f"{100 * (c_1dec / c_dec - 1):+5.1f} %; in turns "
                       f"{100 * (c_turns / c_dec - 1):+5.1f} %, on top of one-thread decoding "
                       f"{100 * (c_turns / c_one - 1):+5.1f} %)   decode / measure "
                       f"{n / t_dec:6.0f} / {n / t_meas:6.0f} fps, real time "

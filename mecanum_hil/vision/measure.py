@@ -30,11 +30,16 @@ from .hub import STILL_CAMERA_PX, HubTracker, camera_offsets
 from .speed import FAST_STEP_TURNS, estimate_speed
 from .video import (
     MAX_FPS,  # noqa: F401  (re-exported: the bound was defined here first)
+    SEEK_BACK_FRAMES,
     FrameTiming,
+    SegmentMismatchError,
+    VideoInfo,
     check_fps,
     decoded_ahead,
+    decoded_in_segments,
     frame_times,
     iter_frames,
+    keyframe_interval,
     open_video,
 )
 
@@ -113,6 +118,11 @@ class MeasureOptions:
         free) rather than in turns with it in one thread (the least CPU time); ``None``: beside
         when the 1-minute load average leaves a second core free (see :func:`scan_video`). The
         results are the same.
+    decoders : int or None
+        Decoders beside the analysis: 2 decode every other part of the video each (faster
+        than OpenCV's own decoding; about two parts of frames in memory), 1 the whole video;
+        ``None``: two where the video is long enough and its keyframes close enough (see
+        :func:`split_part_frames`). The results are the same.
     """
 
     rois: tuple[tuple[int, tuple[int, int, int, int] | None], ...] = ((1, None),)
@@ -125,8 +135,11 @@ class MeasureOptions:
     expected_rpm: tuple[float, float] | None = None
     track_hub: bool = True
     decode_beside: bool | None = None
+    decoders: int | None = None
 
     def __post_init__(self) -> None:
+        if self.decoders not in (None, 1, 2):
+            raise VideoError(f"decoders must be 1 or 2, got {self.decoders}")
         wheels = [w for w, _ in self.rois]
         if not wheels or len(set(wheels)) != len(wheels):
             raise VideoError("give each wheel at most one --roi")
@@ -163,16 +176,64 @@ class VideoMeasurement:
 
 def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequence],
                progress: Callable[[int, int], None] | None = None,
-               decode_beside: bool | None = None):
+               decode_beside: bool | None = None, decoders: int | None = None):
     """Decode every frame once and run the detectors on it.
 
-    ``decode_beside``: decode in a helper thread while this one analyses (default: when other
+    ``decode_beside``: decode in helper threads while this one analyses (default: when other
     jobs leave :data:`BESIDE_IDLE_CORES` of a second core free by the 1-minute load average,
     and four runs of frames fit in :data:`BESIDE_MAX_BYTES`); else decode and analyse in turns
-    in this thread. The results are the same either way.
+    in this thread. ``decoders`` (beside only): 2 decodes every other part of the video in
+    each of two threads (:func:`~mecanum_hil.vision.video.decoded_in_segments`), 1 the whole
+    video in one; default: two where :func:`split_part_frames` finds the video long enough
+    and its keyframes close enough. The results are the same in every mode (two decoders are
+    checked frame for frame where their parts meet; where they disagree the video is decoded
+    again in one piece).
 
     Returns ``(info, stamps [s], per-detector lists of per-frame results, detectors)``.
     """
+    try:
+        return _scan_video(path, detectors_for, progress, decode_beside, decoders)
+    except SegmentMismatchError:
+        return _scan_video(path, detectors_for, progress, True, 1)
+
+
+def split_part_frames(path: str | Path, info: VideoInfo) -> int:
+    """Frames per part when two decoders share a video (see :func:`scan_video`); 0: one.
+
+    Parts of about :data:`SPLIT_PART_FRAMES`, as many for each decoder, a multiple of
+    :data:`SCAN_BATCH`; at least :data:`SPLIT_SEEK_PARTS` times what a seek decodes in vain
+    (:data:`~mecanum_hil.vision.video.SEEK_BACK_FRAMES` and the keyframe interval, read from
+    the container's first packets); the second part longer than what its seek decodes in vain,
+    and what the decoders may hold ahead (about two parts) within :data:`BESIDE_MAX_BYTES`.
+    """
+    frames = info.frame_count
+    if frames < SPLIT_PART_FRAMES:
+        return 0
+    gop = keyframe_interval(path)
+    if gop is None:
+        return 0
+    pairs = max(1, round(frames / (2 * SPLIT_PART_FRAMES)))
+    part = max(math.ceil(frames / (2 * pairs)),
+               SPLIT_SEEK_PARTS * (SEEK_BACK_FRAMES + gop))
+    part = math.ceil(part / SCAN_BATCH) * SCAN_BATCH
+    held = (2 * part + 5 * SCAN_BATCH + 2) * 3 * info.width_px * info.height_px
+    if frames - part < SEEK_BACK_FRAMES + gop or held > BESIDE_MAX_BYTES:
+        return 0  # the second decoder's share would not pay for its seek; or too big
+    return part
+
+
+#: Frames per part, about, when two decoders share a video (see :func:`split_part_frames`):
+#: fewer parts, fewer seeks; more, less memory and an even share at the end (bench_video:
+#: 60-120 frames were alike at 640x480).
+SPLIT_PART_FRAMES = 80
+#: A part is at least this many times the frames a seek decodes in vain.
+SPLIT_SEEK_PARTS = 2
+
+
+def _scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequence],
+                progress: Callable[[int, int], None] | None, decode_beside: bool | None,
+                decoders: int | None):
+    """:func:`scan_video` in one of its modes (SegmentMismatchError: decode in one piece)."""
     cap, info = open_video(path, decoder_threads=1)
     if decode_beside is None:
         # up to four runs of frames in memory: analysed, two waiting, being decoded
@@ -184,6 +245,9 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     # analysis overlap (10-35 % less wall time than in turns), at 5-15 % more CPU time (frames
     # cross cores, and the decoding thread waits for the GIL the analysis holds). With another
     # job busy on the second core it is 0-10 % slower than in turns (bench/bench_video.py).
+    # Two decoders beside (each on one FFmpeg thread, every other part of the video): their
+    # pace together passes the baseline's; what they cost on top of one is OpenCV's seek at
+    # each part (it decodes from a keyframe before), 10-20 % more CPU time (bench_video).
     # In turns: each frame is looked at while still in the core's cache: the least CPU time.
     # Frames are decoded into the same few buffers again (no fresh megabyte of memory per
     # frame); the buffer last handed back is decoded into first (a stack).
@@ -196,7 +260,16 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
         stamps: list[float] = []
         next_focus = FOCUS_AFTER_FRAMES
         reported = 0
-        runs = (_runs_beside(cap, free) if decode_beside else _runs_in_turns(cap, free, detectors))
+        part = 0
+        if decode_beside and decoders != 1:
+            part = split_part_frames(path, info)
+            if decoders == 2 and not part:
+                part = max(SCAN_BATCH, math.ceil(info.frame_count / 2 / SCAN_BATCH) * SCAN_BATCH)
+        if part:
+            runs = decoded_in_segments(path, cap, part, SCAN_BATCH, free)
+        else:
+            runs = (_runs_beside(cap, free) if decode_beside
+                    else _runs_in_turns(cap, free, detectors))
         for run in runs:
             for index, _, frame in run:
                 if frame.shape[1] != info.width_px or frame.shape[0] != info.height_px:
@@ -473,7 +546,8 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
             return [ArucoDetector(roi, size) for _, roi in opts.rois]
         return [_WheelScan(opts.marker, roi, size, opts.track_hub) for _, roi in opts.rois]
 
-    info, stamps, per_wheel, detectors = scan_video(path, make, progress, opts.decode_beside)
+    info, stamps, per_wheel, detectors = scan_video(path, make, progress, opts.decode_beside,
+                                                    opts.decoders)
     n = stamps.size
     if n < 3:
         raise VideoError(f"{src}: only {n} frame(s) could be decoded (empty or corrupt video)")

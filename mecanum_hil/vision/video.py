@@ -264,6 +264,194 @@ def decoded_ahead(cap, maxsize: int, batch: int = 0, free: queue.Queue | None = 
         worker.join(timeout=join_timeout_s)
 
 
+#: Frames OpenCV's seek decodes before the frame it seeks to, on top of those from the keyframe
+#: before: it seeks to 16 frames earlier, then back to a keyframe (``cap_ffmpeg_impl.hpp``).
+SEEK_BACK_FRAMES = 16
+
+
+class SegmentMismatchError(Exception):
+    """Two decoders disagree where their parts of a video meet (a seek that does not land on
+    the frame it was asked for, or decodes it differently): :func:`decoded_in_segments`'s
+    caller decodes the video in one piece instead. Never reaches the user."""
+
+
+_SEEK_FAILED = object()
+_END = object()
+
+
+def keyframe_interval(path: str | Path, max_packets: int = 600) -> int | None:
+    """The longest run between keyframes among a video's first packets [frames], read from
+    the container without decoding; None when its packets cannot be read that way or fewer
+    than two keyframes are among them."""
+    import cv2
+
+    try:
+        with _stderr_silenced():
+            raw = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, [cv2.CAP_PROP_FORMAT, -1])
+    except cv2.error:
+        return None
+    keys: list[int] = []
+    read = 0
+    try:
+        if not raw.isOpened():
+            return None
+        while read < max_packets and raw.grab():
+            if raw.get(cv2.CAP_PROP_LRF_HAS_KEY_FRAME):
+                keys.append(read)
+            read += 1
+    except cv2.error:
+        return None
+    finally:
+        raw.release()
+    if len(keys) < 2:
+        return None
+    runs = np.diff(keys).tolist()
+    if read == max_packets:  # the run still open at the end of the scan counts too
+        runs.append(read - keys[-1])
+    return int(max(runs))
+
+
+def _decode_segments(cap, first: int, segment: int, last_start: int, batch: int,
+                     out: queue.Queue, stop: threading.Event, free: queue.Queue | None) -> None:
+    """Decode every other part of ``segment`` frames, from part ``first``, into ``out`` (a
+    helper thread's body for :func:`decoded_in_segments`).
+
+    Per part: runs of up to ``batch`` :func:`iter_frames` items (frame index from the start
+    of the video), then ``(_END, frames, overlap)``: ``overlap`` is the first frame of the
+    next part as this decoder decodes it without a seek (None at the end of the video). The
+    part from ``last_start`` on runs to the end of the video (the declared frame count may be
+    short). A seek that does not land on its frame puts ``_SEEK_FAILED``; an error is put after
+    the frames before it.
+    """
+    import cv2
+
+    part = first
+    run: list = []
+    try:
+        while not stop.is_set():
+            start = part * segment
+            if start > last_start:  # the other decoder reads to the end
+                return
+            if start and not (cap.set(cv2.CAP_PROP_POS_FRAMES, start)
+                              and cap.get(cv2.CAP_PROP_POS_FRAMES) == start):
+                _put_unless_stopped(out, _SEEK_FAILED, stop)
+                return
+            last = start >= last_start
+            count, overlap = 0, None
+            for j, t, frame in iter_frames(cap, free):
+                if not last and count == segment:
+                    overlap = (start + j, t, frame)
+                    break
+                run.append((start + j, t, frame))
+                count += 1
+                if len(run) == batch:
+                    if not _put_unless_stopped(out, run, stop):
+                        return
+                    run = []
+            if run and not _put_unless_stopped(out, run, stop):
+                return
+            run = []
+            if not _put_unless_stopped(out, (_END, count, overlap), stop) or overlap is None:
+                return
+            part += 2
+    except BaseException as err:  # handed to the consumer, which re-raises it in its place
+        if run and not _put_unless_stopped(out, run, stop):
+            return
+        _put_unless_stopped(out, err, stop)
+
+
+def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
+                        free: queue.Queue | None = None,
+                        join_timeout_s: float | None = None) -> Iterator[list]:
+    """Yield runs of :func:`iter_frames` items in order, decoded by two decoders in helper
+    threads, each taking every other part of ``segment`` frames.
+
+    One decoder (FFmpeg on one thread) cannot keep pace with OpenCV's default decoding
+    (FFmpeg's frame threads on every core); two, each on its own parts of the video, decode
+    faster than either. Each part after the first starts with a seek; where two parts meet,
+    the frame after one decoder's part, decoded on without a seek, must equal the first frame
+    of the next part, which the other decoder decoded after its seek (pixels and timestamp), or
+    :class:`SegmentMismatchError` is raised: the results are those of decoding in one piece.
+
+    Parameters
+    ----------
+    path : str or Path
+        The video ``cap`` reads (opened a second time here).
+    cap : cv2.VideoCapture
+        The open video at its first frame; the caller keeps owning it (and releases it after
+        closing this generator).
+    segment : int
+        Frames per part; a multiple of ``batch`` keeps the runs where one decoder puts them.
+    batch : int
+        Frames per run [frames].
+    free : queue.Queue or None
+        Frame buffers to decode into again; see :func:`iter_frames`.
+    join_timeout_s : float or None
+        Longest wait for each helper thread when stopping [s]; None waits until it ends.
+
+    Raises
+    ------
+    SegmentMismatchError
+        The second decoder cannot seek, or disagrees with the first where their parts meet.
+    BaseException
+        Whatever stopped decoding, re-raised here after the frames before it.
+
+    Notes
+    -----
+    At most about two parts and four runs of frames are in memory. Close the generator
+    deterministically, as :func:`decoded_ahead`'s, before releasing ``cap``.
+    """
+    second, info = open_video(path, decoder_threads=1)
+    last_start = max(0, (info.frame_count - 1) // segment * segment)
+    size = -(-segment // batch) + 2  # a whole part ahead, and its end
+    queues: list[queue.Queue] = [queue.Queue(maxsize=size) for _ in range(2)]
+    stop = threading.Event()
+    workers = [threading.Thread(target=_decode_segments, daemon=True,
+                                args=(c, k, segment, last_start, batch, queues[k], stop, free))
+               for k, c in enumerate((cap, second))]
+    try:
+        for worker in workers:
+            worker.start()
+        part, expect = 0, None
+        while True:
+            q = queues[part % 2]
+            while True:
+                item = q.get()
+                if isinstance(item, BaseException):
+                    raise item
+                if item is _SEEK_FAILED:
+                    raise SegmentMismatchError(f"cannot seek to frame {part * segment}")
+                if isinstance(item, tuple) and item[0] is _END:
+                    break
+                if expect is not None:
+                    _check_meeting(expect, item[0])
+                    if free is not None:
+                        free.put(expect[2])
+                    expect = None
+                yield item
+            if expect is not None:
+                raise SegmentMismatchError(f"part from frame {expect[0]} is empty")
+            expect = item[2]
+            if expect is None:
+                return
+            part += 1
+    finally:
+        stop.set()
+        for worker in workers:
+            if worker.ident is not None:
+                worker.join(timeout=join_timeout_s)
+        second.release()
+
+
+def _check_meeting(before: tuple, after: tuple) -> None:
+    """Where two parts meet: the frame decoded on without a seek (``before``) and after one
+    (``after``) must be the same frame, decoded the same."""
+    (i, t, a), (j, u, b) = before, after
+    same_time = (math.isnan(t) and math.isnan(u)) or t == u
+    if i != j or not same_time or a.shape != b.shape or not np.array_equal(a, b):
+        raise SegmentMismatchError(f"the decoders disagree at frame {i}")
+
+
 @dataclass(frozen=True)
 class FrameTiming:
     """Frame times and how they were obtained.
