@@ -30,6 +30,7 @@ from .hub import STILL_CAMERA_PX, HubTracker, camera_offsets
 from .speed import FAST_STEP_TURNS, estimate_speed
 from .video import (
     MAX_FPS,  # noqa: F401  (re-exported: the bound was defined here first)
+    MEETING_FRAMES,
     SEEK_BACK_FRAMES,
     FrameTiming,
     SegmentMismatchError,
@@ -197,28 +198,36 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
         return _scan_video(path, detectors_for, progress, True, 1)
 
 
-def split_part_frames(path: str | Path, info: VideoInfo) -> int:
+def split_part_frames(path: str | Path, info: VideoInfo, forced: bool = False) -> int:
     """Frames per part when two decoders share a video (see :func:`scan_video`); 0: one.
 
     Parts of about :data:`SPLIT_PART_FRAMES`, as many for each decoder, a multiple of
-    :data:`SCAN_BATCH`; at least :data:`SPLIT_SEEK_PARTS` times what a seek decodes in vain
+    :data:`SCAN_BATCH`, and never so long that the frames the two decoders may hold ahead
+    (about two parts) pass :data:`BESIDE_MAX_BYTES`. Unless ``forced`` (``decoders=2``), also:
+    at least :data:`SPLIT_SEEK_PARTS` times what a seek decodes in vain
     (:data:`~mecanum_hil.vision.video.SEEK_BACK_FRAMES` and the keyframe interval, read from
-    the container's first packets); the second part longer than what its seek decodes in vain,
-    and what the decoders may hold ahead (about two parts) within :data:`BESIDE_MAX_BYTES`.
+    the container's first packets), and the second part longer than that.
     """
     frames = info.frame_count
-    if frames < SPLIT_PART_FRAMES:
-        return 0
-    gop = keyframe_interval(path)
-    if gop is None:
+    frame_bytes = 3 * info.width_px * info.height_px
+    # per decoder a part and a run in its queue, its overlap, a run being decoded; one analysed
+    ahead = BESIDE_MAX_BYTES // max(1, frame_bytes) - 5 * SCAN_BATCH - 2 * MEETING_FRAMES - 1
+    most = ahead // 2 // SCAN_BATCH * SCAN_BATCH
+    if most < SCAN_BATCH or (not forced and frames < SPLIT_PART_FRAMES):
         return 0
     pairs = max(1, round(frames / (2 * SPLIT_PART_FRAMES)))
-    part = max(math.ceil(frames / (2 * pairs)),
-               SPLIT_SEEK_PARTS * (SEEK_BACK_FRAMES + gop))
+    part = max(1, math.ceil(frames / (2 * pairs)))
+    if not forced:
+        gop = keyframe_interval(path)
+        if gop is None:
+            return 0
+        waste = SEEK_BACK_FRAMES + gop
+        part = max(part, SPLIT_SEEK_PARTS * waste)
+        if frames - part < waste:
+            return 0  # the second decoder's share would not pay for its seek
     part = math.ceil(part / SCAN_BATCH) * SCAN_BATCH
-    held = (2 * part + 5 * SCAN_BATCH + 2) * 3 * info.width_px * info.height_px
-    if frames - part < SEEK_BACK_FRAMES + gop or held > BESIDE_MAX_BYTES:
-        return 0  # the second decoder's share would not pay for its seek; or too big
+    if part > most:
+        return most if forced else 0
     return part
 
 
@@ -262,9 +271,7 @@ def _scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Seq
         reported = 0
         part = 0
         if decode_beside and decoders != 1:
-            part = split_part_frames(path, info)
-            if decoders == 2 and not part:
-                part = max(SCAN_BATCH, math.ceil(info.frame_count / 2 / SCAN_BATCH) * SCAN_BATCH)
+            part = split_part_frames(path, info, forced=decoders == 2)
         if part:
             runs = decoded_in_segments(path, cap, part, SCAN_BATCH, free)
         else:

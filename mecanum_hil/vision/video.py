@@ -141,16 +141,17 @@ def open_video(path: str | Path, decoder_threads: int | None = None):
     return cap, info
 
 
-def iter_frames(cap, free: queue.Queue | None = None
+def iter_frames(cap, free: queue.Queue | None = None, start: int = 0
                 ) -> Iterator[tuple[int, float, np.ndarray]]:
     """Yield ``(index, timestamp [s] or NaN, BGR frame)`` until the video ends.
 
     ``free``: frames the consumer is done with, decoded into again when they fit (no fresh
     megabyte of memory per frame: its page faults and cache misses cost decoding about a tenth
-    of its time in measure-video's pipeline)."""
+    of its time in measure-video's pipeline). ``start``: the index of the next frame ``cap``
+    decodes (after a seek)."""
     import cv2
 
-    index = 0
+    index = start
     while True:
         buf = None
         if free is not None:
@@ -267,6 +268,9 @@ def decoded_ahead(cap, maxsize: int, batch: int = 0, free: queue.Queue | None = 
 #: Frames OpenCV's seek decodes before the frame it seeks to, on top of those from the keyframe
 #: before: it seeks to 16 frames earlier, then back to a keyframe (``cap_ffmpeg_impl.hpp``).
 SEEK_BACK_FRAMES = 16
+#: Frames compared where two decoders' parts meet (see :func:`decoded_in_segments`): the first
+#: after a seek, and the next, whose decoding rests on references the seek had to rebuild.
+MEETING_FRAMES = 2
 
 
 class SegmentMismatchError(Exception):
@@ -317,13 +321,12 @@ def _decode_segments(cap, first: int, segment: int, last_start: int, batch: int,
     helper thread's body for :func:`decoded_in_segments`).
 
     Per part: runs of up to ``batch`` :func:`iter_frames` items (frame index from the start
-    of the video), then ``(_END, frames, overlap)``: ``overlap`` is the first frame of the
-    next part as this decoder decodes it without a seek (None at the end of the video). The
-    part from ``last_start`` on runs to the end of the video (the declared frame count may be
-    short). A seek that does not land on its frame puts ``_SEEK_FAILED``; an error is put after
-    the frames before it.
+    of the video), then ``(_END, frames, overlap)``: ``overlap`` is the first
+    :data:`MEETING_FRAMES` frames of the next part as this decoder decodes them without a seek
+    (empty at the end of the video). The part from ``last_start`` on runs to the end of the
+    video (the declared frame count may be short). A seek that fails, raises or does not land on
+    its frame puts ``_SEEK_FAILED``; an error is put after the frames before it.
     """
-    import cv2
 
     part = first
     run: list = []
@@ -332,17 +335,18 @@ def _decode_segments(cap, first: int, segment: int, last_start: int, batch: int,
             start = part * segment
             if start > last_start:  # the other decoder reads to the end
                 return
-            if start and not (cap.set(cv2.CAP_PROP_POS_FRAMES, start)
-                              and cap.get(cv2.CAP_PROP_POS_FRAMES) == start):
+            if start and not _seek(cap, start):
                 _put_unless_stopped(out, _SEEK_FAILED, stop)
                 return
             last = start >= last_start
-            count, overlap = 0, None
-            for j, t, frame in iter_frames(cap, free):
-                if not last and count == segment:
-                    overlap = (start + j, t, frame)
-                    break
-                run.append((start + j, t, frame))
+            count, overlap = 0, []
+            for item in iter_frames(cap, free, start):
+                if not last and count >= segment:
+                    overlap.append(item)
+                    if len(overlap) == MEETING_FRAMES:
+                        break
+                    continue
+                run.append(item)
                 count += 1
                 if len(run) == batch:
                     if not _put_unless_stopped(out, run, stop):
@@ -351,13 +355,24 @@ def _decode_segments(cap, first: int, segment: int, last_start: int, batch: int,
             if run and not _put_unless_stopped(out, run, stop):
                 return
             run = []
-            if not _put_unless_stopped(out, (_END, count, overlap), stop) or overlap is None:
+            if not _put_unless_stopped(out, (_END, count, overlap), stop) or not overlap:
                 return
             part += 2
     except BaseException as err:  # handed to the consumer, which re-raises it in its place
         if run and not _put_unless_stopped(out, run, stop):
             return
         _put_unless_stopped(out, err, stop)
+
+
+def _seek(cap, frame: int) -> bool:
+    """Seek ``cap`` to ``frame``; False when OpenCV refuses, raises, or lands elsewhere."""
+    import cv2
+
+    try:
+        return bool(cap.set(cv2.CAP_PROP_POS_FRAMES, frame)
+                    and cap.get(cv2.CAP_PROP_POS_FRAMES) == frame)
+    except cv2.error:
+        return False
 
 
 def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
@@ -369,9 +384,12 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
     One decoder (FFmpeg on one thread) cannot keep pace with OpenCV's default decoding
     (FFmpeg's frame threads on every core); two, each on its own parts of the video, decode
     faster than either. Each part after the first starts with a seek; where two parts meet,
-    the frame after one decoder's part, decoded on without a seek, must equal the first frame
-    of the next part, which the other decoder decoded after its seek (pixels and timestamp), or
-    :class:`SegmentMismatchError` is raised: the results are those of decoding in one piece.
+    the :data:`MEETING_FRAMES` frames after one decoder's part, decoded on without a seek, must
+    equal the first frames of the next part, which the other decoder decoded after its seek
+    (pixels and timestamps), or :class:`SegmentMismatchError` is raised: the results are those
+    of decoding in one piece. (A video without timestamps whose frames repeat exactly, a still
+    scene without noise, could pass a seek that lands a frame off: what it measures is the
+    same.)
 
     Parameters
     ----------
@@ -392,7 +410,8 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
     Raises
     ------
     SegmentMismatchError
-        The second decoder cannot seek, or disagrees with the first where their parts meet.
+        The second decoder cannot open the video or seek in it, or disagrees with the first
+        where their parts meet.
     BaseException
         Whatever stopped decoding, re-raised here after the frames before it.
 
@@ -401,7 +420,10 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
     At most about two parts and four runs of frames are in memory. Close the generator
     deterministically, as :func:`decoded_ahead`'s, before releasing ``cap``.
     """
-    second, info = open_video(path, decoder_threads=1)
+    try:
+        second, info = open_video(path, decoder_threads=1)
+    except VideoError as err:  # out of file handles, the file replaced: decode in one piece
+        raise SegmentMismatchError(f"cannot open a second decoder: {err}") from err
     last_start = max(0, (info.frame_count - 1) // segment * segment)
     size = -(-segment // batch) + 2  # a whole part ahead, and its end
     queues: list[queue.Queue] = [queue.Queue(maxsize=size) for _ in range(2)]
@@ -412,7 +434,7 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
     try:
         for worker in workers:
             worker.start()
-        part, expect = 0, None
+        part, expect = 0, []
         while True:
             q = queues[part % 2]
             while True:
@@ -423,16 +445,18 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
                     raise SegmentMismatchError(f"cannot seek to frame {part * segment}")
                 if isinstance(item, tuple) and item[0] is _END:
                     break
-                if expect is not None:
-                    _check_meeting(expect, item[0])
-                    if free is not None:
-                        free.put(expect[2])
-                    expect = None
+                if expect:  # the other decoder's frames decoded on: the same?
+                    meet = min(len(expect), len(item))
+                    for before, after in zip(expect[:meet], item[:meet], strict=True):
+                        _check_meeting(before, after)
+                        if free is not None:
+                            free.put(before[2])
+                    del expect[:meet]
                 yield item
-            if expect is not None:
-                raise SegmentMismatchError(f"part from frame {expect[0]} is empty")
+            if expect:
+                raise SegmentMismatchError(f"the part from frame {expect[0][0]} ends early")
             expect = item[2]
-            if expect is None:
+            if not expect:
                 return
             part += 1
     finally:

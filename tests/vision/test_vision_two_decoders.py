@@ -39,6 +39,25 @@ def clip(request, tmp_path_factory):
     return path, items
 
 
+@pytest.fixture
+def modes(monkeypatch):
+    """How each scan of measure-video ran: ``(decoders asked, "done" or "mismatch")``."""
+    seen: list[tuple] = []
+    real = measure._scan_video
+
+    def scan(path, detectors_for, progress, decode_beside, decoders):
+        try:
+            out = real(path, detectors_for, progress, decode_beside, decoders)
+        except SegmentMismatchError:
+            seen.append((decoders, "mismatch"))
+            raise
+        seen.append((decoders, "done"))
+        return out
+
+    monkeypatch.setattr(measure, "_scan_video", scan)
+    return seen
+
+
 def in_segments(path, segment, batch=10):
     cap, _ = open_video(path, decoder_threads=1)
     runs = decoded_in_segments(path, cap, segment, batch)
@@ -124,13 +143,23 @@ def test_a_seek_that_lands_elsewhere_is_caught_where_the_parts_meet(clip, monkey
         in_segments(path, 20)
 
 
-def test_measure_video_falls_back_to_one_decoder_when_the_two_disagree(tmp_path, monkeypatch):
+@pytest.mark.parametrize("fault", ["seek", "open"])
+def test_measure_video_falls_back_to_one_decoder_when_the_second_fails(tmp_path, monkeypatch,
+                                                                       modes, fault):
     res = render_video(steady(75.0, 4.0), tmp_path / "v.mp4", RenderSettings(
         320, 240, fps=30.0, noise_std=3.0))
     opts = measure.MeasureOptions(decode_beside=True, decoders=1)
     one = measure.measure_video(res.path, opts)
-    second_decoder(monkeypatch, seek_off=3)
+    if fault == "seek":  # lands three frames late
+        second_decoder(monkeypatch, seek_off=3)
+    else:  # out of file handles, say
+        def refused(path, decoder_threads=None):
+            raise VideoError(f"{path}: not a video OpenCV can decode")
+
+        monkeypatch.setattr(video, "open_video", refused)
+    modes.clear()
     two = measure.measure_video(res.path, dataclasses.replace(opts, decoders=2))
+    assert modes == [(2, "mismatch"), (1, "done")]
     assert np.array_equal(one.recording.wheel_rpm, two.recording.wheel_rpm, equal_nan=True)
     assert one.summary == two.summary
 
@@ -144,7 +173,7 @@ def test_a_decoding_error_comes_after_every_frame_before_it(clip, monkeypatch):
     cap, _ = open_video(path, decoder_threads=1)
     runs = decoded_in_segments(path, cap, 20, 10)
     try:
-        with pytest.raises(VideoError, match="decoding failed"):
+        with pytest.raises(VideoError, match="decoding failed at frame 65:"):
             for run in runs:
                 got.extend((i, t, f.copy()) for i, t, f in run)
     finally:
@@ -183,7 +212,7 @@ def test_a_consumer_that_gives_up_leaves_no_thread_and_no_file_open(clip):
     assert len(os.listdir("/proc/self/fd")) == before_fds
 
 
-def test_a_truncated_video_measures_the_same_with_two_decoders(tmp_path):
+def test_a_truncated_video_measures_the_same_with_two_decoders(tmp_path, modes):
     res = render_video(steady(60.0, 6.0), tmp_path / "v.avi", RenderSettings(
         320, 240, fps=30.0, noise_std=2.0))
     data = res.path.read_bytes()
@@ -192,13 +221,14 @@ def test_a_truncated_video_measures_the_same_with_two_decoders(tmp_path):
     opts = measure.MeasureOptions(decode_beside=True, decoders=1)
     one = measure.measure_video(cut, opts)
     two = measure.measure_video(cut, dataclasses.replace(opts, decoders=2))
+    assert modes == [(1, "done"), (2, "done")]  # no fall back: the parts after the end
     assert any("truncated" in w for w in two.warnings)
     assert np.array_equal(one.recording.wheel_rpm, two.recording.wheel_rpm, equal_nan=True)
     assert one.summary == two.summary
 
 
 def test_by_default_a_long_video_beside_the_analysis_takes_two_decoders_same_results(
-        tmp_path, monkeypatch):
+        tmp_path, monkeypatch, modes):
     res = render_video(scenario_recording("slow-start"), tmp_path / "v.mp4", RenderSettings(
         320, 240, fps=30.0, duration_s=8.0, noise_std=3.0, fender=0.35, shake_px=1.5,
         flicker=0.2))
@@ -214,7 +244,7 @@ def test_by_default_a_long_video_beside_the_analysis_takes_two_decoders_same_res
 
     monkeypatch.setattr(measure, "decoded_in_segments", counted)
     two = measure.measure_video(res.path, measure.MeasureOptions(decode_beside=True))
-    assert used == [part]
+    assert used == [part] and modes == [(None, "done")]
     one = measure.measure_video(res.path, measure.MeasureOptions(decode_beside=True,
                                                                  decoders=1))
     turns = measure.measure_video(res.path, measure.MeasureOptions(decode_beside=False))
@@ -235,7 +265,37 @@ def test_two_decoders_are_not_used_where_they_cannot_pay(tmp_path, monkeypatch):
     assert measure.split_part_frames(res.path, long_gop) == 0  # keyframes too far apart
     monkeypatch.setattr(measure, "keyframe_interval", lambda path: 12)
     assert measure.split_part_frames(res.path, long_gop) == 100  # 400 frames: 4 parts
+    # decoders=2 asked for: whatever the keyframe interval, but within the memory budget
+    monkeypatch.setattr(measure, "keyframe_interval", lambda path: 300)
+    assert measure.split_part_frames(res.path, long_gop, forced=True) == 100
+    ten_minutes = dataclasses.replace(info, frame_count=18000, width_px=640, height_px=480)
+    part = measure.split_part_frames(res.path, ten_minutes, forced=True)
+    held = (2 * part + 5 * measure.SCAN_BATCH + 2 * video.MEETING_FRAMES + 1) * 3 * 640 * 480
+    assert part == 90 and held <= measure.BESIDE_MAX_BYTES  # not half the video
     monkeypatch.setattr(measure, "BESIDE_MAX_BYTES", 2 ** 20)
     assert measure.split_part_frames(res.path, long_gop) == 0  # the parts would not fit
+    assert measure.split_part_frames(res.path, long_gop, forced=True) == 0
     with pytest.raises(VideoError, match="decoders must be 1 or 2"):
         measure.MeasureOptions(decoders=3)
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs /proc")
+def test_an_analysis_stopped_by_ctrl_c_leaves_no_thread_and_no_file_open(tmp_path, monkeypatch):
+    res = render_video(steady(75.0, 6.0), tmp_path / "v.mp4", RenderSettings(
+        320, 240, fps=30.0, noise_std=3.0))
+    before_fds, before_threads = len(os.listdir("/proc/self/fd")), threading.active_count()
+    calls = []
+    real = measure._WheelScan.candidates
+
+    def interrupted(self, frame, hub):
+        calls.append(1)
+        if len(calls) == 100:  # in the second part, the other decoder's
+            raise KeyboardInterrupt
+        return real(self, frame, hub)
+
+    monkeypatch.setattr(measure._WheelScan, "candidates", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        measure.measure_video(res.path, measure.MeasureOptions(decode_beside=True, decoders=2))
+    assert len(calls) == 100
+    assert threading.active_count() == before_threads
+    assert len(os.listdir("/proc/self/fd")) == before_fds
