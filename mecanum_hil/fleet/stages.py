@@ -130,11 +130,18 @@ def run_shadow(recordings: Sequence[Any], names: Sequence[str], robot, calibrati
 
 def run_measure_video(path: Path, name: str, options: dict[str, Any], robot=None,
                       calibration=None) -> tuple[dict[str, Any], Any]:
-    """``measure-video VIDEO`` on one video: the row fields and the measured recording."""
+    """``measure-video VIDEO`` on one video: the row fields and the measured recording.
+
+    Decoding and analysis take turns in the task's one thread (``decode_beside=False`` unless
+    the options say otherwise), as ``run_diagnose`` keeps to one process: the fleet already
+    runs videos side by side on every core, and its workers all start while the load average
+    still says the machine is idle; decoder threads beside each would oversubscribe the cores.
+    """
     from ..vision.detect import MarkerSpec, parse_hsv, parse_roi
     from ..vision.measure import MeasureOptions, measure_video
 
     opts = dict(options)
+    opts.setdefault("decode_beside", False)
     wheel = int(opts.pop("wheel", 1))
     roi = opts.pop("roi", None)
     marker = opts.pop("marker", "auto")

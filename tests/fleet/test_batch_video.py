@@ -47,3 +47,23 @@ def test_measure_video_batch_equals_serial_and_isolates_a_broken_video(dask_clie
         b = read_recording(written / rel.replace(".mp4", ".csv"))
         np.testing.assert_array_equal(a.t_s, b.t_s)
         np.testing.assert_array_equal(a.wheel_rpm, b.wheel_rpm)
+
+
+def test_a_video_task_decodes_in_turns_with_its_analysis(monkeypatch, tmp_path):
+    """The workers fill the cores: no decoder threads beside each task's analysis."""
+    from types import SimpleNamespace
+
+    import mecanum_hil.vision.measure as measure
+    from mecanum_hil.fleet import stages
+
+    seen = []
+
+    def measured(path, options=None, progress=None):
+        seen.append(options)
+        return SimpleNamespace(summary={}, warnings=(), recording=None)
+
+    monkeypatch.setattr(measure, "measure_video", measured)
+    stages.run_measure_video(tmp_path / "v.mp4", "v", {"wheel": 2})
+    stages.run_measure_video(tmp_path / "v.mp4", "v", {"decode_beside": True})
+    assert [o.decode_beside for o in seen] == [False, True]
+    assert seen[0].rois == ((2, None),)
