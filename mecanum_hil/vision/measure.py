@@ -202,18 +202,15 @@ def split_part_frames(path: str | Path, info: VideoInfo, forced: bool = False) -
     """Frames per part when two decoders share a video (see :func:`scan_video`); 0: one.
 
     Parts of about :data:`SPLIT_PART_FRAMES`, as many for each decoder, a multiple of
-    :data:`SCAN_BATCH`, and never so long that the frames the two decoders may hold ahead
-    (about two parts) pass :data:`BESIDE_MAX_BYTES`. Unless ``forced`` (``decoders=2``), also:
-    at least :data:`SPLIT_SEEK_PARTS` times what a seek decodes in vain
+    :data:`SCAN_BATCH`; 0 where not even a run of frames ahead fits the memory budget
+    (:func:`split_ahead_frames`). Unless ``forced`` (``decoders=2``), also: at least
+    :data:`SPLIT_SEEK_PARTS` times what a seek decodes in vain
     (:data:`~mecanum_hil.vision.video.SEEK_BACK_FRAMES` and the keyframe interval, read from
     the container's first packets), and the second part longer than that.
     """
     frames = info.frame_count
-    frame_bytes = 3 * info.width_px * info.height_px
-    # per decoder a part and a run in its queue, its overlap, a run being decoded; one analysed
-    ahead = BESIDE_MAX_BYTES // max(1, frame_bytes) - 5 * SCAN_BATCH - 2 * MEETING_FRAMES - 1
-    most = ahead // 2 // SCAN_BATCH * SCAN_BATCH
-    if most < SCAN_BATCH or (not forced and frames < SPLIT_PART_FRAMES):
+    if not split_ahead_frames(info, SPLIT_PART_FRAMES) or (not forced
+                                                            and frames < SPLIT_PART_FRAMES):
         return 0
     pairs = max(1, round(frames / (2 * SPLIT_PART_FRAMES)))
     part = max(1, math.ceil(frames / (2 * pairs)))
@@ -225,15 +222,27 @@ def split_part_frames(path: str | Path, info: VideoInfo, forced: bool = False) -
         part = max(part, SPLIT_SEEK_PARTS * waste)
         if frames - part < waste:
             return 0  # the second decoder's share would not pay for its seek
-    part = math.ceil(part / SCAN_BATCH) * SCAN_BATCH
-    if part > most:
-        return most if forced else 0
-    return part
+    return math.ceil(part / SCAN_BATCH) * SCAN_BATCH
+
+
+def split_ahead_frames(info: VideoInfo, part: int) -> int:
+    """Frames each of two decoders may decode ahead of the analysis: a whole part, fewer
+    where what they hold would pass :data:`BESIDE_MAX_BYTES`; 0 where not even a run fits.
+
+    Held at most: per decoder its frames ahead and a run in its queue, the frames compared
+    where parts meet and a run being decoded; one run analysed. (bench_video, parts of 80
+    frames: a whole part ahead was 10-15 % faster than half of one at 640x480, whose frames
+    then take about 200 MB in all; at 1280x720, 20 frames ahead still gain most of it.)
+    """
+    frame_bytes = max(1, 3 * info.width_px * info.height_px)
+    room = BESIDE_MAX_BYTES // frame_bytes - 5 * SCAN_BATCH - 2 * MEETING_FRAMES
+    ahead = min(part, room // 2) // SCAN_BATCH * SCAN_BATCH
+    return ahead if ahead >= SCAN_BATCH else 0
 
 
 #: Frames per part, about, when two decoders share a video (see :func:`split_part_frames`):
-#: fewer parts, fewer seeks; more, less memory and an even share at the end (bench_video:
-#: 60-120 frames were alike at 640x480).
+#: fewer parts, fewer seeks (each decodes 16-28 frames in vain); more, an even share at the
+#: end and less memory (bench_video: 60-120 frames were alike at 640x480).
 SPLIT_PART_FRAMES = 80
 #: A part is at least this many times the frames a seek decodes in vain.
 SPLIT_SEEK_PARTS = 2
@@ -273,7 +282,8 @@ def _scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Seq
         if decode_beside and decoders != 1:
             part = split_part_frames(path, info, forced=decoders == 2)
         if part:
-            runs = decoded_in_segments(path, cap, part, SCAN_BATCH, free)
+            runs = decoded_in_segments(path, cap, part, SCAN_BATCH, free,
+                                       ahead=split_ahead_frames(info, part))
         else:
             runs = (_runs_beside(cap, free) if decode_beside
                     else _runs_in_turns(cap, free, detectors))

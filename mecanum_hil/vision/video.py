@@ -377,7 +377,8 @@ def _seek(cap, frame: int) -> bool:
 
 def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
                         free: queue.Queue | None = None,
-                        join_timeout_s: float | None = None) -> Iterator[list]:
+                        join_timeout_s: float | None = None,
+                        ahead: int | None = None) -> Iterator[list]:
     """Yield runs of :func:`iter_frames` items in order, decoded by two decoders in helper
     threads, each taking every other part of ``segment`` frames.
 
@@ -406,6 +407,9 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
         Frame buffers to decode into again; see :func:`iter_frames`.
     join_timeout_s : float or None
         Longest wait for each helper thread when stopping [s]; None waits until it ends.
+    ahead : int or None
+        Frames each decoder may hold decoded ahead of the consumer [frames]; default a whole
+        part (see the Notes).
 
     Raises
     ------
@@ -417,7 +421,8 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
 
     Notes
     -----
-    At most about two parts and four runs of frames are in memory. Close the generator
+    Frames in memory at most: per decoder ``ahead`` and a run in its queue, a run being
+    decoded and the :data:`MEETING_FRAMES` it compares; the consumer's run. Close the generator
     deterministically, as :func:`decoded_ahead`'s, before releasing ``cap``.
     """
     try:
@@ -425,7 +430,10 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
     except VideoError as err:  # out of file handles, the file replaced: decode in one piece
         raise SegmentMismatchError(f"cannot open a second decoder: {err}") from err
     last_start = max(0, (info.frame_count - 1) // segment * segment)
-    size = -(-segment // batch) + 2  # a whole part ahead, and its end
+    # A whole part ahead: while the consumer takes one decoder's part, the other decodes
+    # all of its next one (less ahead, less memory, and the decoders wait more).
+    ahead = segment if ahead is None else max(1, ahead)
+    size = -(-ahead // batch) + 1  # runs of frames ahead, and one more run or a part's end
     queues: list[queue.Queue] = [queue.Queue(maxsize=size) for _ in range(2)]
     stop = threading.Event()
     workers = [threading.Thread(target=_decode_segments, daemon=True,

@@ -264,16 +264,26 @@ def test_two_decoders_are_not_used_where_they_cannot_pay(tmp_path, monkeypatch):
     monkeypatch.setattr(measure, "keyframe_interval", lambda path: 300)
     assert measure.split_part_frames(res.path, long_gop) == 0  # keyframes too far apart
     monkeypatch.setattr(measure, "keyframe_interval", lambda path: 12)
+    assert measure.split_ahead_frames(long_gop, 100) == 100  # a whole part ahead
     assert measure.split_part_frames(res.path, long_gop) == 100  # 400 frames: 4 parts
-    # decoders=2 asked for: whatever the keyframe interval, but within the memory budget
+    # decoders=2 asked for: whatever the keyframe interval, parts of about 80 frames
     monkeypatch.setattr(measure, "keyframe_interval", lambda path: 300)
     assert measure.split_part_frames(res.path, long_gop, forced=True) == 100
     ten_minutes = dataclasses.replace(info, frame_count=18000, width_px=640, height_px=480)
-    part = measure.split_part_frames(res.path, ten_minutes, forced=True)
-    held = (2 * part + 5 * measure.SCAN_BATCH + 2 * video.MEETING_FRAMES + 1) * 3 * 640 * 480
-    assert part == 90 and held <= measure.BESIDE_MAX_BYTES  # not half the video
+    assert measure.split_part_frames(res.path, ten_minutes, forced=True) == 90  # not half
+    # what the decoders hold stays within the budget: a whole part ahead at 640x480, 20
+    # frames at 1280x720, none at 1920x1080 (one decoder)
+    for (w, h), ahead in (((640, 480), 90), ((1280, 720), 20), ((1920, 1080), 0)):
+        size = dataclasses.replace(ten_minutes, width_px=w, height_px=h)
+        assert measure.split_ahead_frames(size, 90) == ahead
+        held = (2 * ahead + 5 * measure.SCAN_BATCH + 2 * video.MEETING_FRAMES) * 3 * w * h
+        assert (held <= measure.BESIDE_MAX_BYTES) is (ahead > 0)
+    assert measure.split_part_frames(res.path, dataclasses.replace(
+        ten_minutes, width_px=1280, height_px=720), forced=True) == 90
+    assert measure.split_part_frames(res.path, dataclasses.replace(
+        ten_minutes, width_px=1920, height_px=1080), forced=True) == 0
     monkeypatch.setattr(measure, "BESIDE_MAX_BYTES", 2 ** 20)
-    assert measure.split_part_frames(res.path, long_gop) == 0  # the parts would not fit
+    assert measure.split_part_frames(res.path, long_gop) == 0  # not one run would fit
     assert measure.split_part_frames(res.path, long_gop, forced=True) == 0
     with pytest.raises(VideoError, match="decoders must be 1 or 2"):
         measure.MeasureOptions(decoders=3)
@@ -299,3 +309,30 @@ def test_an_analysis_stopped_by_ctrl_c_leaves_no_thread_and_no_file_open(tmp_pat
     assert len(calls) == 100
     assert threading.active_count() == before_threads
     assert len(os.listdir("/proc/self/fd")) == before_fds
+
+
+@pytest.mark.parametrize("ahead", [10, 20])
+def test_the_decoders_never_hold_more_frames_than_their_share_ahead(clip, ahead):
+    """Counted as the frame buffers ever allocated, the consumer slower than the decoders (so
+    that their queues fill): at most 2 ahead + 5 runs + the frames compared where parts meet."""
+    import time
+
+    path, items = clip
+    free: queue.Queue = queue.LifoQueue()
+    buffers: dict[int, np.ndarray] = {}  # kept alive: no id is reused
+    cap, _ = open_video(path, decoder_threads=1)
+    runs = decoded_in_segments(path, cap, 40, 10, free=free, ahead=ahead)
+    got = []
+    try:
+        for run in runs:
+            time.sleep(0.005)
+            for i, t, f in run:
+                buffers[id(f)] = f
+                got.append((i, t, f.copy()))
+            for _, _, f in run:
+                free.put(f)
+    finally:
+        runs.close()
+        cap.release()
+    assert_same_items(got, items)
+    assert len(buffers) <= 2 * ahead + 5 * 10 + 2 * video.MEETING_FRAMES
