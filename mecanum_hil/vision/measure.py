@@ -265,7 +265,7 @@ def _scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Seq
     # job busy on the second core it is 0-10 % slower than in turns (bench/bench_video.py).
     # Two decoders beside (each on one FFmpeg thread, every other part of the video): their
     # pace together passes the baseline's; what they cost on top of one is OpenCV's seek at
-    # each part (it decodes from a keyframe before), 10-20 % more CPU time (bench_video).
+    # each part (it decodes from a keyframe before), 25-40 % more CPU time (bench_video).
     # In turns: each frame is looked at while still in the core's cache: the least CPU time.
     # Frames are decoded into the same few buffers again (no fresh megabyte of memory per
     # frame); the buffer last handed back is decoded into first (a stack).

@@ -321,7 +321,7 @@ def _decode_segments(cap, first: int, segment: int, last_start: int, batch: int,
     helper thread's body for :func:`decoded_in_segments`).
 
     Per part: runs of up to ``batch`` :func:`iter_frames` items (frame index from the start
-    of the video), then ``(_END, frames, overlap)``: ``overlap`` is the first
+    of the video), then ``(_END, overlap)``: ``overlap`` is the first
     :data:`MEETING_FRAMES` frames of the next part as this decoder decodes them without a seek
     (empty at the end of the video). The part from ``last_start`` on runs to the end of the
     video (the declared frame count may be short). A seek that fails, raises or does not land on
@@ -355,7 +355,7 @@ def _decode_segments(cap, first: int, segment: int, last_start: int, batch: int,
             if run and not _put_unless_stopped(out, run, stop):
                 return
             run = []
-            if not _put_unless_stopped(out, (_END, count, overlap), stop) or not overlap:
+            if not _put_unless_stopped(out, (_END, overlap), stop) or not overlap:
                 return
             part += 2
     except BaseException as err:  # handed to the consumer, which re-raises it in its place
@@ -463,7 +463,7 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
                 yield item
             if expect:
                 raise SegmentMismatchError(f"the part from frame {expect[0][0]} ends early")
-            expect = item[2]
+            expect = item[1]
             if not expect:
                 return
             part += 1
