@@ -6,6 +6,7 @@ python-can, matplotlib) happen inside the command functions, so ``--help`` stays
 
 
 import inspect
+import os
 import sys
 import warnings
 
@@ -101,11 +102,28 @@ def _command_name(args: list[str]) -> str | None:
     return None
 
 
+def _say(line: str) -> None:
+    """Print one line on stderr where it may be closed (``... 2>&1 | head -1``): the exit
+    code must stay the one the line explains (a lost link is 4, not Python's 1 for a broken
+    pipe at exit). What cannot be printed is dropped and stderr points at the null device
+    from then on."""
+    try:
+        print(line, file=sys.stderr)
+        sys.stderr.flush()
+    except (OSError, ValueError):  # EPIPE, EIO (a hung-up terminal), a closed stream
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stderr.fileno())
+            os.close(devnull)
+        except (OSError, ValueError):
+            pass
+
+
 def _warning_printer(previous):
     """``warnings.showwarning`` printing the package's warnings as one ``warning:`` line."""
     def show(message, category, *args, **kwargs) -> None:
         if issubclass(category, MecanumHILWarning):
-            print(f"warning: {message}", file=sys.stderr)
+            _say(f"warning: {message}")
         else:
             previous(message, category, *args, **kwargs)
     return show
@@ -134,19 +152,19 @@ def main(argv: list[str] | None = None) -> int:
     except MecanumHILError as err:
         if debug:
             raise
-        print(f"error: {err}", file=sys.stderr)
+        _say(f"error: {err}")
         return err.exit_code
     except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
+        _say("error: interrupted")
         return 130
     except SessionTerminated as err:
-        print("error: terminated by a signal", file=sys.stderr)
+        _say("error: terminated by a signal")
         return err.exit_code
     except Exception as err:  # a bug: still one line, the traceback behind --debug
         if debug:
             raise
-        print(f"error: internal error: {type(err).__name__}: {err} (run with --debug for the "
-              "traceback, and please report it)", file=sys.stderr)
+        _say(f"error: internal error: {type(err).__name__}: {err} (run with --debug for the "
+             "traceback, and please report it)")
         return 70
     return 0
 

@@ -50,7 +50,8 @@ def command(
     ] = 2.0,
     link_timeout_s: Annotated[float, typer.Option(
         "--link-timeout", help="Telemetry silence that counts as a lost link, whatever "
-                               "else arrives [s].")] = 0.5,
+                               "else arrives [s]; at least 3 of the controller's telemetry "
+                               "periods.")] = 0.5,
     progress: Annotated[bool, typer.Option(
         "--progress/--no-progress", help="Show a progress bar.")] = True,
     shadow: Annotated[str | None, typer.Option(

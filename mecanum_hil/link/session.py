@@ -50,7 +50,7 @@ from ..errors import (
     ProtocolError,
     SessionTerminated,
 )
-from ..io.recording import RecordingWriter
+from ..io.recording import MAX_ABS_VALUE, RecordingWriter
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
 from .protocol import (
@@ -78,6 +78,13 @@ EXIT_CODES = {"completed": 0, "error": 1, "observer_stop": 3, "link_lost": 4,
 #: Telemetry rate (observed over windows of at least 1 s) outside this factor of the
 #: announced one ends the run with ``telemetry_rate``.
 RATE_TOLERANCE = 2.0
+
+#: The link timeout must cover this many announced telemetry periods (a damaged frame and
+#: jitter on top of one period); a slower controller is refused at the handshake.
+LINK_TIMEOUT_PERIODS = 3.0
+
+#: Largest wheel reading a recording holds [rpm] (a larger one is a corrupt field there).
+WHEEL_READING_MAX_RPM = MAX_ABS_VALUE["wheel1_rpm"]
 
 #: Non-telemetry frames in a row after which the link timeout is checked even though frames
 #: keep arriving (fewer could be a backlog read after the host itself stalled).
@@ -330,6 +337,10 @@ class _Session:
         self.events: list[dict[str, Any]] = []
         self._tlm_seq: int | None = None
         self._status_seen = 0
+        #: Wheel readings a recording cannot hold (NaN, infinite, beyond MAX_ABS_VALUE),
+        #: written empty; which wheels sent one last time (an event when one starts).
+        self.invalid_readings = 0
+        self._invalid = np.zeros(4, dtype=bool)
         self._win: tuple[float, float, int] | None = None  # host time, controller time, count
         self._first = (0.0, 0.0)  # host and controller time of the first sample
         self._ping_token = 0
@@ -411,8 +422,10 @@ class _Session:
 
     def _note_status(self, now: float, status: int) -> None:
         # bits switching on are events; STOPPED is the host's own doing (HELLO, STOP)
-        new = status & ~self._status_seen & ~Status.STOPPED
-        self._status_seen = status
+        # plain ints: the complement of an IntFlag member keeps only the defined bits, which
+        # would hide the reserved ones
+        new = int(status) & ~int(self._status_seen) & ~int(Status.STOPPED)
+        self._status_seen = int(status)
         for bit in (Status.ESTOP, Status.WATCHDOG, Status.FAULT):
             if new & bit:
                 self._event(now, f"status_{bit.name.lower()}",
@@ -421,6 +434,24 @@ class _Session:
             self._event(now, "status_reserved",
                         f"reserved status bits 0x{new & ~STATUS_DEFINED:04X} set (a later "
                         "protocol version's?): recorded, otherwise ignored")
+
+    def _valid_readings(self, now: float, wheels: np.ndarray) -> np.ndarray:
+        # a controller may send NaN, or infinity for a value beyond float32 (protocol.md); a
+        # recording holds neither (nor a magnitude beyond any robot's, a corrupt field), and
+        # one such value would make the whole file unreadable: written empty, counted
+        bad = ~(np.abs(wheels) <= WHEEL_READING_MAX_RPM)
+        started = bad & ~self._invalid
+        self._invalid = bad
+        if not bad.any():
+            return wheels
+        self.invalid_readings += int(bad.sum())
+        if started.any():
+            which = ", ".join(f"wheel {i + 1}: {float(wheels[i]):g}"
+                              for i in np.flatnonzero(started))
+            self._event(now, "invalid_reading",
+                        f"{which} rpm is not a speed a recording holds: written empty "
+                        "(counted in the sidecar's invalid_readings)")
+        return np.where(bad, np.nan, wheels)
 
     # -- receiving ---------------------------------------------------------------------------
     def handle(self, msg, now: float) -> None:
@@ -436,7 +467,7 @@ class _Session:
             if self.t0 is None:
                 return  # before the first command: nothing is in force yet
             self.telemetry += 1
-            wheels = np.array(msg.wheel_rpm, dtype=float)
+            wheels = self._valid_readings(now, np.array(msg.wheel_rpm, dtype=float))
             t = self._row_time(now)
             self.writer.write(t, self.cmd_in_force, wheels,
                               extra=("tlm", msg.seq, f"{ctrl_t:.6f}", msg.status))
@@ -525,6 +556,15 @@ class _Session:
             raise ProtocolError(
                 f"{self.tr.port}: the controller's watchdog is {self.watchdog_ms} ms but "
                 f"commands are up to {widest * 1000:.0f} ms apart")
+        rate = self.telemetry_rate_hz
+        if rate > 0 and LINK_TIMEOUT_PERIODS / rate > self.config.link_timeout_s:
+            # a slower stream cannot show a live link within the timeout: refused here, not
+            # found out as a lost link half a second into the run
+            raise ProtocolError(
+                f"{self.tr.port}: the controller announces telemetry at {rate:g} Hz, too slow "
+                f"for the {self.config.link_timeout_s:g} s link timeout (it must cover "
+                f"{LINK_TIMEOUT_PERIODS:g} telemetry periods): give --link-timeout "
+                f"{LINK_TIMEOUT_PERIODS / rate:g} or more, or a faster telemetry rate")
         limit = self.wheel_limit_rpm
         if not (math.isfinite(limit) and limit > 0):
             raise ProtocolError(f"{self.tr.port}: the controller announced no valid wheel "
@@ -1022,6 +1062,7 @@ def _end_metadata(sess: _Session, transport: Transport, reason: str, message: st
     result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
                    "link_stats": transport.stats.as_dict(), "latency_ms": latency,
                    "link_events": sess.events,
+                   "invalid_readings": sess.invalid_readings,
                    "controller": sess.controller,
                    "controller_wheel_limit_rpm": (sess.wheel_limit_rpm
                                                   if math.isfinite(sess.wheel_limit_rpm)

@@ -146,3 +146,27 @@ def test_demo_runs_the_whole_loop(tmp_path):
     report = (out / "REPORT.md").read_text()
     for stage in ("1. model", "2. record", "3. video", "4. fit", "5. diagnose", "6. shadow"):
         assert stage in report
+
+
+_CLOSED_STDERR = """
+import os, sys
+r, w = os.pipe()
+os.close(r)
+os.dup2(w, 2)  # stderr: a pipe nobody reads (``... 2>&1 | head -1`` after head left)
+import mecanum_hil.cli as cli
+from mecanum_hil.errors import LinkLostError, MecanumHILWarning
+import warnings
+
+def app(**kwargs):
+    warnings.warn("a warning first", MecanumHILWarning)
+    raise LinkLostError("link lost: no telemetry")
+
+cli.build_app = lambda *a, **k: app
+sys.exit(cli.main(["fit"]))
+"""
+
+
+def test_a_closed_stderr_keeps_the_exit_code_the_error_line_would_explain():
+    # a lost link is exit 4 whether or not its line can be printed (it was Python's 1)
+    r = subprocess.run([sys.executable, "-c", _CLOSED_STDERR], capture_output=True, timeout=60)
+    assert r.returncode == 4

@@ -61,7 +61,7 @@ class ScriptedController:
                  before=lambda i: b"", skip=lambda i: False,
                  hello_version: int = proto.PROTOCOL_VERSION, then=None, rate_hz: int = 250,
                  wheel_limit_rpm: float = 130.0, time_step_us: int = 4000, seq_of=None,
-                 time_of=None, status_of=None, pong: bool = False) -> None:
+                 time_of=None, status_of=None, pong: bool = False, wheels_of=None) -> None:
         self.master = master
         self.telemetry = telemetry
         self.period_s = period_s
@@ -75,6 +75,8 @@ class ScriptedController:
         self.seq_of = seq_of  # seq_of(i, seq) -> the seq sample i carries (resets ...)
         self.time_of = time_of  # time_of(i) -> time_us of sample i (a clock that jumps ...)
         self.status_of = status_of or (lambda i: 0)
+        # wheels_of(i) -> the four wheel readings of sample i
+        self.wheels_of = wheels_of or (lambda i: (float(i), float(i) + 0.5, -float(i), 1.0))
         self.pong = pong  # answer PINGs (also after the telemetry ran out)
         self.sent_values: list[tuple[float, ...]] = []
         self.received: list = []
@@ -127,7 +129,7 @@ class ScriptedController:
             if streaming and i < self.telemetry and time.monotonic() >= next_t:
                 if self.skip(i):
                     seq += 1
-                wheels = (float(i), float(i) + 0.5, -float(i), 1.0)
+                wheels = self.wheels_of(i)
                 tseq = self.seq_of(i, seq) if self.seq_of else seq
                 t_us = self.time_of(i) if self.time_of else i * self.time_step_us
                 self._write(self.before(i) + proto.encode(

@@ -4,6 +4,7 @@ port that disappears, observers, every way out sends STOP and leaves a valid rec
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
 import threading
@@ -346,6 +347,31 @@ def test_wrong_version_and_silent_controller_are_errors(pty_pair, scripted, host
     assert len(read_recording(tmp_path / "b.csv")) == 0  # a valid, empty recording
 
 
+def test_telemetry_too_slow_for_the_link_timeout_is_refused_before_any_command(
+        pty_pair, scripted, host_serial, tmp_path):
+    # 5 Hz cannot show a live link within 0.3 s: refused at the handshake with the option
+    # that fixes it, nothing commanded, the controller told to stop
+    p = pty_pair()
+    ctrl = scripted(p.master, rate_hz=5, telemetry=10)
+    t, cmd = _stream(0.2)
+    res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "a.csv", ROBOT, config=FAST)
+    assert res.reason == "error" and res.exit_code == 1
+    assert "telemetry at 5 Hz" in res.message and "--link-timeout 0.6" in res.message
+    assert "\n" not in res.message
+    assert not any(isinstance(m, proto.Command) for m in ctrl.received)
+    deadline = time.monotonic() + 2.0
+    while not any(isinstance(m, proto.Stop) for m in ctrl.received) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert any(isinstance(m, proto.Stop) for m in ctrl.received)
+    # with that timeout the same controller records
+    q = pty_pair()
+    scripted(q.master, rate_hz=5, telemetry=10)
+    res = run_record_session(host_serial(q.path), t, cmd, tmp_path / "b.csv", ROBOT,
+                             config=SessionConfig(connect_timeout_s=1.0, link_timeout_s=0.6,
+                                                  tail_s=0.05))
+    assert res.reason == "completed", res.message
+
+
 def test_controller_without_telemetry_gives_commands_only(pty_pair, host_serial, tmp_path):
     p = pty_pair()
     ctrl = SimulatedController(SerialTransport(fd=p.master),
@@ -398,3 +424,51 @@ def test_nested_guards_take_over_every_signal_and_put_each_back():
     assert all(signal.getsignal(getattr(signal, n)) == outer._on_signal for n in held)
     outer.restore()
     assert {n: signal.getsignal(getattr(signal, n)) for n in names} == before
+
+
+def test_status_bits_switching_on_are_link_events_reserved_ones_too(
+        pty_pair, scripted, host_serial, tmp_path):
+    p = pty_pair()
+    # FAULT from sample 5 on, a reserved bit (0x10) on at 10-11 and again at 20 (with STOPPED):
+    # each switch-on is one event; STOPPED (the host's own doing) never is
+    def status(i):
+        return ((0x0008 if i >= 5 else 0) | (0x0010 if i in (10, 11, 20) else 0)
+                | (0x0004 if i == 20 else 0))
+
+    scripted(p.master, telemetry=30, status_of=status)
+    link = host_serial(p.path)
+    t, cmd = _stream(0.35)
+    res = run_record_session(link, t, cmd, tmp_path / "r.csv", ROBOT, config=FAST)
+    assert res.reason == "completed"
+    events = json.loads((tmp_path / "r.json").read_text())["link_events"]
+    kinds = [e["event"] for e in events if e["event"].startswith("status_")]
+    assert kinds == ["status_fault", "status_reserved", "status_reserved"]
+    assert "0x0010" in next(e for e in events if e["event"] == "status_reserved")["detail"]
+    rec = read_recording(tmp_path / "r.csv")
+    assert 0x18 in [int(float(v)) for v in rec.extra["status"] if str(v) not in ("", "nan")]
+
+
+def test_readings_a_recording_cannot_hold_are_written_empty_and_the_file_stays_readable(
+        pty_pair, scripted, host_serial, tmp_path):
+    # infinity (a value beyond float32, protocol.md), NaN and a float32-sized corrupt value
+    bad = {5: (math.inf, 1.0, 2.0, 3.0), 6: (-math.inf, 1.0, 2.0, 3.0),
+           10: (0.0, math.nan, 2.0, 3.0), 12: (0.0, 1.0, 1e30, 3.0)}
+    p = pty_pair()
+    ctrl = scripted(p.master, telemetry=20,
+                    wheels_of=lambda i: bad.get(i, (float(i), 1.0, 2.0, 3.0)))
+    t, cmd = _stream(0.3)
+    res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
+                             config=FAST)
+    assert res.reason == "completed"
+    rec = read_recording(tmp_path / "r.csv")  # readable: the point
+    tlm = _rows(rec, "tlm")
+    w = rec.wheel_rpm[tlm]
+    sent = np.array(ctrl.sent_values)
+    ok = np.abs(sent) <= 1e6
+    np.testing.assert_allclose(w[ok], sent[ok].astype(np.float32))
+    assert np.isnan(w[~ok]).all() and (~ok).sum() == 4
+    meta = json.loads((tmp_path / "r.json").read_text())
+    assert meta["invalid_readings"] == 4
+    events = [e for e in meta["link_events"] if e["event"] == "invalid_reading"]
+    assert len(events) == 3  # wheel 1 from sample 5 (once for 5-6), wheel 2, wheel 3
+    assert "wheel 1: inf" in events[0]["detail"] and "wheel 3: 1e+30" in events[2]["detail"]
