@@ -6,7 +6,6 @@ python-can, matplotlib) happen inside the command functions, so ``--help`` stays
 
 
 import inspect
-import os
 import sys
 import warnings
 
@@ -25,7 +24,7 @@ from . import fleet_report as fleet_report_cmd
 from . import import_ as import_cmd
 from . import measure_pose as measure_pose_cmd
 from . import train as train_cmd
-from ._options import fill_optional_values
+from ._options import fill_optional_values, point_at_devnull
 
 _COMMANDS = {
     "simulate": simulate.command,
@@ -111,12 +110,7 @@ def _say(line: str) -> None:
         print(line, file=sys.stderr)
         sys.stderr.flush()
     except (OSError, ValueError):  # EPIPE, EIO (a hung-up terminal), a closed stream
-        try:
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stderr.fileno())
-            os.close(devnull)
-        except (OSError, ValueError):
-            pass
+        point_at_devnull(sys.stderr)
 
 
 def _warning_printer(previous):

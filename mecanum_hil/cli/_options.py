@@ -110,7 +110,6 @@ def echo_safely(text: str) -> None:
     exit 1, silently). What cannot be printed is dropped, and stdout points at the null
     device from then on (no second error at exit)."""
     import errno
-    import os
     import sys
 
     try:
@@ -124,9 +123,18 @@ def echo_safely(text: str) -> None:
             raise
         if isinstance(err, ValueError) and not getattr(sys.stdout, "closed", False):
             raise
-        try:
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())
-            os.close(devnull)
-        except (OSError, ValueError):
-            pass
+        point_at_devnull(sys.stdout)
+
+
+def point_at_devnull(stream) -> None:
+    """Make ``stream``'s file descriptor the null device (a closed pipe or a hung-up terminal
+    behind it), so that what is still buffered or printed later goes nowhere instead of
+    raising again at exit."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, stream.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
