@@ -40,7 +40,10 @@ def command(
 
     if events is not None and no_events:
         raise ConfigError("give --events or --no-events, not both")
-    refuse_overwriting([(recording, "the recording", True), (events, "the event log")],
+    log_path = None if no_events else (events or event_log_path(recording))
+    if log_path is not None and events is None and not log_path.exists():
+        log_path = None  # the default log is optional
+    refuse_overwriting([(recording, "the recording", True), (log_path, "the event log")],
                        [(out, "--out")])
     rec = read_recording(recording)
     predicted = None
@@ -60,10 +63,7 @@ def command(
             wheel_rpm=np.vstack([np.full((pad, 4), np.nan), part.wheel_rpm]),
             pose=np.vstack([np.full((pad, 3), np.nan), part.pose]),
             commands=rec.commands, extra={})
-    logs = []
-    log_path = None if no_events else (events or event_log_path(recording))
-    if log_path is not None and (events is not None or log_path.exists()):
-        logs = read_event_log(log_path)
+    logs = read_event_log(log_path) if log_path is not None else []
     summary = export_mcap(rec, out, predicted, logs, source=str(recording))
     total = sum(summary.counts.values())
     typer.echo(f"wrote {summary.path} ({total} messages: "

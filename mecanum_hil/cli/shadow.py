@@ -108,11 +108,14 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
             events: Path | None, no_events: bool, plot: Path | None) -> int:
     import json
 
+    import numpy as np
+
     from ..errors import MecanumHILError
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile
     from ..monitor import replay
-    from ..monitor.eventlog import EventLog, alarm_line, event_log_path
+    from ..monitor.core import CHANNELS
+    from ..monitor.eventlog import EventLog, alarm_line, event_log_path, written_by
 
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
@@ -123,8 +126,15 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
             "alarm", "recovered") else None)
     log = None
     if not no_events:
+        target = events or event_log_path(path)
+        mode = written_by(target)
+        if mode is not None and mode != "replay":
+            # a live run's alarms are data recorded once; a replay can be run again
+            raise MecanumHILError(
+                f"{target}: the event log of a live run ({mode}): a replay does not replace "
+                "it; write the replay's with --events PATH, or none with --no-events")
         try:
-            log = EventLog(events or event_log_path(path), cal, config,
+            log = EventLog(target, cal, config,
                            {"mode": "replay", "recording": str(path)})
         except MecanumHILError as err:
             if events is not None:
@@ -138,6 +148,15 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
     finally:
         if log is not None:
             log.close()
+    measured = dict(zip(CHANNELS, [*np.isfinite(rec.wheel_rpm).any(axis=0),
+                                    *np.isfinite(rec.pose).any(axis=0)], strict=True))
+    if result.noise and not any(measured.get(ch, False) for ch in result.noise):
+        # armed only where nothing was measured (a noise level given for empty wheels)
+        raise MecanumHILError(
+            f"{path}: nothing was compared: the monitor was armed on "
+            f"{', '.join(result.noise)}, which have no measurements, and the measured "
+            f"channels ({', '.join(ch for ch, m in measured.items() if m)}) never finished "
+            "their warm-up")
     if not result.noise and result.samples:
         # nothing was checked: "0 alarms" would read as a robot that matched its model
         raise MecanumHILError(

@@ -38,6 +38,21 @@ def event_log_path(recording_path: str | Path) -> Path:
     return p.with_name(p.stem + EVENT_LOG_SUFFIX)
 
 
+def written_by(path: str | Path) -> str | None:
+    """The ``mode`` of the run that wrote an existing event log (``record``, ``replay``,
+    ``listen-can`` ...), from its ``start`` line; ``None`` when there is no such file or it
+    does not start like an event log."""
+    try:
+        with Path(path).open(encoding="utf-8") as fh:
+            first = json.loads(fh.readline())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    if not isinstance(first, dict) or first.get("event") != "start":
+        return None
+    mode = first.get("mode")
+    return str(mode) if mode is not None else None
+
+
 def _clean(value: Any) -> Any:
     # JSON has no inf/nan: write them as null so every line stays strict JSON
     if isinstance(value, float) and not math.isfinite(value):

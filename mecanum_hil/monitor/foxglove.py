@@ -127,6 +127,9 @@ def read_event_log(path: str | Path) -> list[LogEntry]:
         lines = p.read_text(encoding="utf-8").splitlines()
     except OSError as err:
         raise MecanumHILError(f"{p}: cannot read the event log: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise MecanumHILError(f"{p}: not an event log (JSON lines): not UTF-8 text at byte "
+                              f"{err.start}") from err
     for i, line in enumerate(lines, start=1):
         if not line.strip():
             continue

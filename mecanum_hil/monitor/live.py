@@ -228,12 +228,14 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
     """
     import can  # noqa: F401  (python-can missing fails here, before the bus is opened)
 
-    from ..errors import ConfigError
+    from ..errors import ConfigError, MecanumHILError
     from ..link.can_link import CanTransport
     from ..model import load_calibration
 
     if bus is None and not channel:
         raise ConfigError("passive CAN listening needs --channel (and --interface)")
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+        raise ConfigError(f"--duration must be a finite number of seconds > 0, got {duration_s}")
     cal = load_calibration(calibration)
     live = _listening_shadow(cal, robot, config, out, events, stop_on_divergence, echo,
                              f"{interface}:{channel}")
@@ -269,6 +271,11 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
          f"telemetry samples" + (f"; sent {heard['stops_sent']} STOP" if heard["stops_sent"]
                                  else ""))
     echo(summary)
+    if not heard["telemetry"]:
+        # no alarm because nothing was compared: not a robot that matched its model
+        raise MecanumHILError(
+            f"heard no telemetry on {interface}:{channel}: nothing was compared with the model "
+            "(is the controller on this bus, at this bitrate?)")
     return len(live.monitor.alarms)
 
 

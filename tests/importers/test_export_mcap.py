@@ -122,6 +122,22 @@ def test_export_of_a_broken_recording_is_one_line(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_export_never_writes_over_the_event_log_it_reads(recording, tmp_path, capsys):
+    # the default event log (REC.shadow.jsonl) is an input like --events: naming it --out
+    # was written over with MCAP, and a later export failed on it
+    log = recording.with_name(f"{SAMPLE}.shadow.jsonl")
+    before = log.read_bytes()
+    assert main(["export", str(recording), "--out", str(log)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "event log" in err
+    assert log.read_bytes() == before
+    # an event log that is not text is one line, not an internal error
+    log.write_bytes(b"\x89MCAP0\r\n\xff\xfe")
+    assert main(["export", str(recording), "--out", str(tmp_path / "r.mcap")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "not an event log" in err
+
+
 def test_an_export_that_cannot_be_put_in_place_leaves_no_temporary_file(tmp_path, capsys):
     from mecanum_hil.errors import RecordingError
     from mecanum_hil.io.mcap_export import export_mcap

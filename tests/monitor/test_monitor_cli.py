@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from mecanum_hil.io.recording import write_recording
@@ -51,6 +52,43 @@ def test_replay_nominal_exits_0_with_null_first_alarm(runs, tmp_path):
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout) == {"alarms": [], "first_alarm_t_s": None}
     assert (tmp_path / "ev.jsonl").exists()
+
+
+def test_replay_never_replaces_a_live_runs_event_log(runs, tmp_path):
+    # the alarms of a live run (record --shadow) were seen once: a replay beside it refuses
+    # to write over them; a replay's own log is replaced by the next replay
+    faulty, _ = runs
+    rec = tmp_path / "run.csv"
+    rec.write_bytes(faulty.read_bytes())
+    live = tmp_path / "run.shadow.jsonl"
+    live.write_text(json.dumps({"event": "start", "t_s": None, "mode": "record"}) + "\n"
+                    + json.dumps({"event": "alarm", "t_s": 3.0, "channel": "wheel1_rpm"})
+                    + "\n")
+    before = live.read_bytes()
+    r = cli("shadow", "--replay", rec, "--noise-rpm", "1.0")
+    assert r.returncode == 1 and r.stderr.count("\n") == 1
+    assert "event log of a live run (record)" in r.stderr and "--events" in r.stderr
+    assert live.read_bytes() == before
+    r = cli("shadow", "--replay", rec, "--noise-rpm", "1.0", "--events", live)
+    assert r.returncode == 1 and live.read_bytes() == before
+    mine = tmp_path / "replay.jsonl"
+    assert cli("shadow", "--replay", rec, "--events", mine).returncode == 3
+    assert cli("shadow", "--replay", rec, "--events", mine).returncode == 3  # replaced
+
+
+def test_replay_that_compares_nothing_is_an_error_not_all_clear(runs, tmp_path):
+    # a noise level given for wheels the recording does not have armed them, and the pose it
+    # has never finished its warm-up: "0 alarm(s)" would have read as a robot like its model
+    from mecanum_hil.io.recording import read_recording
+
+    rec = read_recording(runs[1])
+    rec = rec.select(slice(0, int(np.searchsorted(rec.t_s, 5.0))))  # too short for the pose
+    pose_only = write_recording(rec.with_values(wheel_rpm=np.full_like(rec.wheel_rpm, np.nan),
+                                                pose=np.zeros_like(rec.pose)),
+                                tmp_path / "p.csv")
+    r = cli("shadow", "--replay", pose_only, "--no-events", "--noise-rpm", "0.5")
+    assert r.returncode == 1 and r.stderr.count("\n") == 1
+    assert "nothing was compared" in r.stderr
 
 
 def test_replay_text_output_names_the_alarm(runs):
@@ -116,13 +154,20 @@ def test_recording_without_measurements_is_refused(tmp_path):
     assert r.returncode == 1 and "nothing measured" in r.stderr
 
 
-def test_listen_on_a_quiet_bus_hears_nothing_and_exits_0(tmp_path):
+def test_listen_on_a_quiet_bus_hears_nothing_and_says_nothing_was_compared(tmp_path):
+    # exit 0 read as "no divergence" although nothing was compared
     r = cli("shadow", "--transport", "can", "--interface", "virtual", "--channel", "quiet",
             "--duration", "0.3", "--out", tmp_path / "heard.csv")
-    assert r.returncode == 0, r.stderr
+    assert r.returncode == 1
+    assert r.stderr.startswith("error: heard no telemetry on virtual:quiet")
+    assert r.stderr.count("\n") == 1
     assert "listening on virtual:quiet (sending nothing)" in r.stdout
     assert "heard 0 commands" in r.stdout
     assert (tmp_path / "heard.shadow.jsonl").read_text().count('"event"') == 2  # start, end
+    for bad in ("nan", "-1", "0"):
+        r = cli("shadow", "--transport", "can", "--interface", "virtual", "--channel", "quiet",
+                "--duration", bad)
+        assert r.returncode == 1 and "--duration must be" in r.stderr
 
 
 def test_passive_listening_needs_can(tmp_path):
