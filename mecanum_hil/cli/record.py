@@ -29,6 +29,22 @@ from ._options import (
 )
 
 
+def refuse_replacing_recording(out: Path, folder: bool) -> None:
+    """One-line error when ``--out`` already holds a recording (a folder of episodes with
+    ``folder``): a run on the robot is data recorded once, never replaced by accident."""
+    from ..errors import ConfigError
+    from ..monitor.eventlog import event_log_path
+
+    if folder:
+        taken = out.is_dir() and any(out.iterdir())
+    else:
+        taken = any(p.exists() for p in (out, out.with_suffix(".json"), event_log_path(out)))
+    if taken:
+        raise ConfigError(f"{out}: {'a folder with recordings' if folder else 'a recording'} "
+                          "is already there (a run made before?): record does not replace it; "
+                          "give another --out, or --force to replace it")
+
+
 def command(
     out: OutOpt,
     transport: TransportOpt = "serial",
@@ -73,6 +89,9 @@ def command(
         "as evaluate does.")] = 0,
     json_out: Annotated[bool, typer.Option(
         "--json", help="With --policy: print the summary (summary.json) on stdout.")] = False,
+    force: Annotated[bool, typer.Option(
+        "--force", help="Replace an existing recording at --out (its sidecar and event log "
+        "too; with --policy, the folder's episodes).")] = False,
 ) -> None:
     """Send a command profile to a robot controller and record commands and telemetry."""
     from ..errors import ConfigError
@@ -83,6 +102,9 @@ def command(
 
     if policy is not None:
         from ._record_policy import record_policy
+
+        if not force:
+            refuse_replacing_recording(out, folder=True)
 
         return record_policy(
             out=out, transport=transport, port=port, interface=interface, channel=channel,
@@ -99,6 +121,8 @@ def command(
                             (shipped_or_file(robot), "the robot profile"),
                             (shipped_or_file(shadow), "the --shadow calibration")],
                            [(out, "--out", True)])
+        if not force:
+            refuse_replacing_recording(out, folder=False)
     rob = load_robot_profile(robot)
     t, cmd, source = _command_stream(profile, commands, rate_hz)
     rob.check_commands(cmd, source)  # before anything is opened or sent

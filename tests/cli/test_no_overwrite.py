@@ -79,3 +79,28 @@ def test_a_recording_is_never_written_as_json(run_csv, one_line_error):
     err = one_line_error(["simulate", "--commands", str(run_csv), "-o", str(keep)])
     assert "a recording cannot be named .json" in err, err
     assert keep.read_text() == '{"mine": 1}'
+
+
+def test_record_does_not_replace_a_recording_made_before(run_csv, one_line_error, tmp_path):
+    # refused before the port is opened (there is none here: --force reaches the port)
+    before = {p.name: p.read_bytes() for p in run_csv.parent.iterdir()}
+    port = str(tmp_path / "no-port")
+    err = one_line_error(["record", "--port", port, "--profile", "paper-step-60", "-o",
+                          str(run_csv)])
+    assert "a recording is already there" in err and "--force" in err
+    assert {p.name: p.read_bytes() for p in run_csv.parent.iterdir()} == before
+    # the sidecar or the event log alone count too
+    other = tmp_path / "other.csv"
+    (tmp_path / "other.shadow.jsonl").write_text("{}\n")
+    err = one_line_error(["record", "--port", port, "--profile", "paper-step-60", "-o",
+                          str(other)])
+    assert "a recording is already there" in err
+    err = one_line_error(["record", "--port", port, "--profile", "paper-step-60", "-o",
+                          str(other), "--force"])
+    assert "already there" not in err and "no-port" in err
+    # a folder of episodes
+    (tmp_path / "eps").mkdir()
+    (tmp_path / "eps" / "episode_000.csv").write_text("t_s\n")
+    err = one_line_error(["record", "--port", port, "--policy", "scripted", "--task", "reach",
+                          "-o", str(tmp_path / "eps")])
+    assert "a folder with recordings is already there" in err
