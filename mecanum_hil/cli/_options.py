@@ -104,6 +104,18 @@ def shipped_or_file(name: str | None) -> Path | None:
     return Path(name)
 
 
+def require_positive(value: float | None, option: str, unit: str = "s") -> None:
+    """One-line error unless ``value`` (an option's, ``None`` when not given) is a finite
+    number > 0: NaN passes every comparison (``--link-timeout nan`` switched lost-link
+    detection off) and 0 or a negative time makes no sense."""
+    import math
+
+    from ..errors import ConfigError
+
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"{option} must be a finite number > 0 [{unit}], got {value:g}")
+
+
 def echo_safely(text: str) -> None:
     """Print ``text`` on stdout where it may be closed (``record ... | head``): a closed
     stdout must not end a run that drives the robot, nor change its exit code (click would

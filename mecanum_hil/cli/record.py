@@ -25,6 +25,7 @@ from ._options import (
     TransportOpt,
     echo_safely,
     refuse_overwriting,
+    require_positive,
     shipped_or_file,
 )
 
@@ -100,6 +101,8 @@ def command(
     from ..link.transport import open_transport, transport_options
     from ..model import load_robot_profile
 
+    require_positive(connect_timeout_s, "--connect-timeout")
+    require_positive(link_timeout_s, "--link-timeout")
     if policy is not None:
         from ._record_policy import record_policy
 

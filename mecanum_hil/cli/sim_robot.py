@@ -6,7 +6,7 @@ from typing import Annotated
 
 import typer
 
-from ._options import CalibrationOpt, RobotOpt
+from ._options import CalibrationOpt, RobotOpt, require_positive
 
 
 def command(
@@ -49,6 +49,7 @@ def command(
     from ..link.protocol import PROTOCOL_VERSION
 
     _check_telemetry_rate(telemetry_rate_hz, internal_rate_hz)
+    require_positive(duration_s, "--duration")
     # one robot per process: spare the machine's cores (set before numba is imported)
     from ..link.sim_process import SINGLE_THREAD_ENV
 

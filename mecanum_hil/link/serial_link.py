@@ -77,6 +77,25 @@ class PendingOutput:
         del self._buf[:n or 0]
 
 
+def _check_network_url(port: str) -> None:
+    """A one-line error for a ``socket://`` or ``rfc2217://`` URL without a usable host and
+    port: pyserial's own errors for them are its URL parser's ("'debug|info|warning|error'",
+    a comparison with None)."""
+    from urllib.parse import urlsplit
+
+    scheme = port.partition("://")[0].lower() if "://" in port else ""
+    if scheme not in ("socket", "rfc2217"):
+        return
+    try:
+        parts = urlsplit(port)
+        ok = bool(parts.hostname) and parts.port is not None and 0 < parts.port < 65536
+    except ValueError:
+        ok = False
+    if not ok:
+        raise LinkError(f"{port}: not a network port: give {scheme}://HOST:PORT with a port "
+                        "number 1-65535")
+
+
 class SerialTransport(Transport):
     """Framed protocol over a serial port (``/dev/ttyUSB0``, ``loop://``, ``socket://...``).
 
@@ -108,6 +127,7 @@ class SerialTransport(Transport):
             os.set_blocking(fd, False)
             self._fd: int | None = fd
             return
+        _check_network_url(port)
         import serial
 
         try:
