@@ -127,9 +127,13 @@ def main(argv: list[str] | None = None) -> int:
     """Run the CLI and return its exit code.
 
     The package's own errors become ``error: ...`` on stderr and their ``exit_code``; usage
-    errors are typer's (exit 2); an unexpected exception is one line too (exit 70), with the
-    traceback behind ``--debug``. Commands end with other codes through ``typer.Exit``.
+    errors (an option's value, an unknown option, a missing argument) too, with exit 2 and
+    where to find the command's help; an unexpected exception is one line too (exit 70), with
+    the traceback behind ``--debug``. Commands end with other codes through ``typer.Exit``.
     """
+    import errno
+
+    click_error, no_args_error = _click_exceptions()
     args = fill_optional_values(sys.argv[1:] if argv is None else list(argv))
     debug = "--debug" in args
     try:
@@ -139,7 +143,20 @@ def main(argv: list[str] | None = None) -> int:
             warnings.showwarning = _warning_printer(warnings.showwarning)
             name = _command_name(args)
             app_ = build_app([name]) if name else build_app(listing=True)
-            app_(args=args, prog_name="mecanum-hil")
+            # not standalone: click's usage errors come here as exceptions (standalone, they
+            # were a four-line usage block), typer.Exit(code) as the return value
+            rv = app_(args=args, prog_name="mecanum-hil", standalone_mode=False)
+        return rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
+    except no_args_error as err:
+        err.show()  # the command's help: asked for by giving nothing
+        return err.exit_code
+    except click_error as err:
+        where = f" (see '{err.ctx.command_path} --help')" if getattr(err, "ctx", None) else ""
+        _say("error: " + " ".join(err.format_message().split()) + where)
+        return err.exit_code
+    except typer.Abort:
+        _say("error: aborted")
+        return 1
     except SystemExit as exit_:
         code = exit_.code
         return code if isinstance(code, int) else (0 if code is None else 1)
@@ -154,13 +171,33 @@ def main(argv: list[str] | None = None) -> int:
     except SessionTerminated as err:
         _say("error: terminated by a signal")
         return err.exit_code
+    except OSError as err:
+        if err.errno != errno.EPIPE:
+            return _internal_error(err, debug)
+        point_at_devnull(sys.stdout)  # a closed pipe on stdout (``... | head``): said nowhere
+        return 1
     except Exception as err:  # a bug: still one line, the traceback behind --debug
-        if debug:
-            raise
-        _say(f"error: internal error: {type(err).__name__}: {err} (run with --debug for the "
-             "traceback, and please report it)")
-        return 70
-    return 0
+        return _internal_error(err, debug)
+
+
+def _click_exceptions() -> tuple[type[Exception], type[Exception]]:
+    """Click's ``ClickException`` and ``NoArgsIsHelpError`` as the installed typer raises
+    them (typer 0.28 carries its own copy of click, older ones use click itself)."""
+    click_error = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+    no_args = getattr(sys.modules[click_error.__module__], "NoArgsIsHelpError", None)
+    return click_error, no_args or _NeverRaisedError
+
+
+class _NeverRaisedError(Exception):
+    """Stands for an exception class a click version does not have."""
+
+
+def _internal_error(err: Exception, debug: bool) -> int:
+    if debug:
+        raise err
+    _say(f"error: internal error: {type(err).__name__}: {err} (run with --debug for the "
+         "traceback, and please report it)")
+    return 70
 
 
 def run() -> None:

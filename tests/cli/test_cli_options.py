@@ -31,3 +31,29 @@ def test_record_options_that_make_no_sense(tmp_path, one_line_error, argv, fragm
 def test_sim_robot_duration_that_makes_no_sense(one_line_error, value):
     err = one_line_error(["sim-robot", "--serial", "--duration", value])
     assert "--duration must be a finite number > 0" in err
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["record", "--rate", "abc"], "Invalid value for '--rate'"),
+    (["diagnose", "--jobs", "0"], "Invalid value for '--jobs'"),
+    (["fit", "--bogus"], "No such option: --bogus"),
+    (["simulate", "--profile", "paper-step-60"], "Missing option '--out'"),
+    (["nope"], "No such command 'nope'"),
+])
+def test_usage_errors_are_one_line_with_where_the_help_is(capsys, argv, fragment):
+    # click's four-line usage block (exit 2) became one line, still exit 2
+    from mecanum_hil.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and fragment in err, err
+    assert "--help')" in err
+
+
+def test_help_and_exit_codes_of_commands_are_kept(capsys):
+    from mecanum_hil.cli import main
+
+    assert main(["fit", "--help"]) == 0
+    assert "Usage: mecanum-hil fit" in capsys.readouterr().out
+    assert main([]) == 2  # no command: the command list, as before
+    assert "Commands" in capsys.readouterr().err
