@@ -38,13 +38,18 @@ def own_load() -> float:
         return _own[0]
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity on Linux, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def idle_cores() -> float:
     """Cores this process may run on beyond its own one that other jobs leave free: the count
     less the 1-minute load average of the others (all of them where the load is unknown)."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
+    cores = usable_cores()
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):  # Windows

@@ -161,6 +161,31 @@ def test_jobs_1_starts_no_helper(monkeypatch):
     assert helper_mod.helpers_for(None) == []  # a busy machine: none by default
 
 
+def test_more_jobs_than_cores_start_a_process_per_core_and_say_so(monkeypatch):
+    # --jobs 64 on two cores started 63 helpers: 30 x slower than --jobs 1
+    from mecanum_hil.errors import MecanumHILWarning
+
+    started = []
+
+    class Fake:
+        broken = False
+
+        def __init__(self, warm=None):
+            started.append(self)
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(helper_mod, "usable_cores", lambda: 3)
+    monkeypatch.setattr(helper_mod, "Helper", Fake)
+    monkeypatch.setattr(helper_mod, "_shared", None)
+    monkeypatch.setattr(helper_mod.atexit, "register", lambda f: None)
+    with pytest.warns(MecanumHILWarning, match="--jobs 64: this process may use 3 cores"):
+        helpers = helper_mod.helpers_for(64)
+    assert len(helpers) == len(started) == 2  # this process and two helpers
+    monkeypatch.setattr(helper_mod, "_shared", None)
+
+
 def test_a_script_without_a_main_guard_runs_once(tmp_path):
     """The helper imports the package only: a user's script that diagnoses at top level is not
     run again in it (as multiprocessing's spawn would)."""

@@ -32,11 +32,13 @@ import signal
 import subprocess
 import sys
 import threading
+import warnings
 from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
-from ..._cores import SPARE_CORE, idle_cores
+from ..._cores import SPARE_CORE, idle_cores, usable_cores
+from ...errors import MecanumHILWarning
 
 #: Idle cores (beyond this process's own, by the 1-minute load average) from which ``diagnose``
 #: starts a helper by default: the package's rule for working beside itself
@@ -197,7 +199,13 @@ def helpers_for(jobs: int | None, warm: Callable[[], Any] | None = None) -> list
         started = _shared is not None and not _shared.broken
         want = 1 if started or idle_cores() >= HELPER_IDLE_CORES else 0
     else:
-        want = max(0, jobs - 1)
+        cores = usable_cores()
+        if jobs > cores:
+            # a process per core at most: more only wait for one another (64 took 30 x longer
+            # than 1), each costing a second of CPU to start
+            warnings.warn(f"--jobs {jobs}: this process may use {cores} cores: {cores} "
+                          "processes", MecanumHILWarning, stacklevel=2)
+        want = max(0, min(jobs, cores) - 1)
     if want == 0:
         return []
     out: list[Helper] = []
