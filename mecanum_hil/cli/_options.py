@@ -56,7 +56,8 @@ LinkOptionOpt = Annotated[list[str] | None, typer.Option(
 
 def refuse_overwriting(inputs, outputs) -> None:
     """One-line error when an output names an input: writing it would destroy data already
-    recorded (``fit -o run.csv run.csv``, ``import log.csv -o log.csv``).
+    recorded (``fit -o run.csv run.csv``, ``import log.csv -o log.csv``); or when an output
+    cannot be written at all (:func:`require_writable`), before any work.
 
     Parameters
     ----------
@@ -94,6 +95,7 @@ def refuse_overwriting(inputs, outputs) -> None:
                 if any(same(target, h) for h in with_sidecar(path, recording)):
                     raise ConfigError(f"{out}: {option} would overwrite {what} ({path}); "
                                       "write to another file")
+    require_writable(*((item[0], item[1]) for item in outputs))
 
 
 def shipped_or_file(name: str | None) -> Path | None:
@@ -102,6 +104,25 @@ def shipped_or_file(name: str | None) -> Path | None:
     if name is None or not name.lower().endswith(".toml"):
         return None
     return Path(name)
+
+
+def require_writable(*outputs: tuple[Path | str | None, str]) -> None:
+    """One-line error, before any work, for an output that cannot be written: a folder in its
+    place, or no permission (a read-only place, ``/proc``) in the folder it goes to or the
+    nearest existing one above it (the writers create missing folders). Otherwise a fit or a
+    training ran to the end first, and a first output was written before the second failed.
+
+    Parameters
+    ----------
+    outputs : (path or None, option)
+        Files to be written, with their option (``"--report"``); ``None`` and ``-`` (stdout)
+        are skipped.
+    """
+    from ..io.paths import check_file_writable
+
+    for path, option in outputs:
+        if path is not None and str(path) != "-":
+            check_file_writable(path, f"{option} {path}")
 
 
 def require_positive(value: float | None, option: str, unit: str = "s") -> None:

@@ -134,16 +134,18 @@ def command(
     c = outcome.counts
     drifted = sorted({r["group"] for r in outcome.rows if r.get("drifted")})
     alarmed = sorted({r["group"] for r in outcome.rows if (r.get("alarms") or 0) > 0})
-    failed = [r for r in outcome.rows if r["status"] == "failed"]
+    # this run's failures, also those whose earlier ok row the table keeps
+    failed = list(outcome.failures)
+    kept = sum(1 for r in failed if r.get("kept_earlier"))
     partial = [r for r in outcome.rows if r["status"] == "partial"]
     # every group failed: no result at all, whatever the table says (exit 0 read as success)
-    all_failed = bool(outcome.rows) and len(failed) == len(outcome.rows)
+    all_failed = c.total > 0 and c.failed == c.total
     if json_out:
         typer.echo(json.dumps({
             "results": str(outcome.results), "groups": c.total, "done": c.done,
-            "failed": c.failed, "unchanged": c.unchanged, "partial": len(partial),
-            "drifted": drifted, "alarms": alarmed, "dashboard": outcome.dashboard,
-            "wall_s": outcome.wall_s}))
+            "failed": c.failed, "kept_earlier": kept, "unchanged": c.unchanged,
+            "partial": len(partial), "drifted": drifted, "alarms": alarmed,
+            "dashboard": outcome.dashboard, "wall_s": outcome.wall_s}))
         if all_failed:
             raise ConfigError(_all_failed(failed, outcome.results))
         return
@@ -155,7 +157,8 @@ def command(
     if alarmed:
         typer.echo(f"alarms: {', '.join(alarmed)}")
     for r in failed + partial:
-        print(f"warning: {r['group']} {r['period'] or ''}".rstrip() + f": {r['error']}",
+        note = " (the table keeps its earlier row)" if r.get("kept_earlier") else ""
+        print(f"warning: {r['group']} {r['period'] or ''}".rstrip() + f": {r['error']}{note}",
               file=sys.stderr)
     typer.echo(f"wrote {outcome.results}")
     if all_failed:
@@ -164,8 +167,11 @@ def command(
 
 def _all_failed(failed, results: Path) -> str:
     first = failed[0]
+    kept = sum(1 for r in failed if r.get("kept_earlier"))
+    where = (f"each group's error is in {results}" if not kept else
+             f"{results} keeps the earlier rows of {kept} of them")
     return (f"every group failed ({len(failed)}); first, {first['group']}: {first['error']} "
-            f"(each group's error is in {results})")
+            f"({where})")
 
 
 def _run_with_progress(settings, quiet: bool):

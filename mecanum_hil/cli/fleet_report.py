@@ -22,7 +22,13 @@ def command(
 
     from ..errors import ConfigError
     from ..fleet.report import write_report
-    from ..fleet.results import DRIFT_MIN_RELATIVE, add_drift, read_results, row_key
+    from ..fleet.results import (
+        DRIFT_MIN_RELATIVE,
+        REPORT_COLUMNS,
+        add_drift,
+        read_results,
+        row_key,
+    )
 
     if drift_threshold is not None and not (math.isfinite(drift_threshold)
                                             and drift_threshold >= 0):
@@ -34,7 +40,7 @@ def command(
                           + ("the results table given" if given else "a file"))
     joined: dict = {}
     for path in results:
-        rows_read = read_results(path)
+        rows_read = read_results(path, require=REPORT_COLUMNS)  # a cut column: refused
         if not rows_read:
             raise ConfigError(f"{path}: no rows: not a results table of mecanum-hil batch, or "
                               "one cut before its first row")

@@ -130,8 +130,19 @@ def write_results(rows: Iterable[Mapping[str, Any]], path: str | Path) -> Path:
     return p
 
 
-def read_results(path: str | Path) -> list[dict[str, Any]]:
-    """Read a results table written by :func:`write_results` (Parquet or CSV)."""
+def read_results(path: str | Path, require: Sequence[str] | None = None
+                 ) -> list[dict[str, Any]]:
+    """Read a results table written by :func:`write_results` (Parquet or CSV).
+
+    Parameters
+    ----------
+    path : str or Path
+    require : sequence of str, optional
+        Columns the table must have (default :data:`REQUIRED_COLUMNS`); a table with rows that
+        lacks any is refused in one line naming them (a missing column would read as empty
+        values: numbers silently gone). :data:`REPORT_COLUMNS` are those ``fleet-report`` and
+        a resumed batch use.
+    """
     p = Path(path)
     fmt = table_format(p)
     if not p.exists():
@@ -149,6 +160,13 @@ def read_results(path: str | Path) -> list[dict[str, Any]]:
         raise ConfigError(f"{p}: cannot read the results table: {err}") from err
     if rows and "group" not in rows[0]:
         raise ConfigError(f"{p}: not a results table of mecanum-hil batch (no 'group' column)")
+    if rows:
+        missing = [c for c in (REQUIRED_COLUMNS if require is None else require)
+                   if c not in rows[0]]
+        if missing:
+            raise ConfigError(f"{p}: not a whole results table of mecanum-hil batch (no "
+                              f"{', '.join(repr(c) for c in missing)} column"
+                              f"{'s' if len(missing) > 1 else ''})")
     if fmt == "csv":
         _check_csv_rows(p, rows)
     return [normalise(r) for r in rows]
@@ -156,6 +174,13 @@ def read_results(path: str | Path) -> list[dict[str, Any]]:
 
 #: Columns every results table has (a table cut in its header lacks some).
 REQUIRED_COLUMNS = ("group", "period", "command", "status")
+
+#: Columns ``fleet-report`` reads and a resumed batch keeps rows from (every table ``batch``
+#: writes has them): identity, outcome, the model with its intervals, shadow alarms, drift.
+REPORT_COLUMNS = (
+    *REQUIRED_COLUMNS, "inputs", "A", "A_lo", "A_hi", "B", "B_lo", "B_hi", "C", "C_lo", "C_hi",
+    "effects", "rmse_rpm", "alarms", "alarm_inputs", "first_alarm_t_s", "effects_appeared",
+    "effects_gone", "drifted", "drift_note", "error")
 
 
 def _check_csv_rows(p: Path, rows: Sequence[Mapping[str, Any]]) -> None:

@@ -24,8 +24,18 @@ from typing import Any
 
 from .. import __version__
 from ..errors import ConfigError, MecanumHILError
+from ..io.paths import check_folder_writable
+from . import stages
 from .archive import Group, group_files, open_archive
-from .results import add_drift, normalise, read_results, row_key, table_format, write_results
+from .results import (
+    REPORT_COLUMNS,
+    add_drift,
+    normalise,
+    read_results,
+    row_key,
+    table_format,
+    write_results,
+)
 from .tasks import COMMANDS, GroupSpec, run_group
 
 #: Environment of the local cluster's worker processes: one core each, no nested thread pools
@@ -120,6 +130,9 @@ class BatchOutcome:
         Time from the first submitted task to the last result [s].
     startup_s : float
         Time to plan the groups and reach the cluster [s].
+    failures : list of dict
+        The rows of the groups that failed in this run, including those whose earlier
+        ``ok``/``partial`` row was kept in the table instead (``kept_earlier`` true).
     """
 
     rows: list[dict[str, Any]]
@@ -128,6 +141,7 @@ class BatchOutcome:
     dashboard: str | None
     wall_s: float
     startup_s: float
+    failures: list[dict[str, Any]] = field(default_factory=list)
 
 
 def journal_path(out: Path) -> Path:
@@ -146,7 +160,8 @@ def previous_rows(out: Path, command: str) -> dict[tuple[str, str, str], dict[st
     """Rows of an earlier run of the same batch (its table, then its journal), by key."""
     rows: dict[tuple[str, str, str], dict[str, Any]] = {}
     if out.exists():
-        for r in read_results(out):
+        # a table whose columns were cut would hand its gaps on to the rows kept from it
+        for r in read_results(out, require=REPORT_COLUMNS):
             rows[row_key(r)] = r
     jpath = journal_path(out)
     if jpath.exists():
@@ -260,6 +275,65 @@ def refuse_reading_out(settings: BatchSettings) -> None:
                       "results elsewhere, or as .parquet")
 
 
+#: Protocols of a Dask scheduler's address that ``--scheduler`` takes.
+SCHEDULER_PROTOCOLS = ("tcp", "tls", "ws", "wss")
+
+
+def check_scheduler(address: str) -> None:
+    """One line for a ``--scheduler`` that is not ``PROTOCOL://HOST:PORT`` (or ``HOST:PORT``),
+    before anything is planned or started (Dask's own error is a bare ValueError)."""
+    protocol, sep, rest = address.partition("://")
+    if not sep:
+        protocol, rest = "tcp", address
+    if rest.startswith("["):  # [IPv6]:PORT
+        host, _, tail = rest[1:].partition("]")
+        port = tail[1:] if tail.startswith(":") else ""
+    else:
+        host, _, port = rest.rpartition(":")
+    if protocol not in SCHEDULER_PROTOCOLS or not host or "/" in host or \
+            not (port.isascii() and port.isdigit() and 0 < int(port) < 65536):
+        raise ConfigError(f"--scheduler {address!r}: not the address of a Dask scheduler; "
+                          "give tcp://HOST:PORT (or tls://, ws://, wss://; HOST:PORT alone "
+                          "is tcp), or leave it out for a local cluster")
+
+
+def check_out(out: Path) -> None:
+    """One line, before anything runs, when the results table (and its journal beside it)
+    cannot be written: ``--out`` a folder, or in a folder that cannot be written (or made)."""
+    out = Path(out)
+    if out.is_dir():
+        raise ConfigError(f"{out}: --out is a folder; give the results table's file name "
+                          "(.parquet or .csv)")
+    check_folder_writable(out.parent if str(out.parent) else Path("."), f"--out {out}")
+
+
+def check_write_to(write_to: str | None) -> None:
+    """One line, before anything runs, when ``--write`` cannot take the groups' outputs: a
+    file rather than a folder, a local folder that cannot be made or written, a URL whose
+    protocol is unknown or whose store cannot be reached (a local folder is made by the
+    tasks, when they write)."""
+    if write_to is None:
+        return
+    what = f"--write {write_to}"
+    local = write_to[len("file://"):] if write_to.startswith("file://") else \
+        None if "://" in write_to else write_to
+    if local is not None:
+        folder = Path(local)
+        if folder.exists() and not folder.is_dir():
+            raise ConfigError(f"{what}: a file, not a folder for the groups' outputs")
+        check_folder_writable(folder, what)
+        return
+    from . import require_extra
+
+    core = require_extra("fsspec.core")
+    try:
+        fs, path = core.url_to_fs(write_to)
+        if fs.isfile(path):
+            raise ConfigError(f"{what}: a file, not a folder for the groups' outputs")
+    except (ValueError, ImportError, OSError) as err:
+        raise ConfigError(f"{what}: cannot use it: {err}") from err
+
+
 def plan(settings: BatchSettings,
          previous: Mapping[tuple[str, str, str], Mapping[str, Any]] | None = None
          ) -> tuple[list[GroupSpec], Any]:
@@ -276,6 +350,14 @@ def plan(settings: BatchSettings,
         raise ConfigError(f"batch command must be one of {', '.join(COMMANDS)}, got "
                           f"{settings.command!r}")
     calibration_ref(settings.calibration, "", "")  # a bad template: one line, before the work
+    stages.check_options(settings.command, settings.options)
+    cals = _Calibrations()
+    if calibration_ref(settings.calibration, "g1", "p1") == \
+            calibration_ref(settings.calibration, "g2", "p2"):
+        # one calibration for every group: a bad one is a bad option, not a group's failure
+        cals.get(calibration_ref(settings.calibration, "", ""))
+    robot = load_robot_profile(settings.robot)
+    robot_hash = _digest(resolve("drivers", settings.robot).read_bytes())
     kind = "videos" if settings.command == "measure-video" else "recordings"
     archive = open_archive(settings.archive, kind)
     level = settings.period_level
@@ -285,9 +367,6 @@ def plan(settings: BatchSettings,
     groups: list[Group] = group_files(archive, settings.group_by, settings.period,
                                       per_file=settings.command == "measure-video",
                                       period_level=settings.period_level)
-    robot = load_robot_profile(settings.robot)
-    robot_hash = _digest(resolve("drivers", settings.robot).read_bytes())
-    cals = _Calibrations()
     specs = []
     for g in groups:
         error = g.error
@@ -359,60 +438,102 @@ def dashboard_of(client) -> str | None:
     return client.dashboard_link if "dashboard" in services else None
 
 
+def _kept_earlier(earlier: Mapping[str, Any], failed: Mapping[str, Any]) -> dict[str, Any]:
+    """The earlier ``ok``/``partial`` row of a group that failed now, kept in the table, with
+    the failure in its ``details`` (``rerun_failed``: when and why)."""
+    row = dict(earlier)
+    try:
+        details = json.loads(row.get("details") or "{}")
+    except (TypeError, ValueError):
+        details = {"earlier": row.get("details")}
+    if not isinstance(details, dict):
+        details = {"earlier": details}
+    details["rerun_failed"] = {"finished_utc": failed.get("finished_utc"),
+                               "error": failed.get("error")}
+    row["details"] = details
+    return normalise(row)
+
+
 def execute(client, specs: Sequence[GroupSpec], previous: Mapping[tuple[str, str, str], Any],
-            journal: Path | None, progress: Callable[[Counts], None] | None = None
+            journal: Path | None, progress: Callable[[Counts], None] | None = None,
+            failures: list[dict[str, Any]] | None = None
             ) -> tuple[list[dict[str, Any]], Counts, float]:
     """Submit one task per spec, collect the rows as they finish, journal them.
 
     A task that dies (its worker lost, an error outside the stage) becomes a failed row; the
-    others go on.
+    others go on. A group that fails where ``previous`` holds an ``ok``/``partial`` row of it
+    keeps that row (its ``details`` get ``rerun_failed``): a failure never replaces a result.
+    ``failures``, when given, receives the failed rows of this run (``kept_earlier`` true where
+    the earlier row was kept).
 
     Returns
     -------
     (rows, counts, wall_s)
     """
-    from . import require_extra
-
-    distributed = require_extra("dask.distributed")
     counts = Counts(total=len(specs))
     t0 = time.perf_counter()
     futures = {}
     for i, spec in enumerate(specs):
+        if spec.error:
+            continue  # found while planning: the row says so, no worker needed
         # readable keys on the dashboard; the index and start time keep them unique
         fut = client.submit(run_group, spec, pure=False,
                             key=f"mecanum-hil-{spec.command}-{i}-" + _digest(
                                 f"{spec.group}\0{spec.period}\0{t0}".encode())[:12])
         futures[fut] = spec
     rows: list[dict[str, Any]] = []
-    jfile = journal.open("a", encoding="utf-8") if journal is not None else None
+    try:
+        jfile = journal.open("a", encoding="utf-8") if journal is not None else None
+    except OSError as err:
+        for fut in futures:
+            fut.cancel()
+        raise ConfigError(f"{journal}: cannot write the journal: {err.strerror or err}"
+                          ) from err
+
+    def finished(spec: GroupSpec, row: dict[str, Any]) -> None:
+        key = spec_key(spec.command, spec.group, spec.period, [rel for _, rel, _ in spec.files])
+        if row["status"] == "unchanged":
+            counts.unchanged += 1
+            row = dict(previous[key])
+        elif row["status"] == "failed":
+            counts.failed += 1
+            earlier = previous.get(key)
+            kept = bool(earlier) and earlier.get("status") in ("ok", "partial")
+            if failures is not None:
+                failures.append({**normalise(row), "kept_earlier": kept})
+            if kept:
+                row = _kept_earlier(earlier, row)
+        else:
+            counts.done += 1
+        row = normalise(row)
+        rows.append(row)
+        if jfile is not None:
+            jfile.write(json.dumps(row) + "\n")
+            jfile.flush()
+        if progress:
+            progress(counts)
+
     if progress:
         progress(counts)
     try:
-        for fut in distributed.as_completed(list(futures)):
-            spec = futures.pop(fut)
-            try:
-                row = fut.result()
-            except Exception as err:  # the task itself died: only this group fails
-                row = normalise({"group": spec.group, "period": spec.period,
-                                 "command": spec.command, "status": "failed",
-                                 "n_inputs": len(spec.files),
-                                 "inputs": [rel for _, rel, _ in spec.files],
-                                 "error": f"task failed: {type(err).__name__}: {err}"})
-            if row["status"] == "unchanged":
-                counts.unchanged += 1
-                row = dict(previous[spec_key(spec.command, spec.group, spec.period,
-                                             [rel for _, rel, _ in spec.files])])
-            elif row["status"] == "failed":
-                counts.failed += 1
-            else:
-                counts.done += 1
-            row = normalise(row)
-            rows.append(row)
-            if jfile is not None:
-                jfile.write(json.dumps(row) + "\n")
-                jfile.flush()
-            if progress:
-                progress(counts)
+        for spec in specs:
+            if spec.error:
+                finished(spec, run_group(spec))
+        if futures:
+            from . import require_extra
+
+            distributed = require_extra("dask.distributed")
+            for fut in distributed.as_completed(list(futures)):
+                spec = futures.pop(fut)
+                try:
+                    row = fut.result()
+                except Exception as err:  # the task itself died: only this group fails
+                    row = normalise({"group": spec.group, "period": spec.period,
+                                     "command": spec.command, "status": "failed",
+                                     "n_inputs": len(spec.files),
+                                     "inputs": [rel for _, rel, _ in spec.files],
+                                     "error": f"task failed: {type(err).__name__}: {err}"})
+                finished(spec, row)
     finally:
         if jfile is not None:
             jfile.close()
@@ -437,14 +558,22 @@ def run_batch(settings: BatchSettings, progress: Callable[[Counts], None] | None
     """
     say = echo or (lambda _m: None)
     t0 = time.perf_counter()
+    # everything that can be refused is refused here, before a cluster starts or a group runs
     table_format(settings.out)
+    if settings.scheduler and client is None:
+        check_scheduler(settings.scheduler)
     refuse_reading_out(settings)
-    previous = previous_rows(settings.out, settings.command) if settings.resume else {}
-    specs, _archive = plan(settings, previous)
+    check_out(settings.out)
+    check_write_to(settings.write_to)
+    # read even with --no-resume: the table's ok rows survive groups that fail in this run
+    earlier = previous_rows(settings.out, settings.command)
+    specs, _archive = plan(settings, earlier if settings.resume else {})
     say(f"{settings.archive}: {describe_specs(specs)}")
     own_cluster = own_client = None
+    dashboard = None
     try:
-        if client is None:
+        # groups that failed while planning (e.g. no calibration for them) need no worker
+        if client is None and any(not s.error for s in specs):
             from . import require_extra
 
             distributed = require_extra("dask.distributed")
@@ -452,28 +581,37 @@ def run_batch(settings: BatchSettings, progress: Callable[[Counts], None] | None
                 try:
                     own_client = client = distributed.Client(settings.scheduler,
                                                            timeout=settings.connect_timeout_s)
-                except (OSError, TimeoutError) as err:
+                except (OSError, TimeoutError, ValueError) as err:
                     raise ConfigError(f"cannot reach the Dask scheduler at "
                                       f"{settings.scheduler}: {err}") from err
             else:
                 own_cluster = local_cluster(settings.workers)
                 own_client = client = distributed.Client(own_cluster)
-        dashboard = dashboard_of(client)
+        dashboard = dashboard_of(client) if client is not None else None
         if dashboard:
             say(f"Dask dashboard: {dashboard}")
         startup = time.perf_counter() - t0
         jpath = journal_path(settings.out)
-        settings.out.parent.mkdir(parents=True, exist_ok=True)
-        rows, counts, wall = execute(client, specs, previous, jpath, progress)
+        try:
+            settings.out.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ConfigError(f"--out {settings.out}: cannot make its folder: "
+                              f"{err.strerror or err}") from err
+        failures: list[dict[str, Any]] = []
+        rows, counts, wall = execute(client, specs, earlier, jpath, progress, failures)
     finally:
         if own_client is not None:
             own_client.close()
         if own_cluster is not None:
             own_cluster.close()
     table = add_drift(rows, settings.drift_min_relative)
-    write_results(table, settings.out)
+    try:
+        write_results(table, settings.out)
+    except OSError as err:  # the rows stay in the journal: the next run resumes from it
+        raise ConfigError(f"{settings.out}: cannot write the results table: "
+                          f"{err.strerror or err} (the rows are in {jpath})") from err
     jpath.unlink(missing_ok=True)
-    return BatchOutcome(table, counts, settings.out, dashboard, wall, startup)
+    return BatchOutcome(table, counts, settings.out, dashboard, wall, startup, failures)
 
 
 def describe_specs(specs: Sequence[GroupSpec]) -> str:

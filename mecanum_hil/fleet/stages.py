@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..errors import MecanumHILError
+from ..errors import ConfigError, MecanumHILError
 
 COEFFICIENTS = ("A", "B", "C")
 
@@ -137,8 +137,24 @@ def run_measure_video(path: Path, name: str, options: dict[str, Any], robot=None
     runs videos side by side on every core, and its workers all start while the load average
     still says the machine is idle; decoder threads beside each would oversubscribe the cores.
     """
+    from ..vision.measure import measure_video
+
+    measure = measure_options(options)
+    try:
+        result = measure_video(path, measure)
+    except MecanumHILError as err:
+        raise type(err)(_named(err, path, name)) from err
+    summary = {k: v for k, v in result.summary.items() if k not in ("video",)}
+    row = {"warnings": list(result.warnings), "details": summary}
+    return row, result.recording
+
+
+def measure_options(options: dict[str, Any]):
+    """The ``MeasureOptions`` of a batch's measure-video options (``wheel``, ``roi``,
+    ``marker``, ``marker_hsv`` and ``MeasureOptions``' own fields), as ``measure-video`` builds
+    them; a bad value raises its one-line error."""
     from ..vision.detect import MarkerSpec, parse_hsv, parse_roi
-    from ..vision.measure import MeasureOptions, measure_video
+    from ..vision.measure import MeasureOptions
 
     opts = dict(options)
     opts.setdefault("decode_beside", False)
@@ -148,13 +164,41 @@ def run_measure_video(path: Path, name: str, options: dict[str, Any], robot=None
     hsv = opts.pop("marker_hsv", None)
     spec = parse_hsv(hsv) if hsv else MarkerSpec(marker)
     rois = tuple(parse_roi(r, wheel) for r in roi) if roi else ((wheel, None),)
+    return MeasureOptions(rois=rois, marker=spec, **opts)
+
+
+def check_options(command: str, options: dict[str, Any]) -> None:
+    """Refuse a bad stage option once, before any task runs (each task would fail alike).
+
+    Raises
+    ------
+    MecanumHILError
+        The stage's own one-line error (``ConfigError`` for an unknown option).
+    """
     try:
-        result = measure_video(path, MeasureOptions(rois=rois, marker=spec, **opts))
-    except MecanumHILError as err:
-        raise type(err)(_named(err, path, name)) from err
-    summary = {k: v for k, v in result.summary.items() if k not in ("video",)}
-    row = {"warnings": list(result.warnings), "details": summary}
-    return row, result.recording
+        if command in ("fit", "diagnose"):
+            method = options.get("method", "lsq")
+            if method not in ("lsq", "paper-grid"):
+                raise ConfigError(f"--method must be lsq or paper-grid, got {method!r}")
+        if command == "diagnose" and options.get("candidates") is not None:
+            from ..model.calibration import EFFECTS
+
+            names = list(options["candidates"])
+            if not names:
+                raise ConfigError(f"--candidates names no effect; the library: "
+                                  f"{', '.join(EFFECTS)}")
+            unknown = [c for c in names if c not in EFFECTS]
+            if unknown:
+                raise ConfigError(f"--candidates: unknown effect(s) {', '.join(unknown)}; the "
+                                  f"library: {', '.join(EFFECTS)}")
+        if command == "shadow":
+            from ..monitor import ShadowConfig
+
+            ShadowConfig(**(options.get("config") or {}))
+        if command == "measure-video":
+            measure_options(options.get("video", {}))
+    except TypeError as err:  # an option the stage does not have (library callers)
+        raise ConfigError(f"batch {command}: bad option: {err}") from None
 
 
 def calibration_text(calibration, header: str) -> str:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..errors import MecanumHILError
+from ..errors import ConfigError, MecanumHILError
 from . import stages
 from .results import empty_row
 
@@ -130,18 +130,29 @@ def _output_url(spec: GroupSpec, name: str) -> str:
 def _put_text(url: str, text: str) -> str:
     import fsspec
 
-    with fsspec.open(url, "w", encoding="utf-8", auto_mkdir=True) as fh:
-        fh.write(text)
+    try:
+        with fsspec.open(url, "w", encoding="utf-8", auto_mkdir=True) as fh:
+            fh.write(text)
+    except (OSError, ValueError) as err:  # the folder gone, a file in the way, no room ...
+        raise ConfigError(f"--write: cannot write {url}: {_why(err)}") from err
     return url
 
 
 def _put_file(url: str, path: Path) -> str:
     import fsspec
 
-    with fsspec.open(url, "wb", auto_mkdir=True) as dst, path.open("rb") as src:
-        while chunk := src.read(_CHUNK):
-            dst.write(chunk)
+    try:
+        with fsspec.open(url, "wb", auto_mkdir=True) as dst, path.open("rb") as src:
+            while chunk := src.read(_CHUNK):
+                dst.write(chunk)
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"--write: cannot write {url}: {_why(err)}") from err
     return url
+
+
+def _why(err: Exception) -> str:
+    return (err.strerror if isinstance(err, OSError) and err.strerror else str(err)) \
+        or type(err).__name__
 
 
 def _outputs(spec: GroupSpec, result: Any, workdir: Path) -> str | None:

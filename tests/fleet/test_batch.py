@@ -159,8 +159,12 @@ def test_diagnose_batch_equals_serial_fit_then_diagnose(fleet_archive, dask_clie
     assert r["effects"] == ",".join(e["effect"] for e in doc["effects"])
     assert _same(r["rmse_rpm"], doc["rmse_final"])
     assert _same(r["rmse_initial_rpm"], doc["rmse_initial"])
-    assert json.loads(r["details"])["diagnosis"]["effects"][0]["parameters"] == \
-        doc["effects"][0]["parameters"]
+    # the same search in another process (a Dask worker, this one with or without a helper,
+    # by the machine's load): the converged values agree to the last digits a search can give
+    got = json.loads(r["details"])["diagnosis"]["effects"][0]["parameters"]
+    want = doc["effects"][0]["parameters"]
+    assert got.keys() == want.keys()
+    assert all(math.isclose(got[k], want[k], rel_tol=1e-9) for k in got)
 
 
 def test_shadow_batch_replays_against_each_robots_calibration(fit_run, fleet_archive,
