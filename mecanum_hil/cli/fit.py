@@ -1,6 +1,7 @@
 """``mecanum-hil fit``: the wheel model's coefficients A, B, C from recordings."""
 
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -20,8 +21,8 @@ def _grid(text: str | None, name: str):
         parts = tuple(float(v) for v in text.split(":"))
     except ValueError:
         parts = ()
-    if len(parts) != 3:
-        raise FitError(f"--{name}-grid must be FIRST:LAST:STEP, got {text!r}")
+    if len(parts) != 3 or not all(math.isfinite(v) for v in parts):
+        raise FitError(f"--{name}-grid must be FIRST:LAST:STEP in finite numbers, got {text!r}")
     return parts
 
 
@@ -68,6 +69,8 @@ def command(
 
     if method not in ("lsq", "paper-grid"):
         raise FitError(f"--method must be lsq or paper-grid, got {method!r}")
+    if b_start is not None and not (math.isfinite(b_start) and b_start >= 0):
+        raise FitError(f"--b-start must be a finite number >= 0 [1/s], got {b_start:g}")
     grid_options = {k: v for k, v in (("a_grid", _grid(a_grid, "a")),
                                       ("b_grid", _grid(b_grid, "b")),
                                       ("c_grid", _grid(c_grid, "c")),

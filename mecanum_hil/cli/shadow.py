@@ -18,9 +18,20 @@ EXIT_ALARM = 3
 
 
 def build_config(noise_rpm: float | None, drift: float, threshold: float, warmup_s: float):
-    """The monitor settings from the command-line options (shared with ``record --shadow``)."""
+    """The monitor settings from the command-line options (shared with ``record --shadow``);
+    a value that makes no sense is refused naming its option."""
+    import math
+
+    from ..errors import ConfigError
     from ..monitor import ShadowConfig
 
+    for option, value, zero_ok in (("--noise-rpm", noise_rpm, False), ("--drift", drift, True),
+                                   ("--threshold", threshold, False),
+                                   ("--warmup", warmup_s, True)):
+        if value is not None and not (math.isfinite(value)
+                                      and (value >= 0 if zero_ok else value > 0)):
+            raise ConfigError(f"{option} must be a finite number {'>=' if zero_ok else '>'} 0, "
+                              f"got {value:g}")
     return ShadowConfig(drift_k=drift, threshold_h=threshold, warmup_s=warmup_s,
                         noise_rpm=noise_rpm)
 

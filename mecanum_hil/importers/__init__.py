@@ -113,6 +113,12 @@ def detect_format(path: str | Path, map_path: str | Path | None = None) -> str:
             (generic if getattr(mod, "GENERIC", False) else specific).append(name)
     found = specific or generic
     if not found:
+        if p.is_file() and not head.strip():
+            raise RecordingError(f"{p}: empty file: nothing to import")
+        if p.is_file() and len([ln for ln in head.splitlines() if ln.strip()]) == 1 \
+                and len(head) < 4096:
+            raise RecordingError(f"{p}: a single line (a header without data rows?); if it "
+                                 "is data, give --format")
         raise RecordingError(f"{p}: format not recognised (known: {', '.join(sorted(FORMATS))}); "
                              "give --format")
     if len(found) > 1:

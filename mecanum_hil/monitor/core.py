@@ -112,8 +112,9 @@ class ShadowConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"shadow setting {name} must be a finite number >= 0, got {v}")
-        if self.threshold_h <= 0 or self.max_substep_s <= 0:
-            raise ConfigError("shadow settings threshold_h and max_substep_s must be > 0")
+        for name in ("threshold_h", "max_substep_s"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"shadow setting {name} must be > 0, got {getattr(self, name)}")
         if self.min_warmup_samples < 2:
             raise ConfigError("shadow setting min_warmup_samples must be >= 2")
         for name in ("noise_rpm", "noise_m", "noise_deg"):

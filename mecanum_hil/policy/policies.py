@@ -289,9 +289,12 @@ def load_policy(path: str | Path) -> NetworkPolicy:
         raise ConfigError(f"{path}: task: {err}") from err
     _check_values(path, meta, robot, period)
     if params.shape != (arch.n_params,) or offset.shape != (arch.n_inputs,) \
-            or scale.shape != (arch.n_inputs,) or len(features) != arch.n_inputs \
-            or not np.isfinite(params).all():
+            or scale.shape != (arch.n_inputs,) or len(features) != arch.n_inputs:
         raise ConfigError(f"{path}: policy arrays do not match its network")
+    if not np.isfinite(params).all():
+        bad = int(np.size(params) - np.isfinite(params).sum())
+        raise ConfigError(f"{path}: {bad} of the network's {params.size} weights are not "
+                          "finite (NaN or infinite): a training that diverged?")
     if not np.isfinite(offset).all():
         raise ConfigError(f"{path}: input_offset must be finite")
     if not (np.isfinite(scale).all() and (scale > 0).all()):

@@ -57,3 +57,17 @@ def test_help_and_exit_codes_of_commands_are_kept(capsys):
     assert "Usage: mecanum-hil fit" in capsys.readouterr().out
     assert main([]) == 2  # no command: the command list, as before
     assert "Commands" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option, value, fragment", [
+    ("--threshold", "0", "--threshold must be a finite number > 0"),
+    ("--drift", "nan", "--drift must be a finite number >= 0"),
+    ("--noise-rpm", "-1", "--noise-rpm must be a finite number > 0"),
+    ("--warmup", "inf", "--warmup must be a finite number >= 0"),
+])
+def test_shadow_settings_are_refused_by_their_option(repo, one_line_error, option, value,
+                                                     fragment):
+    # the monitor's own message named its fields (threshold_h and max_substep_s)
+    rec = repo / "recordings" / "samples" / "paper-step-60.csv"
+    err = one_line_error(["shadow", "--replay", str(rec), "--no-events", option, value])
+    assert fragment in err

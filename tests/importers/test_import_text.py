@@ -268,6 +268,17 @@ def test_unknown_format_options_and_binary_files_are_refused(tmp_path):
         detect_format(b)
 
 
+def test_an_empty_or_header_only_log_says_so_not_format_not_recognised(tmp_path):
+    empty = tmp_path / "empty.csv"
+    empty.write_text("")
+    with pytest.raises(RecordingError, match="empty file: nothing to import"):
+        detect_format(empty)
+    header = tmp_path / "header.csv"
+    header.write_text("t,speed\n")
+    with pytest.raises(RecordingError, match=r"a single line \(a header without data rows\?\)"):
+        detect_format(header)
+
+
 def _old_writer(rec):
     """The row-by-row writer the column-wise one replaces (the file format must not change)."""
     buf = io.StringIO()
