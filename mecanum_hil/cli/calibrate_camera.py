@@ -16,21 +16,26 @@ def command(
         metavar="VIDEO_OR_IMAGES")],
     board: Annotated[str, typer.Option(
         "--board", help="charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICTIONARY], e.g. "
-        "charuco:7x5:0.04:0.03 (dictionary default DICT_5X5_100).")],
+        "charuco:7x5:0.04:0.03 (dictionary default DICT_5X5_100; 3..100 squares a side and "
+        "at most as many markers, COLS*ROWS/2, as the dictionary has).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="camera.toml to write.")],
     max_views: Annotated[int, typer.Option(
-        "--max-views", min=5, help="Frames of a video used, spread over it.")] = 60,
+        "--max-views", min=5, help="Frames of a video used, spread over it (at most 500).")
+    ] = 60,
     as_json: JsonOpt = False,
 ) -> None:
     """Calibrate a camera (OpenCV's ChArUco calibration); refuses views that leave part of the
     image without board corners."""
-    from ..vision.calibrate import calibrate, parse_board, read_views
+    from ..errors import VideoError
+    from ..vision.calibrate import MAX_VIEWS, calibrate, parse_board, read_views
     from ..vision.camera import save_camera
 
+    spec = parse_board(board)
+    if max_views > MAX_VIEWS:
+        raise VideoError(f"--max-views must be within 5..{MAX_VIEWS}, got {max_views}")
     inputs = ([(f, "an image of the board") for f in sorted(source.iterdir()) if f.is_file()]
               if source.is_dir() else [(source, "the board's video or image")])
     refuse_overwriting(inputs, [(out, "--out")])
-    spec = parse_board(board)
     views = read_views(source, max_views)
     result = calibrate(views, spec, str(source))
     cam = result.camera

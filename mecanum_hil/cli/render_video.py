@@ -17,19 +17,22 @@ def command(
     out: Annotated[Path, typer.Option("--out", "-o", help="Video to write (.mp4 or .avi).")],
     wheels: Annotated[str, typer.Option(
         "--wheels", help="Wheels to show side by side, e.g. 1 or 1,2.")] = "1",
-    fps: Annotated[float, typer.Option("--fps", help="Frame rate \\[1/s].")] = 30.0,
-    size: Annotated[str, typer.Option("--size", help="Frame size WxH \\[px].")] = "320x240",
+    fps: Annotated[float, typer.Option("--fps", help="Frame rate \\[1/s], 0.1..1000.")] = 30.0,
+    size: Annotated[str, typer.Option(
+        "--size", help="Frame size WxH \\[px], at most 4096 a side and 4096x2160 in all.")
+    ] = "320x240",
     start_s: Annotated[float, typer.Option(
-        "--start", help="Recording time of the first frame after the recording's start \\[s].")
-    ] = 0.0,
+        "--start", help="Recording time of the first frame after the recording's start \\[s], "
+        ">= 0.")] = 0.0,
     duration_s: Annotated[float | None, typer.Option(
-        "--duration", help="Video length \\[s] (default: to the recording's end).")] = None,
+        "--duration", help="Video length \\[s] (default and most: to the recording's end).")
+    ] = None,
     noise: Annotated[float, typer.Option(
-        "--noise", help="Sensor noise, standard deviation \\[grey levels].")] = 0.0,
+        "--noise", help="Sensor noise, standard deviation \\[grey levels], 0..255.")] = 0.0,
     blur: Annotated[float, typer.Option(
         "--blur", help="Motion blur: shutter open for this share of a frame (0..1).")] = 0.0,
     lighting: Annotated[float, typer.Option(
-        "--lighting-drift", help="Relative amplitude of slow brightness change.")] = 0.0,
+        "--lighting-drift", help="Relative amplitude of slow brightness change (0..1).")] = 0.0,
     tilt: Annotated[float, typer.Option(
         "--tilt", help="Oblique view: angle off the wheel axis \\[deg].")] = 0.0,
     tilt_axis: Annotated[float, typer.Option(
@@ -37,10 +40,12 @@ def command(
     jpeg: Annotated[int | None, typer.Option(
         "--jpeg", help="Extra JPEG compression of each frame, quality 1..100.")] = None,
     distractors: Annotated[int, typer.Option(
-        "--distractors", min=0, help="Saturated objects off the wheels (every 2nd moves).")] = 0,
+        "--distractors", min=0, help="Saturated objects off the wheels (every 2nd moves), "
+        "at most 100.")] = 0,
     mirror: Annotated[bool, typer.Option(
         "--mirror", help="Film from the other side: positive speed turns clockwise.")] = False,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of noise and distractors.")] = 0,
+    seed: Annotated[int, typer.Option(
+        "--seed", help="Seed of noise and distractors, 0..2147483647.")] = 0,
     marker: Annotated[str, typer.Option(
         "--marker", help="dot (saturated dot near the rim) or aruco (ArUco marker on the hub).")
     ] = "dot",
@@ -50,15 +55,18 @@ def command(
         "--hide", help="A card hides the wheels from A to B \\[s] (video clock), e.g. 2-2.5.",
         metavar="A-B")] = None,
     shake: Annotated[float, typer.Option(
-        "--shake", help="Camera shake: random offset of each frame, SD per axis \\[px].")] = 0.0,
+        "--shake", help="Camera shake: random offset of each frame, SD per axis \\[px] (at most "
+        "the frame's smaller side).")] = 0.0,
     drift: Annotated[float, typer.Option(
-        "--drift", help="Camera drift: amplitude of a slow wandering \\[px].")] = 0.0,
+        "--drift", help="Camera drift: amplitude of a slow wandering \\[px] (at most the "
+        "frame's smaller side).")] = 0.0,
     flicker: Annotated[float, typer.Option(
         "--flicker", help="Mains-light flicker, relative amplitude (0..1).")] = 0.0,
     flicker_hz: Annotated[float, typer.Option(
         "--flicker-hz", help="Flicker frequency \\[Hz] (100 or 120).")] = 100.0,
     hue_shift: Annotated[float, typer.Option(
-        "--hue-shift", help="Marker colour drifting under the light, amplitude \\[deg].")] = 0.0,
+        "--hue-shift", help="Marker colour drifting under the light, amplitude \\[deg], 0..180.")
+    ] = 0.0,
     truth: Annotated[Path | None, typer.Option(
         "--truth", help="Also write the true wheel speeds at the frame times (video clock), "
         "with each marker's share in view and the camera's offset.")
@@ -69,7 +77,8 @@ def command(
         "writes V.camera.toml, V.scene.toml and the pose truth (--truth, default V.truth.csv)."
     )] = False,
     distortion: Annotated[str | None, typer.Option(
-        "--distortion", help="--overhead: the lens's k1,k2,p1,p2,k3 (OpenCV).")] = None,
+        "--distortion", help="--overhead: the lens's k1,k2,p1,p2,k3 (OpenCV; finite numbers).")
+    ] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Render wheels with markers turning as a recording's wheel speeds say."""
@@ -106,7 +115,7 @@ def command(
                               drift_px=drift, flicker=flicker, flicker_hz=flicker_hz,
                               hue_shift_deg=hue_shift)
     if truth is not None:
-        _check_truth_overwrites_nothing(truth, out, recording)
+        _check_truth_overwrites_nothing(truth, out, recording)  # and that it can be written
     rec = recording_or_scenario(recording)
     result = _with_progress_bar(lambda progress: render_video(rec, out, settings,
                                                               progress=progress))
@@ -169,6 +178,7 @@ def _overhead(recording: Path, out: Path, fps: float, size: str, start_s: float,
     from ..vision.camera import save_camera
     from ..vision.overhead import OverheadSettings, render_overhead
     from ..vision.scene import save_scene
+    from ._options import refuse_overwriting
 
     try:
         width, height = (int(v) for v in size.lower().split("x"))
@@ -181,14 +191,22 @@ def _overhead(recording: Path, out: Path, fps: float, size: str, start_s: float,
         raise VideoError("--distortion needs five numbers k1,k2,p1,p2,k3")
     settings = OverheadSettings(width, height, fps, start_s, duration_s, tilt_deg=tilt,
                                 noise_std=noise, jpeg_quality=jpeg, seed=seed, **lens)
+    stem = out.with_suffix("")
+    camera_file, scene_file = Path(f"{stem}.camera.toml"), Path(f"{stem}.scene.toml")
+    truth_path = truth if truth is not None else Path(f"{stem}.truth.csv")
+    truth_option = "--truth" if truth is not None else "the truth beside --out"
+    refuse_overwriting([(recording, "the recording given with --recording", True)],
+                       [(out, "--out"), (camera_file, "the camera file beside --out"),
+                        (scene_file, "the scene file beside --out"),
+                        (truth_path, truth_option, True)])
+    refuse_overwriting([(out, "the video (--out)"), (camera_file, "the camera file"),
+                        (scene_file, "the scene file")], [(truth_path, truth_option, True)])
     rec = read_recording(recording)
     res = _with_progress_bar(lambda progress: render_overhead(rec, out, settings,
                                                               progress=progress))
-    stem = out.with_suffix("")
-    camera_path = save_camera(res.camera, f"{stem}.camera.toml",
+    camera_path = save_camera(res.camera, camera_file,
                               "the renderer's camera (exact intrinsics and distortion)")
-    scene_path = save_scene(res.scene, f"{stem}.scene.toml", "the renderer's scene")
-    truth_path = truth if truth is not None else Path(f"{stem}.truth.csv")
+    scene_path = save_scene(res.scene, scene_file, "the renderer's scene")
     meta = {"source": "mecanum-hil render-video --overhead (truth)", "video": str(out),
             "recording": str(recording), "camera_start_s": start_s,
             "camera_pose": res.camera_pose.summary(),

@@ -21,14 +21,15 @@ def command(
         "--generations", min=1, help="Stop after this many CMA-ES generations (reproducible: "
         "with --seed the same policy every time).")] = None,
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the search and the "
-                                                            "episodes.")] = 0,
+                                                            "episodes, at most 4294967294.")] = 0,
     randomize: Annotated[bool, typer.Option(
         "--randomize", help="Draw A, B, C within the calibration's 95 % intervals at every "
         "episode.")] = False,
     episodes: Annotated[int, typer.Option(
-        "--episodes", min=1, help="Episodes per candidate per generation.")] = 48,
+        "--episodes", min=1, help="Episodes per candidate per generation, at most 4096.")] = 48,
     hidden: Annotated[int, typer.Option(
-        "--hidden", min=0, help="Hidden tanh units (0: a linear policy).")] = 8,
+        "--hidden", min=0, help="Hidden tanh units (0: a linear policy), at most 128 (CMA-ES "
+        "keeps a full covariance of the ~15 x HIDDEN parameters).")] = 8,
     control_period_s: Annotated[float, typer.Option(
         "--control-period", help="How long each action is held [s].")] = 0.02,
     progress: Annotated[bool, typer.Option(
@@ -42,11 +43,15 @@ def command(
     from ..errors import ConfigError
     from ..model import load_calibration, load_robot_profile
     from ..policy import NetworkPolicy
-    from ..policy.train import train
+    from ..policy.train import MAX_HIDDEN, check_training, train
     from ._options import refuse_overwriting, shipped_or_file
 
     if not control_period_s > 0:
         raise ConfigError(f"--control-period must be > 0 s, got {control_period_s}")
+    if hidden > MAX_HIDDEN:
+        raise ConfigError(f"--hidden must be within 0..{MAX_HIDDEN} units, got {hidden} (CMA-ES "
+                          "keeps a full covariance matrix of all the network's parameters)")
+    check_training(0, episodes, seed)
     refuse_overwriting([(shipped_or_file(calibration), "the calibration"),
                         (shipped_or_file(robot), "the robot profile")], [(out, "--out")])
     cal = load_calibration(calibration)

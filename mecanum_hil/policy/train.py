@@ -26,6 +26,45 @@ from ..model import Calibration
 from .evaluate import rollout
 from .policies import NetworkPolicy
 
+#: Widest hidden layer ``train --hidden`` builds: 128 tanh units are ~2000 parameters.
+MAX_HIDDEN = 128
+#: Most network parameters trained: CMA-ES keeps a full n x n covariance matrix (16 TiB for the
+#: 1.5 million parameters of 100000 hidden units) and decomposes it at a cost of n^3.
+MAX_PARAMS = 2500
+#: Most episodes per candidate per generation: each generation runs ``popsize * episodes``
+#: robots at once in one vector environment.
+MAX_EPISODES = 4096
+#: Largest seed (CMA-ES is seeded with ``seed + 1``, NumPy takes up to 2**32 - 1).
+MAX_SEED = 2 ** 32 - 2
+
+
+def check_training(n_params: int, episodes: int, seed: int) -> None:
+    """Refuse a training too big to allocate, or a seed the generators refuse, before anything
+    is allocated.
+
+    Parameters
+    ----------
+    n_params : int
+        Parameters of the network, at most :data:`MAX_PARAMS`.
+    episodes : int
+        Episodes per candidate per generation, 1 .. :data:`MAX_EPISODES`.
+    seed : int
+        0 .. :data:`MAX_SEED`.
+
+    Raises
+    ------
+    ConfigError
+        One line naming the bound.
+    """
+    if n_params > MAX_PARAMS:
+        raise ConfigError(f"the network has {n_params} parameters; CMA-ES trains at most "
+                          f"{MAX_PARAMS} (a full covariance of n x n; --hidden at most "
+                          f"{MAX_HIDDEN})")
+    if not 1 <= episodes <= MAX_EPISODES:
+        raise ConfigError(f"--episodes must be within 1..{MAX_EPISODES}, got {episodes}")
+    if not 0 <= seed <= MAX_SEED:
+        raise ConfigError(f"--seed must be within 0..{MAX_SEED}, got {seed}")
+
 
 @dataclass(frozen=True)
 class TrainResult:
@@ -66,8 +105,8 @@ def train(policy: NetworkPolicy, calibration: Calibration | str, *, budget_s: fl
     Parameters
     ----------
     policy : NetworkPolicy
-        Gives the architecture, task, robot and control period (its parameters start the
-        search).
+        Gives the architecture (at most :data:`MAX_PARAMS` parameters), task, robot and
+        control period (its parameters start the search).
     calibration : Calibration or str
         The model trained on (every effect simulated).
     budget_s : float
@@ -75,7 +114,7 @@ def train(policy: NetworkPolicy, calibration: Calibration | str, *, budget_s: fl
     generations : int, optional
         Stop after this many generations (whichever comes first; reproducible runs use it).
     episodes : int
-        Episodes per candidate per generation.
+        Episodes per candidate per generation (at most :data:`MAX_EPISODES`).
     popsize : int, optional
         Candidates per generation (default: CMA-ES's ``4 + 3 ln(n)``).
     sigma0 : float
@@ -90,14 +129,15 @@ def train(policy: NetworkPolicy, calibration: Calibration | str, *, budget_s: fl
     progress : callable, optional
         ``progress(evaluations, elapsed_s, best, mean)`` after every generation.
     """
+    if not budget_s > 0 or (generations is not None and generations < 1) or episodes < 1:
+        raise ConfigError("need a positive budget, at least one generation and one episode")
+    check_training(policy.params.size, episodes, seed)
     try:
         import cma
     except ImportError as err:
         raise ConfigError("training needs the rl extra: pip install 'mecanum-hil[rl]'") from err
     from ..envs import MecanumHILVectorEnv
 
-    if not budget_s > 0 or (generations is not None and generations < 1) or episodes < 1:
-        raise ConfigError("need a positive budget, at least one generation and one episode")
     opts = {"seed": int(seed) + 1, "verbose": -9, "CMA_diagonal": False}
     if popsize is not None:
         opts["popsize"] = int(popsize)

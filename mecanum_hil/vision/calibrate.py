@@ -29,6 +29,11 @@ MIN_CORNERS = 8
 MIN_VIEWS = 5
 #: Fewest corners (over all views) in each of the 3 x 3 cells of the image.
 MIN_CELL_CORNERS = 4
+#: Most squares across or down a board: far beyond any printed board (OpenCV's board and
+#: detector grow with the squares: 1000x1000 ran for minutes, 100000x100000 took 22 GB).
+MAX_BOARD_SQUARES = 100
+#: Most views used from a video (each is held in memory and calibrated on; 20..60 suffice).
+MAX_VIEWS = 500
 _CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"),
                ("bottom-left", "bottom", "bottom-right"))
 
@@ -43,6 +48,11 @@ class BoardSpec:
     marker_m: float
     dictionary: str = "DICT_5X5_100"
 
+    @property
+    def markers(self) -> int:
+        """Markers on the board (one on every other square): ``cols * rows // 2``."""
+        return self.cols * self.rows // 2
+
     def board(self):
         """OpenCV's ``CharucoBoard``."""
         import cv2
@@ -52,7 +62,16 @@ class BoardSpec:
 
 
 def parse_board(text: str) -> BoardSpec:
-    """``charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICTIONARY]`` -> :class:`BoardSpec`."""
+    """``charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICTIONARY]`` -> :class:`BoardSpec`.
+
+    Raises
+    ------
+    VideoError
+        Malformed text, fewer than 3 or more than :data:`MAX_BOARD_SQUARES` squares a side,
+        sizes out of order, or more markers (``COLS * ROWS // 2``) than the dictionary has.
+    ConfigError
+        An unknown dictionary.
+    """
     parts = text.split(":")
     bad = VideoError(f"--board {text!r}: expected charuco:COLSxROWS:SQUARE_M:MARKER_M"
                      "[:DICTIONARY], e.g. charuco:7x5:0.04:0.03")
@@ -66,8 +85,15 @@ def parse_board(text: str) -> BoardSpec:
     if cols < 3 or rows < 3 or not (0 < marker < square) or not math.isfinite(square):
         raise VideoError(f"--board {text!r}: needs at least 3x3 squares and 0 < MARKER_M < "
                          "SQUARE_M")
+    if max(cols, rows) > MAX_BOARD_SQUARES:
+        raise VideoError(f"--board {text!r}: at most {MAX_BOARD_SQUARES} squares across and "
+                         f"down, got {cols}x{rows}")
     spec = BoardSpec(cols, rows, square, marker, *(parts[4:] or []))
-    dictionary_by_name(spec.dictionary)
+    available = len(dictionary_by_name(spec.dictionary).bytesList)
+    if spec.markers > available:
+        raise VideoError(f"--board {text!r}: a {cols}x{rows} board has {spec.markers} markers, "
+                         f"more than the {available} of the dictionary {spec.dictionary} (give "
+                         "fewer squares or a larger dictionary, e.g. charuco:...:DICT_5X5_1000)")
     return spec
 
 
@@ -94,11 +120,11 @@ class Calibration:
 
 def read_views(source: str | Path, max_views: int = 60) -> list[np.ndarray]:
     """Grey images from a folder of images, one image, or a video (up to ``max_views`` frames
-    spread over it)."""
+    spread over it, at most :data:`MAX_VIEWS`)."""
     import cv2
 
-    if max_views < 1:
-        raise VideoError(f"max_views must be >= 1, got {max_views}")
+    if not 1 <= max_views <= MAX_VIEWS:
+        raise VideoError(f"--max-views must be within 1..{MAX_VIEWS}, got {max_views}")
     p = Path(source)
     if p.is_dir():
         files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)

@@ -25,6 +25,7 @@ import numpy as np
 from ..errors import VideoError
 from ..io.recording import Recording
 from .camera import CameraModel, CameraPose, look_at
+from .render import check_frame, check_noise, check_seed, check_times, schedule_frames
 from .scene import FloorMarker, RobotMarker, Scene, dictionary_by_name, marker_corners_xy
 from .video import VideoWriter, fourcc_for
 
@@ -38,13 +39,15 @@ class OverheadSettings:
     Attributes
     ----------
     width_px, height_px : int
-        Frame size [px].
+        Frame size [px], 160x120 .. 4096x2160
+        (:func:`~mecanum_hil.vision.render.check_frame`).
     fps : float
-        Frame rate [1/s].
+        Frame rate [1/s], 0.1 .. :data:`~mecanum_hil.vision.render.MAX_RENDER_FPS`.
     camera_start_s : float
-        Recording time of the first frame after the recording's first sample [s].
+        Recording time of the first frame after the recording's first sample [s], >= 0.
     duration_s : float or None
-        Video length [s]; default: to the recording's end.
+        Video length [s]; default: to the recording's end (a video running past it is
+        refused).
     tilt_deg : float
         Angle of the view axis from straight down [deg] (oblique view).
     azimuth_deg : float or None
@@ -55,11 +58,11 @@ class OverheadSettings:
     hfov_deg : float
         Horizontal field of view of the undistorted lens [deg].
     distortion : tuple of 5 float
-        OpenCV's ``(k1, k2, p1, p2, k3)``.
+        OpenCV's ``(k1, k2, p1, p2, k3)``, finite.
     principal_offset : (float, float)
         Principal point off the image centre, as shares of width and height.
     noise_std : float
-        Sensor noise, standard deviation [grey levels].
+        Sensor noise, standard deviation [grey levels], 0..255.
     jpeg_quality : int or None
         Extra JPEG compression of each frame (1..100).
     dictionary : str
@@ -78,7 +81,7 @@ class OverheadSettings:
     supersample : int
         Rays per pixel along each axis.
     seed : int
-        Seed of the noise.
+        Seed of the noise, 0 .. :data:`~mecanum_hil.vision.render.MAX_SEED`.
     """
 
     width_px: int = 1280
@@ -109,10 +112,18 @@ class OverheadSettings:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.width_px < 160 or self.height_px < 120:
-            raise VideoError("overhead frames must be at least 160x120 px")
-        if not self.fps > 0:
-            raise VideoError(f"fps must be > 0, got {self.fps}")
+        check_frame(self.width_px, self.height_px, self.fps, 160, 120)
+        check_times(self.camera_start_s, self.duration_s)
+        check_noise(self.noise_std)
+        check_seed(self.seed)
+        if len(self.distortion) != 5 or not all(math.isfinite(v) for v in self.distortion):
+            raise VideoError("distortion (--distortion) must be five finite numbers "
+                             "k1,k2,p1,p2,k3, got "
+                             f"{','.join(f'{v:g}' for v in self.distortion)}")
+        for name in ("roll_deg", "principal_offset", "azimuth_deg"):
+            value = getattr(self, name)
+            if value is not None and not np.isfinite(np.asarray(value, dtype=float)).all():
+                raise VideoError(f"{name} must be finite, got {value}")
         if not 0.0 <= self.tilt_deg <= 60.0:
             raise VideoError(f"camera tilt must be within 0..60 deg, got {self.tilt_deg}")
         if not 20.0 <= self.hfov_deg <= 120.0:
@@ -178,14 +189,9 @@ def pose_truth(rec: Recording, t_rec_s: np.ndarray) -> np.ndarray:
 
 
 def frame_schedule(rec: Recording, settings: OverheadSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Video times and recording times of the frames [s]."""
-    t0 = float(rec.t_s[0]) + settings.camera_start_s
-    end = float(rec.t_s[-1]) if settings.duration_s is None else t0 + settings.duration_s
-    n = math.floor((end - t0) * settings.fps + 1e-9) + 1
-    if n < 2:
-        raise VideoError("nothing to render: the recording ends before the camera starts")
-    tv = np.arange(n) / settings.fps
-    return tv, t0 + tv
+    """Video times and recording times of the frames [s]
+    (:func:`~mecanum_hil.vision.render.schedule_frames`)."""
+    return schedule_frames(rec.t_s, settings.camera_start_s, settings.duration_s, settings.fps)
 
 
 def _body_corners(pose: np.ndarray, s: OverheadSettings) -> np.ndarray:
@@ -251,7 +257,8 @@ def plan_scene(pose: np.ndarray, s: OverheadSettings) -> tuple[CameraModel, Came
 
     near, far = 0.5, 50.0
     if not fits(far):
-        raise VideoError("the robot's path does not fit in the picture at any distance")
+        raise VideoError("the robot's path does not fit in the picture at any distance "
+                         "(check --tilt and --distortion)")
     for _ in range(40):
         mid_d = math.sqrt(near * far)
         near, far = (near, mid_d) if fits(mid_d) else (mid_d, far)

@@ -23,10 +23,23 @@ import numpy as np
 
 from ..errors import VideoError
 from ..io.recording import WHEEL_COLUMNS, Recording
-from .video import VideoWriter, fourcc_for
+from .video import MIN_FPS, VideoWriter, fourcc_for
 
 _SHIFT = 4  # cv2 drawing with 1/16 px coordinates, so the truth is sub-pixel
 _SCALE = 1 << _SHIFT
+
+#: Largest frame side [px] and frame area [px] a renderer draws (DCI 4K, 4096 x 2160): every
+#: frame is drawn in memory at several bytes a pixel (the overhead renderer keeps rays of every
+#: pixel), so a typing error such as 100000x100000 is refused before anything is allocated.
+MAX_FRAME_SIDE_PX = 4096
+MAX_FRAME_AREA_PX = 4096 * 2160
+#: Highest frame rate a renderer writes [1/s]: every frame is drawn, so beyond a high-speed
+#: camera's rate the number is a typing error (MPEG-4's clock also ends at 65535 ticks/s).
+MAX_RENDER_FPS = 1000.0
+#: Most distractor objects drawn beside the wheels.
+MAX_DISTRACTORS = 100
+#: Largest seed (OpenCV's random generator takes a C int).
+MAX_SEED = 2 ** 31 - 1
 
 
 @dataclass(frozen=True)
@@ -36,27 +49,27 @@ class RenderSettings:
     Attributes
     ----------
     width_px, height_px : int
-        Frame size [px].
+        Frame size [px], 64x48 .. 4096x2160 (:func:`check_frame`).
     fps : float
-        Frame rate [1/s].
+        Frame rate [1/s], 0.1 .. :data:`MAX_RENDER_FPS`.
     wheels : tuple of int
         Wheels (1..4) to show, side by side, each with its own marker hue.
     camera_start_s : float
-        Recording time of the first frame, after the recording's first sample [s]; the video
-        clock starts at 0 there (the offset ``measure-video --recording`` must find).
+        Recording time of the first frame, after the recording's first sample [s] (>= 0); the
+        video clock starts at 0 there (the offset ``measure-video --recording`` must find).
     duration_s : float or None
-        Video length [s]; default: until the recording ends. Past the recording's end the
-        wheels keep its last speeds (the truth beside the video says so, sample by sample).
+        Video length [s]; default: until the recording ends. A video running past the
+        recording's end is refused (its length is bounded by the recording).
     marker_hues_deg : tuple of float
         Hue of each wheel's marker [deg] (OpenCV hue x 2), cycled.
     mirror : bool
         Film the wheels from the other side: positive wheel speed turns clockwise in the image.
     noise_std : float
-        Sensor noise, standard deviation [grey levels of 255].
+        Sensor noise, standard deviation [grey levels of 255], 0..255.
     exposure : float
         Shutter open for this fraction of the frame interval (0: no motion blur).
     lighting_drift : float
-        Relative amplitude of a slow brightness change (0.2: +-20 %).
+        Relative amplitude of a slow brightness change (0.2: +-20 %), below 1.
     tilt_deg : float
         Oblique view: angle between the wheel axis and the camera axis [deg].
     tilt_axis_deg : float
@@ -64,16 +77,19 @@ class RenderSettings:
     jpeg_quality : int or None
         Extra JPEG compression of each frame (1..100), on top of the codec's.
     distractors : int
-        Saturated objects off the wheels: every second one moves on a straight line.
+        Saturated objects off the wheels: every second one moves on a straight line (at most
+        :data:`MAX_DISTRACTORS`).
     occlusions_s : tuple of (start, end)
         Video-time intervals [s] when a grey card hides the wheels.
     fender : float
         Share of each wheel's height, from the top, hidden by a fender (0: none; 0.4 hides the
         marker over about a third of each turn).
     shake_px : float
-        Camera shake: standard deviation of a random offset of each frame, per axis [px].
+        Camera shake: standard deviation of a random offset of each frame, per axis [px] (at
+        most the frame's smaller side).
     drift_px : float
-        Camera drift: amplitude of a slow wandering of the view (periods 7 s and 11 s) [px].
+        Camera drift: amplitude of a slow wandering of the view (periods 7 s and 11 s) [px]
+        (at most the frame's smaller side).
     flicker : float
         Relative amplitude of mains-light flicker at ``flicker_hz`` (integrated over the
         exposure, so it beats with the frame rate).
@@ -81,9 +97,9 @@ class RenderSettings:
         Flicker frequency [Hz] (twice the mains frequency: 100 or 120).
     hue_shift_deg : float
         The marker's colour drifting under the light: amplitude of a slow hue rotation (period
-        5 s) of every saturated colour in the picture [deg].
+        5 s) of every saturated colour in the picture [deg], 0..180.
     seed : int
-        Seed of the noise and of the distractors' placement.
+        Seed of the noise and of the distractors' placement, 0 .. :data:`MAX_SEED`.
     marker : str
         ``"dot"`` (a saturated dot near the rim) or ``"aruco"`` (ArUco marker id ``k`` of
         :data:`~mecanum_hil.vision.aruco.DICTIONARY` on the hub of the k-th shown wheel).
@@ -115,30 +131,105 @@ class RenderSettings:
     hue_shift_deg: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.width_px < 64 or self.height_px < 48:
-            raise VideoError("frame size must be at least 64x48 px")
-        if not self.fps > 0:
-            raise VideoError(f"fps must be > 0, got {self.fps}")
+        check_frame(self.width_px, self.height_px, self.fps, 64, 48)
+        check_times(self.camera_start_s, self.duration_s)
         if not self.wheels or any(w not in (1, 2, 3, 4) for w in self.wheels):
             raise VideoError(f"wheels must be numbers 1..4, got {self.wheels}")
         if not 0.0 <= self.exposure <= 1.0:
-            raise VideoError(f"exposure must be within 0..1, got {self.exposure}")
+            raise VideoError(f"exposure (--blur) must be within 0..1, got {self.exposure}")
         if not 0.0 <= self.tilt_deg < 80.0:
             raise VideoError(f"tilt must be within 0..80 deg, got {self.tilt_deg}")
+        if not math.isfinite(self.tilt_axis_deg):
+            raise VideoError(f"tilt axis (--tilt-axis) must be a finite angle [deg], got "
+                             f"{self.tilt_axis_deg}")
         if self.marker not in ("dot", "aruco"):
             raise VideoError(f"marker must be 'dot' or 'aruco', got '{self.marker}'")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
             raise VideoError(f"JPEG quality must be within 1..100, got {self.jpeg_quality}")
         if not 0.0 <= self.fender < 1.0:
             raise VideoError(f"fender must be within 0..1 (share of the wheel), got {self.fender}")
+        check_noise(self.noise_std)
+        if not 0.0 <= self.lighting_drift < 1.0:
+            raise VideoError("lighting drift (--lighting-drift) must be within 0..1 (a relative "
+                             f"amplitude below 100 %), got {self.lighting_drift}")
+        if not 0 <= self.distractors <= MAX_DISTRACTORS:
+            raise VideoError(f"distractors (--distractors) must be within "
+                             f"0..{MAX_DISTRACTORS}, got {self.distractors}")
+        check_seed(self.seed)
         for name in ("shake_px", "drift_px", "flicker", "hue_shift_deg"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0.0):
                 raise VideoError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.flicker >= 1.0 or not self.flicker_hz > 0:
-            raise VideoError("flicker must be below 1 and its frequency > 0 Hz")
+        side = min(self.width_px, self.height_px)
+        for name, flag in (("shake_px", "--shake"), ("drift_px", "--drift")):
+            if getattr(self, name) > side:
+                raise VideoError(f"{name} ({flag}) must be at most the frame's smaller side "
+                                 f"({side} px), got {getattr(self, name):g}")
+        if self.flicker >= 1.0 or not (self.flicker_hz > 0 and math.isfinite(self.flicker_hz)):
+            raise VideoError("flicker (--flicker) must be below 1 and its frequency (--flicker-hz) "
+                             "a finite number > 0 Hz")
+        if self.hue_shift_deg > 180.0:
+            raise VideoError(f"hue_shift_deg (--hue-shift) must be within 0..180 deg, got "
+                             f"{self.hue_shift_deg:g}")
         for t0, t1 in self.occlusions_s:
             if not t1 > t0:
                 raise VideoError(f"occlusion ({t0}, {t1}): the end must come after the start")
+
+
+def check_frame(width_px: int, height_px: int, fps: float, min_width_px: int,
+                min_height_px: int) -> None:
+    """Refuse a frame size or rate a renderer cannot or should not write, before anything is
+    allocated or a video writer opened.
+
+    Parameters
+    ----------
+    width_px, height_px : int
+        Frame size [px]: at least ``min_width_px x min_height_px``, at most
+        :data:`MAX_FRAME_SIDE_PX` a side and :data:`MAX_FRAME_AREA_PX` in all.
+    fps : float
+        Frame rate [1/s], within :data:`~mecanum_hil.vision.video.MIN_FPS` ..
+        :data:`MAX_RENDER_FPS`.
+    min_width_px, min_height_px : int
+        Smallest frame the renderer draws [px].
+
+    Raises
+    ------
+    VideoError
+        One line naming the bound.
+    """
+    if width_px < min_width_px or height_px < min_height_px:
+        raise VideoError(f"frame size (--size) must be at least {min_width_px}x{min_height_px} "
+                         f"px, got {width_px}x{height_px}")
+    if max(width_px, height_px) > MAX_FRAME_SIDE_PX or \
+            width_px * height_px > MAX_FRAME_AREA_PX:
+        raise VideoError(f"frame size (--size) must be at most {MAX_FRAME_SIDE_PX} px a side "
+                         f"and {MAX_FRAME_AREA_PX} px in all (4096x2160), got "
+                         f"{width_px}x{height_px}")
+    if not MIN_FPS <= fps <= MAX_RENDER_FPS:
+        raise VideoError(f"--fps must be within {MIN_FPS:g} .. {MAX_RENDER_FPS:g} frames per "
+                         f"second, got {fps:g}")
+
+
+def check_times(camera_start_s: float, duration_s: float | None) -> None:
+    """Refuse a camera start [s] that is negative or not finite, and a video length [s] that is
+    not a finite number > 0 (the recording's own length bounds it later, see
+    :func:`schedule_frames`)."""
+    if not (math.isfinite(camera_start_s) and camera_start_s >= 0.0):
+        raise VideoError(f"--start must be a finite number of seconds >= 0, got "
+                         f"{camera_start_s:g}")
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+        raise VideoError(f"--duration must be > 0 s and finite, got {duration_s:g}")
+
+
+def check_noise(noise_std: float) -> None:
+    """Refuse a sensor noise [grey levels] that is negative, beyond 255 or not finite."""
+    if not 0.0 <= noise_std <= 255.0:
+        raise VideoError(f"noise (--noise) must be within 0..255 grey levels, got {noise_std:g}")
+
+
+def check_seed(seed: int) -> None:
+    """Refuse a seed outside 0 .. :data:`MAX_SEED`."""
+    if not 0 <= seed <= MAX_SEED:
+        raise VideoError(f"--seed must be within 0..{MAX_SEED}, got {seed}")
 
 
 @dataclass(frozen=True)
@@ -416,21 +507,56 @@ class _Scene:
         frame[y0:y1, x0:x1] = np.clip(box + 0.5, 0, 255).astype(np.uint8)
 
 
-def frame_schedule(rec: Recording, settings: RenderSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Video times and recording times of the frames to render [s]."""
-    t0 = float(rec.t_s[0]) + settings.camera_start_s
-    last = float(rec.t_s[-1])
-    if settings.duration_s is not None and not settings.duration_s > 0:
-        raise VideoError(f"--duration must be > 0 s, got {settings.duration_s:g}")
+def schedule_frames(t_s: np.ndarray, camera_start_s: float, duration_s: float | None,
+                    fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Video times and recording times of the frames to render [s].
+
+    Parameters
+    ----------
+    t_s : ndarray, shape (N,)
+        The recording's sample times [s].
+    camera_start_s : float
+        Recording time of the first frame after the recording's first sample [s].
+    duration_s : float or None
+        Video length [s]; None: to the recording's end. It may not run past the recording's
+        end (the frames are what the recording says, and their number is bounded by it).
+    fps : float
+        Frame rate [1/s].
+
+    Raises
+    ------
+    VideoError
+        A recording with fewer than two samples, a camera starting after the recording's end,
+        a video longer than the recording after the start, fewer than two frames.
+    """
+    t = np.asarray(t_s, dtype=float)
+    if t.size < 2:
+        raise VideoError(f"nothing to render: the recording has {t.size} sample"
+                         f"{'' if t.size == 1 else 's'} (need at least two)")
+    check_times(camera_start_s, duration_s)
+    t0 = float(t[0]) + camera_start_s
+    last = float(t[-1])
     if not t0 < last:
-        raise VideoError(f"nothing to render: the recording ends at {last - rec.t_s[0]:.3f} s, "
-                         f"before the camera starts (--start {settings.camera_start_s:g} s)")
-    end = last if settings.duration_s is None else t0 + settings.duration_s
-    n = math.floor((end - t0) * settings.fps + 1e-9) + 1
+        raise VideoError(f"nothing to render: the recording ends at {last - t[0]:.3f} s, "
+                         f"before the camera starts (--start {camera_start_s:g} s)")
+    end = last
+    if duration_s is not None:
+        # a hair of rounding past the end is the end (--duration 5 of a 5.000 s recording)
+        if t0 + duration_s > last + 1e-9 * max(1.0, abs(last)):
+            raise VideoError(f"--duration {duration_s:g} s runs past the recording's end: it "
+                             f"has {last - t0:.3f} s after --start {camera_start_s:g} s (give at "
+                             "most that, or leave --duration out)")
+        end = t0 + duration_s
+    n = math.floor((end - t0) * fps + 1e-9) + 1
     if n < 2:
         raise VideoError("nothing to render: less than two frames between --start and the end")
-    tv = np.arange(n) / settings.fps
+    tv = np.arange(n) / fps
     return tv, t0 + tv
+
+
+def frame_schedule(rec: Recording, settings: RenderSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Video times and recording times of the frames to render [s] (:func:`schedule_frames`)."""
+    return schedule_frames(rec.t_s, settings.camera_start_s, settings.duration_s, settings.fps)
 
 
 def _wheel_columns(rec: Recording, wheels: tuple[int, ...]) -> list[np.ndarray]:
