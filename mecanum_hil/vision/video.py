@@ -575,8 +575,13 @@ class VideoWriter:
         except OSError as err:
             raise VideoError(f"{self.path}: cannot create the folder {self.path.parent}: "
                              f"{err.strerror or err}") from err
-        self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*fourcc),
-                                       float(fps), (int(size_px[0]), int(size_px[1])))
+        # FFmpeg takes VP8 in WebM only under its own tag and says so on stderr each time
+        # ("tag 'VP80' is not supported ... format 'webm'"), then writes it right: not a
+        # message for the user
+        quiet = _stderr_silenced() if fourcc == "VP80" else contextlib.nullcontext()
+        with quiet:
+            self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*fourcc),
+                                           float(fps), (int(size_px[0]), int(size_px[1])))
         if not self._writer.isOpened():
             raise VideoError(f"{self.path}: OpenCV cannot write {fourcc} video here")
         self.frames = 0

@@ -247,3 +247,12 @@ def test_calibrate_camera_bounds_max_views(tmp_path, views, capfd):
     line = one_line(["calibrate-camera", views, "--board", "charuco:7x5:0.04:0.03", "--out",
                      tmp_path / "c.toml", "--max-views", "100000"], capfd)
     assert "--max-views must be within 5..500" in line
+
+
+def test_a_webm_render_prints_nothing_on_stderr(rec, capfd):
+    # FFmpeg said "tag 'VP80' is not supported ... format 'webm'" on every WebM, then wrote it
+    out = rec.with_name("v.webm")
+    assert main(["render-video", "--recording", str(rec), "--out", str(out),
+                 "--duration", "0.5"]) == 0
+    assert capfd.readouterr().err == ""
+    assert out.stat().st_size > 1000
