@@ -36,6 +36,7 @@ from .video import (
     SegmentMismatchError,
     VideoInfo,
     check_fps,
+    container_mismatch,
     decoded_ahead,
     decoded_in_segments,
     frame_times,
@@ -573,6 +574,11 @@ def measure_video(path: str | Path, options: MeasureOptions | None = None,
         warnings.append(f"the video ends after {n} of the {info.frame_count} frames its header "
                         "declares (truncated?); measured what could be decoded")
     timing = frame_times(stamps, info.fps_nominal, opts.fps, src)
+    damaged = container_mismatch(path) if opts.fps is None else None
+    if damaged is not None:
+        warnings.append(f"the file does not start like {damaged} (damaged, or cut at its "
+                        "start?): FFmpeg read a bare stream, whose frame times are its guess "
+                        f"({timing.fps:g} fps); give --fps if you know the camera's rate")
     if timing.variable:
         warnings.append("variable frame rate: speeds use the frame timestamps")
     rec = empty_like_times(timing.t_s)

@@ -553,6 +553,36 @@ def frame_times(stamps_s: np.ndarray, fps_nominal: float, fps_override: float | 
     raise VideoError(f"{source}: no frame rate and no usable frame timestamps; give --fps")
 
 
+#: How a file of each container starts: (offset, bytes), any of them [-].
+_CONTAINER_SIGNATURES = {
+    "an MP4/QuickTime file": ((4, b"ftyp"), (4, b"moov"), (4, b"mdat"), (4, b"wide"),
+                              (4, b"free"), (4, b"skip")),
+    "an AVI file": ((0, b"RIFF"),),
+    "a Matroska/WebM file": ((0, b"\x1a\x45\xdf\xa3"),),
+}
+_CONTAINER_BY_SUFFIX = {".mp4": "an MP4/QuickTime file", ".m4v": "an MP4/QuickTime file",
+                        ".mov": "an MP4/QuickTime file", ".avi": "an AVI file",
+                        ".mkv": "a Matroska/WebM file", ".webm": "a Matroska/WebM file"}
+
+
+def container_mismatch(path: str | Path) -> str | None:
+    """The container a video's extension promises when its first bytes are not that
+    container's (a file damaged or cut at its start: FFmpeg then reads a bare stream, whose
+    frame rate it guesses); ``None`` when they are, or for an extension not known here."""
+    p = Path(path)
+    kind = _CONTAINER_BY_SUFFIX.get(p.suffix.lower())
+    if kind is None:
+        return None
+    try:
+        with p.open("rb") as fh:
+            head = fh.read(12)
+    except OSError:
+        return None
+    if any(head[o:o + len(sig)] == sig for o, sig in _CONTAINER_SIGNATURES[kind]):
+        return None
+    return kind
+
+
 def fourcc_for(path: str | Path) -> str:
     """The codec used to write a file of this extension (``.mp4`` -> mp4v, ``.avi`` -> MJPG)."""
     suffix = Path(path).suffix.lower()

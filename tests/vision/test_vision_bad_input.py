@@ -98,6 +98,23 @@ def test_truncated_avi_measures_what_is_there_and_warns(tmp_path, good_video):
     assert np.nanmean(got) == pytest.approx(60.0, abs=0.3)
 
 
+def test_an_mp4_cut_at_its_start_warns_that_its_frame_rate_is_a_guess(tmp_path):
+    # FFmpeg reads what is left as a bare MPEG-4 stream at a guessed 25 fps: the 30 fps
+    # wheel measured 17 % slow, without a word
+    res = render_video(steady(60.0, 2.0), tmp_path / "v.mp4", RenderSettings(fps=30.0))
+    data = res.path.read_bytes()
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(data[2000:])
+    meas = measure_video(cut)
+    said = [w for w in meas.warnings if "does not start like an MP4" in w]
+    assert said and "give --fps" in said[0]
+    assert not any("does not start" in w for w in measure_video(res.path).warnings)
+    # with the rate given, nothing is guessed
+    fixed = measure_video(cut, MeasureOptions(fps=30.0))
+    assert not any("does not start" in w for w in fixed.warnings)
+    assert np.nanmedian(fixed.recording.wheel_rpm[:, 0]) == pytest.approx(60.0, rel=0.02)
+
+
 def test_no_marker(tmp_path, capsys):
     path = tmp_path / "grey.avi"
     with VideoWriter(path, 30.0, (160, 120)) as w:
