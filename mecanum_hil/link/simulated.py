@@ -339,6 +339,11 @@ class ControllerModel:
         return w + self._rng.normal(0.0, std, 4) if std > 0 else w.copy()
 
 
+#: Fastest internal tick of the simulated controller [Hz]: it steps its model in real time,
+#: and at 1 MHz it fell behind (190 of 1000 telemetry samples a second; 200 kHz kept pace).
+MAX_INTERNAL_RATE_HZ = 100_000.0
+
+
 def telemetry_ticks_for(telemetry_rate_hz: float, internal_rate_hz: float) -> int:
     """Internal ticks between telemetry samples for a rate; 0 for none.
 
@@ -353,9 +358,9 @@ def telemetry_ticks_for(telemetry_rate_hz: float, internal_rate_hz: float) -> in
     """
     rate = float(telemetry_rate_hz)
     internal = float(internal_rate_hz)
-    if not (math.isfinite(internal) and internal > 0):
-        raise ConfigError(f"the internal tick rate must be a positive number of Hz, got "
-                          f"{internal_rate_hz!r}")
+    if not (math.isfinite(internal) and 0 < internal <= MAX_INTERNAL_RATE_HZ):
+        raise ConfigError(f"the internal tick rate must be a positive number of Hz up to "
+                          f"{MAX_INTERNAL_RATE_HZ:g}, got {internal_rate_hz!r}")
     if not (math.isfinite(rate) and rate >= 0):
         raise ConfigError(f"telemetry rate must be 0 (none) or a positive number of Hz, got "
                           f"{telemetry_rate_hz!r}")

@@ -71,3 +71,8 @@ def test_shadow_settings_are_refused_by_their_option(repo, one_line_error, optio
     rec = repo / "recordings" / "samples" / "paper-step-60.csv"
     err = one_line_error(["shadow", "--replay", str(rec), "--no-events", option, value])
     assert fragment in err
+
+
+def test_sim_robot_internal_rate_it_cannot_keep(one_line_error):
+    err = one_line_error(["sim-robot", "--serial", "--internal-rate", "1e9"])
+    assert "internal tick rate must be a positive number of Hz up to 100000" in err
