@@ -17,7 +17,7 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
                   robot: str, policy: str, task: str | None, episodes: int, seed: int,
                   connect_timeout_s: float, link_timeout_s: float, progress: bool,
                   shadow: str | None, on_divergence: str, json_out: bool, profile, commands,
-                  dry_run: bool, foxglove=None) -> None:
+                  dry_run: bool, foxglove=None, before_run=None) -> None:
     """Run ``episodes`` episodes of ``policy`` on the robot (see ``record --help``)."""
     import json
 
@@ -71,6 +71,8 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
 
     echo = None if json_out else echo_safely
     link = open_transport(transport, options)
+    if before_run is not None:
+        before_run()  # everything checked and the port open: the run starts here
     try:
         config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
         meta = {"policy": str(policy), "policy_info": pol.describe()}

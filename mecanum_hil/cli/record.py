@@ -46,6 +46,29 @@ def refuse_replacing_recording(out: Path, folder: bool) -> None:
                           "give another --out, or --force to replace it")
 
 
+def clear_former_run(out: Path, folder: bool) -> None:
+    """With ``--force``: remove what a former run left at ``out`` that this run would not
+    write over: its event log (a run without ``--shadow`` writes none, and ``export`` or a
+    replay would take the old one for the new run's), or, for a folder of episodes, every
+    ``episode_NNN`` file and ``summary.json`` (fewer episodes would leave old ones beside the
+    new; ``fit runs/*.csv`` would mix two runs). The recording and its sidecar are replaced
+    when the run starts."""
+    from ..errors import ConfigError
+    from ..monitor.eventlog import event_log_path
+
+    if folder:
+        stale = [*out.glob("episode_[0-9][0-9][0-9]*"), out / "summary.json"] \
+            if out.is_dir() else []
+    else:
+        stale = [event_log_path(out)]
+    for p in stale:
+        try:
+            p.unlink(missing_ok=True)
+        except OSError as err:
+            raise ConfigError(f"{p}: --force cannot remove the former run's file: "
+                              f"{err.strerror or err}") from err
+
+
 def command(
     out: OutOpt,
     transport: TransportOpt = "serial",
@@ -92,7 +115,8 @@ def command(
         "--json", help="With --policy: print the summary (summary.json) on stdout.")] = False,
     force: Annotated[bool, typer.Option(
         "--force", help="Replace an existing recording at --out (its sidecar and event log "
-        "too; with --policy, the folder's episodes).")] = False,
+        "too: a former event log is removed; with --policy, the folder's episode files and "
+        "summary.json).")] = False,
 ) -> None:
     """Send a command profile to a robot controller and record commands and telemetry."""
     from ..errors import ConfigError
@@ -115,7 +139,8 @@ def command(
             episodes=episodes, seed=seed, connect_timeout_s=connect_timeout_s,
             link_timeout_s=link_timeout_s, progress=progress, shadow=shadow,
             on_divergence=on_divergence, json_out=json_out, profile=profile, commands=commands,
-            dry_run=dry_run, foxglove=foxglove)
+            dry_run=dry_run, foxglove=foxglove,
+            before_run=(lambda: clear_former_run(out, folder=True)) if force else None)
     if (commands is None) == (profile is None):
         raise ConfigError("give exactly one of --profile NAME_OR_FILE and --commands REC.csv")
     if not dry_run:  # the recording is created before the first command is sent
@@ -144,6 +169,8 @@ def command(
         if live_view is not None:  # a port that does not open must not leave a server running
             live_view.live.close()
         raise
+    if force and shadow is None:  # the session replaces the recording from here on
+        clear_former_run(out, folder=False)
     try:
         config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
         meta = {"commands_from": source, "command_rate_hz": rate_hz}

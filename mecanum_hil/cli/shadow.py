@@ -17,6 +17,11 @@ from ._options import CalibrationOpt, FoxgloveOpt, JsonOpt, RobotOpt, refuse_ove
 EXIT_ALARM = 3
 
 
+#: The name a replay's event log gets beside a recording whose ``REC.shadow.jsonl`` is a
+#: live run's (record --shadow, listen-can): ``run.csv`` -> ``run.replay.jsonl``.
+REPLAY_LOG_SUFFIX = ".replay.jsonl"
+
+
 def build_config(noise_rpm: float | None, drift: float, threshold: float, warmup_s: float):
     """The monitor settings from the command-line options (shared with ``record --shadow``);
     a value that makes no sense is refused naming its option."""
@@ -141,9 +146,11 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
         mode = written_by(target)
         if mode is not None and mode != "replay":
             # a live run's alarms are data recorded once; a replay can be run again
-            raise MecanumHILError(
-                f"{target}: the event log of a live run ({mode}): a replay does not replace "
-                "it; write the replay's with --events PATH, or none with --no-events")
+            if events is not None:
+                raise MecanumHILError(
+                    f"{target}: the event log of a live run ({mode}): a replay does not "
+                    "replace it; give another --events PATH, or --no-events")
+            target = path.with_name(path.stem + REPLAY_LOG_SUFFIX)
         try:
             log = EventLog(target, cal, config,
                            {"mode": "replay", "recording": str(path)})
@@ -183,7 +190,9 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
                    + (f", first at {result.first_alarm_t_s:.3f} s" if result.alarms else "")
                    + (f"; noise {noise}" if noise else ""))
         if log is not None:
-            typer.echo(f"wrote {log.path}")
+            kept = event_log_path(path)
+            typer.echo(f"wrote {log.path}" + (f" (the live run's {kept.name} is kept)"
+                                              if log.path != kept and events is None else ""))
     if plot is not None:
         from ..monitor.plot import plot_shadow
         from ..prediction import predict

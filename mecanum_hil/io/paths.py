@@ -9,6 +9,7 @@ that exists, by making (and removing) a temporary file there: permissions alone 
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -39,9 +40,12 @@ def check_folder_writable(folder: str | Path, what: str) -> None:
 
 
 def check_file_writable(path: str | Path, what: str) -> None:
-    """One-line :class:`ConfigError` unless ``path`` can be written: not a folder, and in a
-    folder where a file can be made (:func:`check_folder_writable`)."""
+    """One-line :class:`ConfigError` unless ``path`` can be written: not a folder; a file,
+    device or pipe there that may be written, or else a folder where a file can be made
+    (:func:`check_folder_writable`)."""
     p = Path(path)
     if p.is_dir():
         raise ConfigError(f"{what}: a folder is there, not a file")
+    if p.exists() and (not p.is_file() or os.access(p, os.W_OK)):
+        return  # /dev/null, /dev/stdout, a fifo, >(jq .), a file it may write over
     check_folder_writable(p.absolute().parent, what)

@@ -555,8 +555,9 @@ def frame_times(stamps_s: np.ndarray, fps_nominal: float, fps_override: float | 
 
 #: How a file of each container starts: (offset, bytes), any of them [-].
 _CONTAINER_SIGNATURES = {
-    "an MP4/QuickTime file": ((4, b"ftyp"), (4, b"moov"), (4, b"mdat"), (4, b"wide"),
-                              (4, b"free"), (4, b"skip")),
+    "an MP4/QuickTime file": tuple((4, box) for box in (
+        b"ftyp", b"moov", b"mdat", b"wide", b"free", b"skip", b"pnot", b"udta", b"junk",
+        b"uuid", b"prfl", b"styp", b"sidx", b"moof")),  # the first boxes FFmpeg's probe takes
     "an AVI file": ((0, b"RIFF"),),
     "a Matroska/WebM file": ((0, b"\x1a\x45\xdf\xa3"),),
 }

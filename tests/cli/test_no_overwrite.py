@@ -104,3 +104,40 @@ def test_record_does_not_replace_a_recording_made_before(run_csv, one_line_error
     err = one_line_error(["record", "--port", port, "--policy", "scripted", "--task", "reach",
                           "-o", str(tmp_path / "eps")])
     assert "a folder with recordings is already there" in err
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self"), reason="needs /proc")
+@pytest.mark.parametrize("argv, option", [
+    # the first output was written, or the fit ran, before the second failed
+    (["fit", "{rec}", "-o", "{dir}/ok.toml", "--report", "/proc/r.png"], "--report"),
+    (["simulate", "--profile", "paper-step-60", "-o", "{dir}/ok.csv", "--plot", "/proc/y.png"],
+     "--plot"),
+    (["conformance", "--port", "{dir}/no-port", "--json", "/proc/c.json"], "--json"),
+    (["diagnose", "{rec}", "-o", "/proc/d.toml"], "--out"),
+    (["simulate", "--profile", "paper-step-60", "-o", "{dir}"], "--out"),
+])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(run_csv, one_line_error,
+                                                                      argv, option):
+    before = sorted(p.name for p in run_csv.parent.iterdir())
+    argv = [a.format(rec=run_csv, dir=run_csv.parent) for a in argv]
+    err = one_line_error(argv)
+    assert err.startswith(f"error: {option} "), err
+    assert "cannot write in /proc" in err or "a folder is there" in err
+    assert sorted(p.name for p in run_csv.parent.iterdir()) == before
+
+
+def test_an_output_that_exists_and_may_be_written_needs_no_folder_probe(run_csv, one_line_error):
+    # /dev/null, /dev/stdout, >(jq .) are written in place; nobody can make a file in /dev
+    err = one_line_error(["conformance", "--port", str(run_csv.parent / "no-port"), "--json",
+                          "/dev/null"])
+    assert "--json" not in err and "no-port" in err
+
+
+def test_force_clears_a_former_runs_episodes_and_nothing_else(tmp_path):
+    from mecanum_hil.cli.record import clear_former_run
+
+    for name in ("episode_000.csv", "episode_000.json", "episode_001.shadow.jsonl",
+                 "summary.json", "notes.txt", "episode_plan.md"):
+        (tmp_path / name).write_text("x")
+    clear_former_run(tmp_path, folder=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episode_plan.md", "notes.txt"]

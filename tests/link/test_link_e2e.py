@@ -127,6 +127,24 @@ def test_record_over_serial_to_sim_robot_matches_the_model(tmp_path, profile_fil
     assert log.count("STOP received") == 2 and log.count("HELLO: session started") == 2
 
 
+def test_record_force_replaces_a_former_run_with_its_event_log(tmp_path, profile_file,
+                                                               capsys):
+    # --force replaced the CSV and sidecar but left the former run's REC.shadow.jsonl, which
+    # export and a replay then took for the new run's
+    out = tmp_path / "run.csv"
+    out.write_text("t_s\n0\n")
+    stale = tmp_path / "run.shadow.jsonl"
+    stale.write_text('{"event": "start", "t_s": null, "mode": "record"}\n')
+    with spawn_sim_robot("--serial") as sim:
+        args = ["record", "--port", sim.path, "--profile", str(profile_file), "--out", str(out),
+                "--no-progress"]
+        assert main(args) == 1  # refused: a recording is there
+        assert "already there" in capsys.readouterr().err and stale.exists()
+        assert main([*args, "--force"]) == 0
+    assert not stale.exists()
+    assert json.loads(out.with_suffix(".json").read_text())["end_reason"] == "completed"
+
+
 def test_record_over_slcan_to_sim_robot_in_another_process(tmp_path, profile_file):
     out = tmp_path / "can.csv"
     with spawn_sim_robot("--slcan") as sim:

@@ -55,8 +55,9 @@ def test_replay_nominal_exits_0_with_null_first_alarm(runs, tmp_path):
 
 
 def test_replay_never_replaces_a_live_runs_event_log(runs, tmp_path):
-    # the alarms of a live run (record --shadow) were seen once: a replay beside it refuses
-    # to write over them; a replay's own log is replaced by the next replay
+    # the alarms of a live run (record --shadow) were seen once: a replay beside it writes its
+    # own log as run.replay.jsonl (the README's record --shadow then shadow --replay), and
+    # refuses an --events that names the live one; a replay's own log is replaced by the next
     faulty, _ = runs
     rec = tmp_path / "run.csv"
     rec.write_bytes(faulty.read_bytes())
@@ -66,11 +67,14 @@ def test_replay_never_replaces_a_live_runs_event_log(runs, tmp_path):
                     + "\n")
     before = live.read_bytes()
     r = cli("shadow", "--replay", rec, "--noise-rpm", "1.0")
-    assert r.returncode == 1 and r.stderr.count("\n") == 1
-    assert "event log of a live run (record)" in r.stderr and "--events" in r.stderr
+    assert r.returncode == 3, r.stderr
+    assert "run.replay.jsonl (the live run's run.shadow.jsonl is kept)" in r.stdout
     assert live.read_bytes() == before
+    assert '"mode": "replay"' in (tmp_path / "run.replay.jsonl").read_text()
     r = cli("shadow", "--replay", rec, "--noise-rpm", "1.0", "--events", live)
-    assert r.returncode == 1 and live.read_bytes() == before
+    assert r.returncode == 1 and r.stderr.count("\n") == 1
+    assert "event log of a live run (record)" in r.stderr
+    assert live.read_bytes() == before
     mine = tmp_path / "replay.jsonl"
     assert cli("shadow", "--replay", rec, "--events", mine).returncode == 3
     assert cli("shadow", "--replay", rec, "--events", mine).returncode == 3  # replaced

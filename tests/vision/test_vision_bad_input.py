@@ -115,6 +115,20 @@ def test_an_mp4_cut_at_its_start_warns_that_its_frame_rate_is_a_guess(tmp_path):
     assert np.nanmedian(fixed.recording.wheel_rpm[:, 0]) == pytest.approx(60.0, rel=0.02)
 
 
+def test_the_container_check_takes_every_first_box_ffmpeg_takes(tmp_path):
+    from mecanum_hil.vision.video import container_mismatch
+
+    for box in (b"ftyp", b"pnot", b"wide", b"moov", b"styp", b"moof", b"uuid"):
+        (tmp_path / "a.mov").write_bytes(b"\x00\x00\x00\x14" + box + b"\x00" * 24)
+        assert container_mismatch(tmp_path / "a.mov") is None, box
+    (tmp_path / "a.mp4").write_bytes(b"\x00\x00\x01\xb0\x01\x00\x00\x01\xb5" + b"\x00" * 8)
+    assert container_mismatch(tmp_path / "a.mp4") == "an MP4/QuickTime file"
+    (tmp_path / "a.avi").write_bytes(b"RIFF\x00\x00\x00\x00AVI LIST")
+    (tmp_path / "a.webm").write_bytes(b"\x1a\x45\xdf\xa3\x00\x00\x00\x00")
+    assert container_mismatch(tmp_path / "a.avi") is None
+    assert container_mismatch(tmp_path / "a.webm") is None
+
+
 def test_no_marker(tmp_path, capsys):
     path = tmp_path / "grey.avi"
     with VideoWriter(path, 30.0, (160, 120)) as w:
