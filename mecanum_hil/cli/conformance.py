@@ -18,6 +18,7 @@ from ._options import (
     PortOpt,
     RobotOpt,
     TransportOpt,
+    require_writable,
 )
 
 
@@ -57,6 +58,7 @@ def command(
     names = select_rules(rule or [])
     if not names:
         raise ConfigError(f"no rule matches {rule} (see --list)")
+    require_writable((json_out, "--json"))  # before the suite runs, not after
     rob = load_robot_profile(robot)
     options = transport_options(transport, port=port, interface=interface, channel=channel,
                                 bitrate=bitrate, link_options=link_option)
