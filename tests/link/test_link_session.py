@@ -151,7 +151,12 @@ def test_a_slow_observer_never_delays_the_commands(pty_pair, scripted, host_seri
     assert res.reason == "completed"
     rec = read_recording(tmp_path / "r.csv")
     sent_at = rec.t_s[_rows(rec, "cmd")]
-    assert np.abs(sent_at - t).max() < 0.015  # on schedule despite the observer
+    # the observer runs on a thread of its own, never the one that sends the commands
+    assert obs.thread is not None and obs.thread is not threading.current_thread()
+    # on schedule despite the observer: had the commands waited for it (60 samples at 12 ms
+    # in a 0.5 s run) the last ones would be 0.2 s late or more; the 15 ms allowed before
+    # measured the machine's own scheduling as much (a busy CI machine missed it)
+    assert np.abs(sent_at - t).max() < 0.1
     assert len(obs.seen) + res.observer_dropped <= res.telemetry_received
 
 
