@@ -136,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     click_error, no_args_error = _click_exceptions()
     args = fill_optional_values(sys.argv[1:] if argv is None else list(argv))
     debug = "--debug" in args
+    previous = _terminate_as_exception()
     try:
         with warnings.catch_warnings():
             # what was done to the data (time repaired on reading ...): one line each, always
@@ -178,6 +179,46 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except Exception as err:  # a bug: still one line, the traceback behind --debug
         return _internal_error(err, debug)
+    finally:
+        _restore_handlers(previous)
+
+
+def _terminate_as_exception() -> dict:
+    """SIGTERM and SIGHUP (a closed terminal) raise :class:`SessionTerminated` in the main
+    thread, as Ctrl-C raises KeyboardInterrupt: the ``finally`` clauses that remove a
+    temporary file, keep a previous output or close a cluster run (the default handlers end
+    the process where it stands, leaving ``.tmp`` files and truncated videos). ``record``
+    installs its own, which send STOP. Returns the handlers replaced."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+
+    def terminate(signum, frame):
+        raise SessionTerminated()
+
+    previous = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is None:
+            continue
+        try:
+            if signal.getsignal(sig) in (signal.SIG_DFL, None):
+                previous[sig] = signal.signal(sig, terminate)
+        except (OSError, ValueError):
+            pass
+    return previous
+
+
+def _restore_handlers(previous: dict) -> None:
+    import signal
+
+    for sig, handler in previous.items():
+        try:
+            signal.signal(sig, handler)
+        except (OSError, ValueError):
+            pass
 
 
 def _click_exceptions() -> tuple[type[Exception], type[Exception]]:

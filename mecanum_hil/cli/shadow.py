@@ -153,7 +153,7 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
             target = path.with_name(path.stem + REPLAY_LOG_SUFFIX)
         try:
             log = EventLog(target, cal, config,
-                           {"mode": "replay", "recording": str(path)})
+                           {"mode": "replay", "recording": str(path)}, whole=True)
         except MecanumHILError as err:
             if events is not None:
                 raise
@@ -163,9 +163,12 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
         listeners.insert(0, log)
     try:
         result = replay(rec, cal, rob, config, listeners=listeners, source=str(path))
-    finally:
-        if log is not None:
-            log.close()
+    except BaseException:
+        if log is not None:  # interrupted or failed: the previous log stays
+            log.discard()
+        raise
+    if log is not None:
+        log.close()
     measured = dict(zip(CHANNELS, [*np.isfinite(rec.wheel_rpm).any(axis=0),
                                     *np.isfinite(rec.pose).any(axis=0)], strict=True))
     if result.noise and not any(measured.get(ch, False) for ch in result.noise):

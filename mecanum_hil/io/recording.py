@@ -512,6 +512,9 @@ def write_recording(rec: Recording, path: str | Path) -> Path:
         _remove(tmp, side_tmp)
         where = side if err.filename in (str(side), str(side_tmp)) else p
         raise RecordingError(f"{where}: cannot write: {err.strerror or err}") from err
+    except BaseException:  # Ctrl-C, SIGTERM: the previous file stays, no .tmp beside it
+        _remove(tmp, side_tmp)
+        raise
     return p
 
 

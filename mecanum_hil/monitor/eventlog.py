@@ -10,6 +10,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -77,14 +78,21 @@ class EventLog:
         Written into the ``start`` line.
     header : Mapping, optional
         More fields for the ``start`` line (recording, mode, ...).
+    whole : bool
+        Write to a temporary file put in place by :meth:`close` (a replay: an interrupted one
+        leaves the previous log, see :meth:`discard`); default: to ``path`` directly, each line
+        flushed as it comes (a live run: what was seen survives a crash).
     """
 
     def __init__(self, path: str | Path, calibration: Calibration, config: ShadowConfig,
-                 header: Mapping[str, Any] | None = None) -> None:
+                 header: Mapping[str, Any] | None = None, whole: bool = False) -> None:
         self.path = Path(path)
+        self._target = self.path.with_name(self.path.name + ".tmp") if whole else self.path
         try:
+            if whole and self.path.is_dir():  # found now, not when the whole log is put there
+                raise IsADirectoryError(21, "Is a directory")
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._fh = self.path.open("w", encoding="utf-8")
+            self._fh = self._target.open("w", encoding="utf-8")
         except OSError as err:
             raise MecanumHILError(
                 f"{self.path}: cannot create the event log: {err.strerror or err}") from err
@@ -121,6 +129,24 @@ class EventLog:
         self.write({"event": "end", "t_s": None, "counts": dict(self.counts),
                     **dict(summary or {})})
         self._fh.close()
+        if self._target != self.path:
+            try:
+                os.replace(self._target, self.path)
+            except OSError as err:
+                self.discard()
+                raise MecanumHILError(f"{self.path}: cannot write the event log: "
+                                      f"{err.strerror or err}") from err
+
+    def discard(self) -> None:
+        """Close without an ``end`` line; a log written whole is removed (the previous one at
+        its path stays). For a run that did not finish."""
+        if not self._fh.closed:
+            self._fh.close()
+        if self._target != self.path:
+            try:
+                self._target.unlink(missing_ok=True)
+            except OSError:
+                pass
 
     def __enter__(self) -> EventLog:
         return self

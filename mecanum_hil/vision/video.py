@@ -594,12 +594,18 @@ def fourcc_for(path: str | Path) -> str:
 
 
 class VideoWriter:
-    """Write BGR frames to a video file; the codec follows the extension (:func:`fourcc_for`)."""
+    """Write BGR frames to a video file; the codec follows the extension (:func:`fourcc_for`).
+
+    The frames go to a temporary file beside it (``.NAME.part.EXT``), put in place when the
+    writer is closed normally: a render interrupted (Ctrl-C, SIGTERM) or failing leaves the
+    previous video as it was and no part file, never a shorter video that plays as if whole.
+    """
 
     def __init__(self, path: str | Path, fps: float, size_px: tuple[int, int]) -> None:
         import cv2
 
         self.path = Path(path)
+        self._part = self.path.with_name(f".{self.path.stem}.part{self.path.suffix}")
         fourcc = fourcc_for(self.path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -611,9 +617,10 @@ class VideoWriter:
         # message for the user
         quiet = _stderr_silenced() if fourcc == "VP80" else contextlib.nullcontext()
         with quiet:
-            self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*fourcc),
+            self._writer = cv2.VideoWriter(str(self._part), cv2.VideoWriter_fourcc(*fourcc),
                                            float(fps), (int(size_px[0]), int(size_px[1])))
         if not self._writer.isOpened():
+            self._part.unlink(missing_ok=True)
             raise VideoError(f"{self.path}: OpenCV cannot write {fourcc} video here")
         self.frames = 0
 
@@ -623,11 +630,28 @@ class VideoWriter:
         self.frames += 1
 
     def close(self) -> None:
-        """Finish the file."""
+        """Finish the file and put it in place."""
         self._writer.release()
+        if self._part.exists():
+            try:
+                os.replace(self._part, self.path)
+            except OSError as err:
+                self._part.unlink(missing_ok=True)
+                raise VideoError(f"{self.path}: cannot write: {err.strerror or err}") from err
+
+    def discard(self) -> None:
+        """Stop writing and remove what was written (the previous video, if any, stays)."""
+        self._writer.release()
+        try:
+            self._part.unlink(missing_ok=True)
+        except OSError:
+            pass
 
     def __enter__(self) -> VideoWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.discard()

@@ -170,3 +170,33 @@ def test_a_closed_stderr_keeps_the_exit_code_the_error_line_would_explain():
     # a lost link is exit 4 whether or not its line can be printed (it was Python's 1)
     r = subprocess.run([sys.executable, "-c", _CLOSED_STDERR], capture_output=True, timeout=60)
     assert r.returncode == 4
+
+
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
+def test_a_signal_while_writing_leaves_the_previous_recording_and_no_tmp(tmp_path, signame):
+    # SIGTERM's and SIGHUP's default handlers ended the process where it stood: a 37 MB
+    # big.csv.tmp was left beside the output. Now they unwind like Ctrl-C. Whenever the
+    # signal lands (before, during or after the write), no .tmp is left and the output is
+    # the previous file or the whole new one.
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "big.csv"
+    out.write_text("previous\n")
+    proc = subprocess.Popen([sys.executable, "-m", "mecanum_hil", "simulate", "--profile",
+                             "paper-ramp", "--rate", "20000", "-o", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "big.csv.tmp").exists() and proc.poll() is None \
+            and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(getattr(signal, signame))
+    _, err = proc.communicate(timeout=120)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")) == []
+    if proc.returncode == 0:  # it had finished
+        assert len(read_recording(out)) == 600001
+    else:
+        assert proc.returncode == 143 and err == "error: terminated by a signal\n"
+        assert out.read_text() == "previous\n"
+    assert os.path.exists(out)

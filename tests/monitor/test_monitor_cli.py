@@ -80,6 +80,28 @@ def test_replay_never_replaces_a_live_runs_event_log(runs, tmp_path):
     assert cli("shadow", "--replay", rec, "--events", mine).returncode == 3  # replaced
 
 
+def test_an_interrupted_replay_leaves_the_previous_log(runs, tmp_path, monkeypatch):
+    # Ctrl-C part-way left a log of "start" and a normal "end" (a replay with no alarms, by
+    # the look of it), or a cut one; the previous, whole log was gone
+    from mecanum_hil.cli import main
+    from mecanum_hil.monitor import core
+
+    faulty, _ = runs
+    rec = tmp_path / "run.csv"
+    rec.write_bytes(faulty.read_bytes())
+    log = tmp_path / "run.shadow.jsonl"
+    assert main(["shadow", "--replay", str(rec), "--noise-rpm", "1.0"]) == 3
+    before = log.read_bytes()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(core.ShadowMonitor, "run", interrupted)
+    assert main(["shadow", "--replay", str(rec), "--noise-rpm", "1.0"]) == 130
+    assert log.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.csv", "run.shadow.jsonl"]
+
+
 def test_replay_that_compares_nothing_is_an_error_not_all_clear(runs, tmp_path):
     # a noise level given for wheels the recording does not have armed them, and the pose it
     # has never finished its warm-up: "0 alarm(s)" would have read as a robot like its model

@@ -129,6 +129,23 @@ def test_the_container_check_takes_every_first_box_ffmpeg_takes(tmp_path):
     assert container_mismatch(tmp_path / "a.webm") is None
 
 
+def test_an_interrupted_render_leaves_the_previous_video_and_no_part_file(tmp_path):
+    # Ctrl-C part-way replaced a whole video with a shorter one that played as if whole
+    path = tmp_path / "v.mp4"
+    whole = render_video(steady(60.0, 2.0), path)
+    before = path.read_bytes()
+
+    def interrupt(done, total):
+        if done >= 10:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        render_video(steady(30.0, 4.0), path, progress=interrupt)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.mp4"]
+    assert whole.frame_t_s.size > 10
+
+
 def test_no_marker(tmp_path, capsys):
     path = tmp_path / "grey.avi"
     with VideoWriter(path, 30.0, (160, 120)) as w:
