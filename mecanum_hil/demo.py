@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import LinkError
+from .errors import LinkError, SessionTerminated
 from .io.recording import empty_like_times, read_recording, write_recording
 from .model import load_calibration, load_robot_profile
 from .plots import plot_recordings
@@ -76,6 +76,16 @@ def _model_stage(out: Path, echo) -> None:
     echo(f"   {len(PAPER_EXPERIMENTS)} experiments predicted -> {out / 'model'}")
 
 
+def _interrupted(result) -> None:
+    """A record session that Ctrl-C or a signal ended (it sent STOP and closed its recording)
+    ends the demo as it would any command: exit 130 or 143, not a stage's error or a run that
+    goes on to write its report."""
+    if result.reason == "interrupted":
+        raise KeyboardInterrupt
+    if result.reason == "terminated":
+        raise SessionTerminated()
+
+
 def _record_stage(out: Path, names, echo) -> list[Path]:
     from .link.record import format_summary
     from .link.sim_process import record_profile_to_simulated_controller
@@ -88,6 +98,7 @@ def _record_stage(out: Path, names, echo) -> list[Path]:
     for name in names:
         path = out / "recorded" / f"{name}.csv"
         result = record_profile_to_simulated_controller(name, path, effects=truth)
+        _interrupted(result)
         if result.exit_code != 0:
             raise LinkError(f"demo: recording {name} ended with {result.reason}: "
                             f"{result.message or 'see ' + str(path)}")
@@ -139,6 +150,7 @@ def _shadow_stage(out: Path, calibration: Path, echo) -> dict:
     t, cmd = PAPER_EXPERIMENTS[name].sample(50.0)
     obs = record_shadow(calibration, robot, t, cmd, path, on_divergence="stop", echo=echo)
     result = record_profile_to_simulated_controller(name, path, effects=fault, observers=[obs])
+    _interrupted(result)
     echo("   " + obs.close().replace("\n", "\n   "))
     echo(f"   the run ended: {result.reason} (exit code {result.exit_code}) -> {path}")
     return {"reason": result.reason, "path": path}

@@ -200,3 +200,19 @@ def test_a_signal_while_writing_leaves_the_previous_recording_and_no_tmp(tmp_pat
         assert proc.returncode == 143 and err == "error: terminated by a signal\n"
         assert out.read_text() == "previous\n"
     assert os.path.exists(out)
+
+
+@pytest.mark.parametrize("reason, code", [("interrupted", 130), ("terminated", 143)])
+def test_a_demo_whose_recording_was_interrupted_ends_as_the_signal_says(tmp_path, monkeypatch,
+                                                                        capsys, reason, code):
+    # Ctrl-C or SIGTERM during the record stage ended the demo with exit 1 ("recording ...
+    # ended with terminated"), and during the shadow stage it went on and exited 0
+    from types import SimpleNamespace
+
+    from mecanum_hil.cli import main
+    from mecanum_hil.link import sim_process
+
+    monkeypatch.setattr(sim_process, "record_profile_to_simulated_controller",
+                        lambda *a, **k: SimpleNamespace(reason=reason, exit_code=code))
+    assert main(["demo", "--quick", "--out", str(tmp_path / "d")]) == code
+    assert not (tmp_path / "d" / "REPORT.md").exists()
