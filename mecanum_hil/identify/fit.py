@@ -1064,8 +1064,12 @@ def _solver(calibration: Calibration, live: Sequence[str], pose: bool):
     def solve(problem, x0, lo, hi, max_nfev):
         from scipy.optimize import least_squares
 
-        return least_squares(problem.fun, x0, jac=problem.jac, bounds=(lo, hi), x_scale="jac",
-                             method="trf", max_nfev=max_nfev)
+        # a trial step far out (a candidate's corner) overflows in the trust region's own
+        # arithmetic, which refuses that step and shrinks the region: scipy's warning about
+        # it is not the user's (it printed six lines on a diagnose of a campaign)
+        with np.errstate(over="ignore", invalid="ignore"):
+            return least_squares(problem.fun, x0, jac=problem.jac, bounds=(lo, hi),
+                                 x_scale="jac", method="trf", max_nfev=max_nfev)
     return solve
 
 
