@@ -125,16 +125,19 @@ def require_writable(*outputs: tuple[Path | str | None, str]) -> None:
             check_file_writable(path, f"{option} {path}")
 
 
-def require_positive(value: float | None, option: str, unit: str = "s") -> None:
+def require_positive(value: float | None, option: str, unit: str = "s",
+                     or_zero: bool = False) -> None:
     """One-line error unless ``value`` (an option's, ``None`` when not given) is a finite
-    number > 0: NaN passes every comparison (``--link-timeout nan`` switched lost-link
-    detection off) and 0 or a negative time makes no sense."""
+    number > 0 (>= 0 with ``or_zero``): NaN passes every comparison (``--link-timeout nan``
+    switched lost-link detection off) and 0 or a negative time makes no sense."""
     import math
 
     from ..errors import ConfigError
 
-    if value is not None and not (math.isfinite(value) and value > 0):
-        raise ConfigError(f"{option} must be a finite number > 0 [{unit}], got {value:g}")
+    if value is not None and not (math.isfinite(value) and (value >= 0 if or_zero
+                                                             else value > 0)):
+        raise ConfigError(f"{option} must be a finite number {'>=' if or_zero else '>'} 0 "
+                          f"[{unit}], got {value:g}")
 
 
 def echo_safely(text: str) -> None:

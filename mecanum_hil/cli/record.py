@@ -34,12 +34,13 @@ def refuse_replacing_recording(out: Path, folder: bool) -> None:
     """One-line error when ``--out`` already holds a recording (a folder of episodes with
     ``folder``): a run on the robot is data recorded once, never replaced by accident."""
     from ..errors import ConfigError
+    from ..io.recording import sidecar_path
     from ..monitor.eventlog import event_log_path
 
     if folder:
         taken = out.is_dir() and any(out.iterdir())
     else:
-        taken = any(p.exists() for p in (out, out.with_suffix(".json"), event_log_path(out)))
+        taken = any(p.exists() for p in (out, sidecar_path(out), event_log_path(out)))
     if taken:
         raise ConfigError(f"{out}: {'a folder with recordings' if folder else 'a recording'} "
                           "is already there (a run made before?): record does not replace it; "

@@ -11,7 +11,14 @@ from typing import Annotated
 
 import typer
 
-from ._options import CalibrationOpt, FoxgloveOpt, JsonOpt, RobotOpt, refuse_overwriting
+from ._options import (
+    CalibrationOpt,
+    FoxgloveOpt,
+    JsonOpt,
+    RobotOpt,
+    refuse_overwriting,
+    require_positive,
+)
 
 #: Exit code when the monitor raised at least one alarm.
 EXIT_ALARM = 3
@@ -25,18 +32,12 @@ REPLAY_LOG_SUFFIX = ".replay.jsonl"
 def build_config(noise_rpm: float | None, drift: float, threshold: float, warmup_s: float):
     """The monitor settings from the command-line options (shared with ``record --shadow``);
     a value that makes no sense is refused naming its option."""
-    import math
-
-    from ..errors import ConfigError
     from ..monitor import ShadowConfig
 
-    for option, value, zero_ok in (("--noise-rpm", noise_rpm, False), ("--drift", drift, True),
-                                   ("--threshold", threshold, False),
-                                   ("--warmup", warmup_s, True)):
-        if value is not None and not (math.isfinite(value)
-                                      and (value >= 0 if zero_ok else value > 0)):
-            raise ConfigError(f"{option} must be a finite number {'>=' if zero_ok else '>'} 0, "
-                              f"got {value:g}")
+    require_positive(noise_rpm, "--noise-rpm", "rpm")
+    require_positive(drift, "--drift", "noise sigmas", or_zero=True)
+    require_positive(threshold, "--threshold", "noise sigmas")
+    require_positive(warmup_s, "--warmup", "s", or_zero=True)
     return ShadowConfig(drift_k=drift, threshold_h=threshold, warmup_s=warmup_s,
                         noise_rpm=noise_rpm)
 
@@ -124,13 +125,11 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
             events: Path | None, no_events: bool, plot: Path | None) -> int:
     import json
 
-    import numpy as np
-
     from ..errors import MecanumHILError
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile
     from ..monitor import replay
-    from ..monitor.core import CHANNELS
+    from ..monitor.core import nothing_compared
     from ..monitor.eventlog import EventLog, alarm_line, event_log_path, written_by
 
     rob = load_robot_profile(robot)
@@ -169,22 +168,9 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
         raise
     if log is not None:
         log.close()
-    measured = dict(zip(CHANNELS, [*np.isfinite(rec.wheel_rpm).any(axis=0),
-                                    *np.isfinite(rec.pose).any(axis=0)], strict=True))
-    if result.noise and not any(measured.get(ch, False) for ch in result.noise):
-        # armed only where nothing was measured (a noise level given for empty wheels)
-        raise MecanumHILError(
-            f"{path}: nothing was compared: the monitor was armed on "
-            f"{', '.join(result.noise)}, which have no measurements, and the measured "
-            f"channels ({', '.join(ch for ch, m in measured.items() if m)}) never finished "
-            "their warm-up")
-    if not result.noise and result.samples:
-        # nothing was checked: "0 alarms" would read as a robot that matched its model
-        raise MecanumHILError(
-            f"{path}: the monitor never armed: its warm-up (at least {config.warmup_s:g} s and "
-            f"{config.min_warmup_samples} samples of each channel) did not complete, so no "
-            "divergence could be flagged; give the noise level with --noise-rpm, or a longer "
-            "recording")
+    why = nothing_compared(result, rec, config)
+    if why is not None:  # "0 alarms" would read as a robot that matched its model
+        raise MecanumHILError(f"{path}: {why}")
     if json_out:
         typer.echo(json.dumps(result.summary()))
     else:

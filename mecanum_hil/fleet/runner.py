@@ -304,7 +304,7 @@ def check_out(out: Path) -> None:
     if out.is_dir():
         raise ConfigError(f"{out}: --out is a folder; give the results table's file name "
                           "(.parquet or .csv)")
-    check_folder_writable(out.parent if str(out.parent) else Path("."), f"--out {out}")
+    check_folder_writable(out.parent, f"--out {out}")
 
 
 def check_write_to(write_to: str | None) -> None:

@@ -461,6 +461,34 @@ class ShadowResult:
                 "first_alarm_t_s": self.first_alarm_t_s}
 
 
+def nothing_compared(result: ShadowResult, rec: Recording, config: ShadowConfig) -> str | None:
+    """Why a replay's "no alarm" says nothing of the robot: the monitor armed only on channels
+    without measurements (a noise level given for empty wheels), or never armed (its warm-up
+    did not complete); ``None`` when something was compared.
+
+    Parameters
+    ----------
+    result : ShadowResult
+        The replay of ``rec``.
+    rec : Recording
+    config : ShadowConfig
+        The settings of the replay (its warm-up, for the message).
+    """
+    measured = dict(zip(CHANNELS, [*np.isfinite(rec.wheel_rpm).any(axis=0),
+                                    *np.isfinite(rec.pose).any(axis=0)], strict=True))
+    if result.noise and not any(measured.get(ch, False) for ch in result.noise):
+        return (f"nothing was compared: the monitor was armed on {', '.join(result.noise)}, "
+                "which have no measurements, and the measured channels "
+                f"({', '.join(ch for ch, m in measured.items() if m)}) never finished their "
+                "warm-up")
+    if not result.noise and result.samples:
+        return (f"the monitor never armed: its warm-up (at least {config.warmup_s:g} s and "
+                f"{config.min_warmup_samples} samples of each channel) did not complete, so no "
+                "divergence could be flagged; give the noise level with --noise-rpm, or a "
+                "longer recording")
+    return None
+
+
 def recording_rows(rec: Recording) -> np.ndarray:
     """A recording as the monitor's sample rows ``(t, n, omega, theta, w1..w4, x, y, phi)``."""
     return np.column_stack([rec.t_s, rec.commands, rec.wheel_rpm, rec.pose])
