@@ -60,6 +60,7 @@ def command(
 
     from ..errors import ConfigError
     from ..identify.campaign import SHORT_CAMPAIGN, campaign_profiles, paper_campaign
+    from ..io.paths import staged_folder
     from ..io.recording import write_recording
     from ..link.effects_file import load_sim_effects
     from ..model import load_calibration, load_robot_profile
@@ -90,15 +91,18 @@ def command(
                           telemetry_rate_hz=telemetry_rate_hz, pose_noise=noise, seed=seed,
                           profiles=profiles, retime=False)
     files = []
-    for rec in recs:
-        name = str(rec.metadata["profile"])
-        # as record writes them: the truth stays in the effects file, not in the recordings
-        meta = {k: v for k, v in rec.metadata.items() if not k.startswith("true_")}
-        files.append(write_recording(rec.with_values(metadata=meta), out / f"{name}.csv"))
-        if not json_out:
+    with staged_folder(out) as stage:  # a campaign cut short leaves none of its recordings
+        for rec in recs:
+            name = str(rec.metadata["profile"])
+            # as record writes them: the truth stays in the effects file, not in the recordings
+            meta = {k: v for k, v in rec.metadata.items() if not k.startswith("true_")}
+            write_recording(rec.with_values(metadata=meta), stage / f"{name}.csv")
+            files.append(out / f"{name}.csv")
+    if not json_out:
+        for rec, path in zip(recs, files, strict=True):
             tlm = sum(1 for e in rec.extra["event"] if e == "tlm")
-            typer.echo(f"{name:18s} {rec.t_s[-1]:6.1f} s, {tlm:5d} telemetry samples -> "
-                       f"{files[-1]}")
+            typer.echo(f"{rec.metadata['profile']!s:18s} {rec.t_s[-1]:6.1f} s, {tlm:5d} "
+                       f"telemetry samples -> {path}")
     if json_out:
         typer.echo(json.dumps({"recordings": [str(f) for f in files],
                                "effects": str(effects) if effects else None}))

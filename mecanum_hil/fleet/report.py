@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigError
+from ..io.paths import staged_folder
 from .results import add_drift
 
 _COEFFS = (("A", "1/s"), ("B", "1/s"), ("C", "1/s^2"))
@@ -149,6 +150,14 @@ def write_report(rows: Sequence[Mapping[str, Any]], out_dir: str | Path,
     except OSError as err:  # a file of that name (FileExistsError), no permission ...
         raise ConfigError(f"{out}: cannot make the report folder: "
                           f"{err.strerror or err}") from err
+    with staged_folder(out, last=("summary.md",)) as stage:  # seen whole or not at all
+        written = _write_files(rows, stage, source, min_relative)
+    return {key: out / p.name for key, p in written.items()}
+
+
+def _write_files(rows: Sequence[Mapping[str, Any]], out: Path, source: str,
+                 min_relative: float | None) -> dict[str, Path]:
+    """The report's files, written into ``out`` (the staging folder)."""
     table = add_drift(rows, min_relative) if min_relative is not None else \
         sorted(rows, key=lambda r: (r["group"] or "", r["period"] or ""))
     written: dict[str, Path] = {}

@@ -5,12 +5,20 @@ its time; an output written before a second one fails leaves half a result. The 
 missing folders, so the check is made where the file will go or in the nearest folder above it
 that exists, by making (and removing) a temporary file there: permissions alone say too little
 (root, read-only mounts, ``/proc``).
+
+An output is also only ever seen whole: :func:`replaced_when_whole` writes a file beside its
+place and puts it there when it is complete, :func:`staged_folder` does the same for the files
+of a report folder, so Ctrl-C, SIGTERM or an error part-way leaves the previous output as it was
+and nothing half-written.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 from ..errors import ConfigError
@@ -49,3 +57,72 @@ def check_file_writable(path: str | Path, what: str) -> None:
     if p.exists() and (not p.is_file() or os.access(p, os.W_OK)):
         return  # /dev/null, /dev/stdout, a fifo, >(jq .), a file it may write over
     check_folder_writable(p.absolute().parent, what)
+
+
+def part_path(path: str | Path) -> Path:
+    """Where ``path`` is written before it is whole: ``.NAME.part.EXT`` beside it (the
+    extension kept, for writers that choose the format by it)."""
+    p = Path(path)
+    return p.with_name(f".{p.stem}.part{p.suffix}")
+
+
+@contextmanager
+def replaced_when_whole(path: str | Path) -> Iterator[Path]:
+    """Yield the temporary path to write ``path``'s content to; on a normal exit it replaces
+    ``path`` in one step, on any way out (an error, Ctrl-C, SIGTERM raised as an exception) it
+    is removed and ``path`` stays as it was.
+
+    Parameters
+    ----------
+    path : str or Path
+        The output's final place; its folder must exist. A device or pipe there (``/dev/null``,
+        ``>(cmd)``) is written as it is.
+    """
+    final = Path(path)
+    if final.exists() and not final.is_file():  # /dev/null, /dev/stdout, a fifo: as given
+        yield final
+        return
+    tmp = part_path(final)
+    try:
+        yield tmp
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+@contextmanager
+def staged_folder(out: str | Path, last: Sequence[str] = ()) -> Iterator[Path]:
+    """Yield a staging folder inside ``out`` for a report's files; on a normal exit move them
+    into ``out`` (those named in ``last``, the report's index, after the others), on any way
+    out remove them, leaving an earlier report in ``out`` as it was.
+
+    Parameters
+    ----------
+    out : str or Path
+        The report's folder (created where missing).
+    last : sequence of str
+        File names moved last, so that a report's index never points at plots of an older run.
+
+    Notes
+    -----
+    Files of an earlier report that this one does not write are left in place.
+    """
+    folder = Path(out)
+    stage = folder / ".part"
+    if stage.exists():  # a run killed where no handler runs (SIGKILL, power)
+        shutil.rmtree(stage, ignore_errors=True)
+    try:
+        stage.mkdir(parents=True)
+    except OSError as err:
+        raise ConfigError(f"{folder}: cannot write the report there: {err.strerror or err}"
+                          ) from None
+    try:
+        yield stage
+        names = sorted(p.name for p in stage.iterdir())
+        for name in [n for n in names if n not in last] + [n for n in names if n in last]:
+            os.replace(stage / name, folder / name)
+        stage.rmdir()
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise

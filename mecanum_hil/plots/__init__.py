@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import MecanumHILError
+from ..io.paths import replaced_when_whole
 from ..io.recording import Recording
 
 
@@ -27,7 +28,8 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     p = Path(path)
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(p, dpi=dpi)
+        with replaced_when_whole(p) as tmp:  # Ctrl-C leaves the previous plot, not half one
+            fig.savefig(tmp, dpi=dpi, format=p.suffix.lstrip(".").lower() or "png")
     except OSError as err:
         raise MecanumHILError(f"{p}: cannot write plot: {err.strerror or err}") from err
     except ValueError as err:  # an extension matplotlib has no writer for

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VideoError
+from ..io.paths import part_path
 
 #: Codec chosen by file extension; all write and read back with opencv-python-headless. H.264
 #: (``avc1``) has no encoder in the headless wheel; VP8 (``.webm``) is the H.264-like codec it
@@ -605,7 +606,7 @@ class VideoWriter:
         import cv2
 
         self.path = Path(path)
-        self._part = self.path.with_name(f".{self.path.stem}.part{self.path.suffix}")
+        self._part = part_path(self.path)
         fourcc = fourcc_for(self.path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)

@@ -62,3 +62,28 @@ def test_bad_input_is_one_line(tmp_path, args, message):
     assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1, r.stderr
     assert message in r.stderr
     assert not (tmp_path / "c").exists()
+
+
+def test_a_campaign_cut_short_leaves_none_of_its_recordings(tmp_path, monkeypatch):
+    # a folder with some of the campaign's recordings looks like a smaller finished campaign
+    # (fit and diagnose take it as one) and refuses the re-run
+    import mecanum_hil.io.recording as recording
+    from mecanum_hil.cli import main
+
+    real, calls = recording.write_recording, []
+
+    def write_then_interrupt(rec, path):
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(rec, path)
+
+    monkeypatch.setattr(recording, "write_recording", write_then_interrupt)
+    camp = tmp_path / "camp"
+    argv = ["campaign", "--profile", "paper-turn", "--profile", "paper-ramp", "--out", str(camp)]
+    assert main(argv) == 130
+    assert len(calls) == 2 and list(camp.iterdir()) == []
+    monkeypatch.setattr(recording, "write_recording", real)
+    assert main(argv) == 0  # the re-run is not refused, and writes the whole campaign
+    assert sorted(p.name for p in camp.glob("*.csv")) == ["paper-ramp.csv", "paper-turn.csv"]
+    assert not (camp / ".part").exists()

@@ -105,6 +105,27 @@ def test_fleet_report_joins_one_table_per_period(fit_run, tmp_path, capsys):
     assert "**Drifted: 2 robot(s)**: robot-b, robot-c" in summary
 
 
+def test_fleet_report_cut_short_leaves_the_earlier_report(fit_run, tmp_path, monkeypatch):
+    # an interrupted report over an earlier one must not leave a summary beside newer plots
+    import mecanum_hil.fleet.report as report
+
+    settings, _ = fit_run
+    rows = read_results(settings.out)
+    first = report.write_report(rows, tmp_path / "rep")
+    assert first["summary"] == tmp_path / "rep" / "summary.md" and first["trends"].exists()
+    before = {p.name: p.read_bytes() for p in (tmp_path / "rep").iterdir()}
+    real = report.plot_trends
+
+    def plot_then_interrupt(*args, **kwargs):
+        real(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(report, "plot_trends", plot_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        report.write_report(rows, tmp_path / "rep", source="second")
+    assert {p.name: p.read_bytes() for p in (tmp_path / "rep").iterdir()} == before
+
+
 def test_resume_skips_unchanged_groups_and_reruns_changed_ones(fleet_archive, dask_client,
                                                                tmp_path):
     out = tmp_path / "results.csv"

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import MecanumHILError
+from ...io.paths import staged_folder
 from ...io.recording import Recording
 from ...model.calibration import EFFECTS, Effects, save_calibration
 from ...model.robot import RobotProfile
@@ -214,20 +215,22 @@ def write_report(diagnosis: Diagnosis, recordings: Sequence[Recording], out_dir:
                  robot: RobotProfile | None = None, title: str = "diagnose report") -> Path:
     """Write ``report.md`` and its PNG plots into ``out_dir``; return the markdown's path."""
     rob = robot or RobotProfile()
-    out = _report_folder(out_dir)
+    folder = _report_folder(out_dir)
     d = diagnosis
     names = list(d.names)
     recordings = [initial_pose_at_rest(r) for r in recordings]
     md = _summary_lines(d, recordings, title)
-    for k, step in enumerate(d.steps, start=1):
-        md += _step_lines(d, k, step, recordings, names, rob, out)
-    for f in d.findings:
-        md += _finding_lines(f)
-    md += _remainder_lines(d)
-    if d.unexplained:
-        md += _unexplained_lines(d, recordings, names, rob, out)
-    md += _step_section(d, recordings, names, rob, out)
-    return _write_markdown(out / "report.md", md)
+    with staged_folder(folder, last=("report.md",)) as out:  # seen whole or not at all
+        for k, step in enumerate(d.steps, start=1):
+            md += _step_lines(d, k, step, recordings, names, rob, out)
+        for f in d.findings:
+            md += _finding_lines(f)
+        md += _remainder_lines(d)
+        if d.unexplained:
+            md += _unexplained_lines(d, recordings, names, rob, out)
+        md += _step_section(d, recordings, names, rob, out)
+        _write_markdown(out / "report.md", md)
+    return folder / "report.md"
 
 
 def _report_folder(out_dir: str | Path) -> Path:
