@@ -100,9 +100,12 @@ def run_shadow(recordings: Sequence[Any], names: Sequence[str], robot, calibrati
                config: dict[str, Any] | None = None) -> tuple[dict[str, Any], list[str]]:
     """``shadow --replay REC --calibration CAL`` on each recording of the group.
 
-    Returns the row fields and the recordings that could not be replayed (``"name: why"``).
+    Returns the row fields and the recordings that could not be replayed or whose replay
+    compared nothing (``"name: why"``, :func:`~mecanum_hil.monitor.core.nothing_compared`): as
+    ``shadow --replay`` refuses them, they are left out, never counted as no alarm.
     """
     from ..monitor import ShadowConfig, replay
+    from ..monitor.core import nothing_compared
 
     cfg = ShadowConfig(**(config or {}))
     alarms = 0
@@ -113,6 +116,10 @@ def run_shadow(recordings: Sequence[Any], names: Sequence[str], robot, calibrati
             res = replay(rec, calibration, robot, cfg, source=name)
         except MecanumHILError as err:
             bad.append(f"{name}: {err}" if name not in str(err) else str(err))
+            continue
+        why = nothing_compared(res, rec, cfg)
+        if why is not None:  # counted as 0 alarms it would read as a robot that matched
+            bad.append(f"{name}: {why}")
             continue
         per[name] = res.summary()
         if res.alarms:

@@ -255,3 +255,20 @@ def test_bad_arguments_are_one_line_errors(fleet_archive, tmp_path, capsys):
     with pytest.raises(ConfigError, match="cannot reach the Dask scheduler"):
         run_batch(BatchSettings("fit", str(fleet_archive), tmp_path / "r.csv",
                                 scheduler="tcp://127.0.0.1:9", connect_timeout_s=1.0))
+
+
+def test_a_replay_that_compared_nothing_is_left_out_not_counted_as_no_alarm(fit_run,
+                                                                           fleet_archive):
+    # shadow --replay refuses such a replay (exit 1); the batch's "0 alarms" would read as a
+    # robot that matched its model
+    from mecanum_hil.fleet import stages
+    from mecanum_hil.io.recording import read_recording
+    from mecanum_hil.model import RobotProfile, load_calibration
+
+    settings, _ = fit_run
+    cal = load_calibration(settings.write_to + f"/robot-a/{W1}.toml")
+    whole = read_recording(next((fleet_archive / "robot-a" / "w1").glob("*.csv")))
+    short = whole.select(whole.t_s < 1.0)  # shorter than the monitor's warm-up
+    row, bad = stages.run_shadow([whole, short], ["whole.csv", "short.csv"], RobotProfile(), cal)
+    assert list(row["details"]["replays"]) == ["whole.csv"]
+    assert len(bad) == 1 and bad[0].startswith("short.csv: the monitor never armed"), bad
