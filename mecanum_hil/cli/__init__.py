@@ -5,6 +5,7 @@ python-can, matplotlib) happen inside the command functions, so ``--help`` stays
 """
 
 
+import functools
 import inspect
 import sys
 import warnings
@@ -80,8 +81,26 @@ def build_app(names=None, *, listing: bool = False) -> typer.Typer:
         if listing:
             application.command(name, help=inspect.getdoc(_COMMANDS[name]))(_listed)
         else:
-            application.command(name)(_COMMANDS[name])
+            application.command(name)(_interrupt_passes_typer(_COMMANDS[name]))
     return application
+
+
+class _Interrupted(BaseException):
+    """Ctrl-C in a command, carried past typer (which turns KeyboardInterrupt into a silent
+    exit 130) to :func:`main`, which says so in one line."""
+
+
+def _interrupt_passes_typer(fn):
+    """``fn`` with a Ctrl-C it did not handle raised as :class:`_Interrupted` (its ``finally``
+    clauses have run by then); a command that handles Ctrl-C itself and says how the run
+    ended (``record``) exits 130 through ``typer.Exit`` as before."""
+    @functools.wraps(fn)
+    def command(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt as err:
+            raise _Interrupted() from err
+    return command
 
 
 def _listed() -> None:
@@ -166,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         _say(f"error: {err}")
         return err.exit_code
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, _Interrupted):
         _say("error: interrupted")
         return 130
     except SessionTerminated as err:

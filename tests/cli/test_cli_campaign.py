@@ -64,7 +64,7 @@ def test_bad_input_is_one_line(tmp_path, args, message):
     assert not (tmp_path / "c").exists()
 
 
-def test_a_campaign_cut_short_leaves_none_of_its_recordings(tmp_path, monkeypatch):
+def test_a_campaign_cut_short_leaves_none_of_its_recordings(tmp_path, monkeypatch, capsys):
     # a folder with some of the campaign's recordings looks like a smaller finished campaign
     # (fit and diagnose take it as one) and refuses the re-run
     import mecanum_hil.io.recording as recording
@@ -82,6 +82,8 @@ def test_a_campaign_cut_short_leaves_none_of_its_recordings(tmp_path, monkeypatc
     camp = tmp_path / "camp"
     argv = ["campaign", "--profile", "paper-turn", "--profile", "paper-ramp", "--out", str(camp)]
     assert main(argv) == 130
+    # said in one line (typer turned Ctrl-C into a silent exit 130)
+    assert capsys.readouterr().err == "error: interrupted\n"
     assert len(calls) == 2 and list(camp.iterdir()) == []
     monkeypatch.setattr(recording, "write_recording", real)
     assert main(argv) == 0  # the re-run is not refused, and writes the whole campaign
