@@ -18,6 +18,7 @@ from ._options import (
     PortOpt,
     RobotOpt,
     TransportOpt,
+    require_positive,
     require_writable,
 )
 
@@ -41,6 +42,10 @@ def command(
     ] = None,
     list_rules: Annotated[bool, typer.Option(
         "--list", help="List the rules and exit.")] = False,
+    answer_timeout: Annotated[float, typer.Option(
+        "--answer-timeout", metavar="S", help="How long an answer (HELLO_ACK, ERROR, PONG, an "
+        "acknowledging sample) may take [s]; the rules that check that nothing answers wait "
+        "as long. More for a controller behind a slow adapter or on a loaded host.")] = 0.3,
 ) -> None:
     """Drive a controller through every rule of the protocol and report pass/fail per rule."""
     import json
@@ -55,6 +60,7 @@ def command(
         for name, (_, text) in RULES.items():
             typer.echo(f"{name:<22} {text}")
         return
+    require_positive(answer_timeout, "--answer-timeout")
     names = select_rules(rule or [])
     if not names:
         raise ConfigError(f"no rule matches {rule} (see --list)")
@@ -66,7 +72,7 @@ def command(
     quiet = json_out == "-"
     try:
         report = run_conformance(
-            link, rob, rules=names, estop_pressed=estop_pressed,
+            link, rob, rules=names, estop_pressed=estop_pressed, answer_s=answer_timeout,
             progress=None if quiet else (lambda r: print(
                 f"  {r.outcome:<4}  {r.rule}", file=sys.stderr, flush=True)))
     finally:

@@ -137,14 +137,18 @@ class Probe:
         The robot's geometry (``k``, for commands that need a given wheel speed).
     estop_pressed : bool
         The operator pressed the e-stop before the run (enables the ``estop.*`` rules).
+    answer_s : float
+        How long an answer may take [s] (default :data:`ANSWER_S`); the rules that check
+        that nothing answers wait this long too.
     """
 
     def __init__(self, transport: Transport, robot: RobotProfile,
-                 estop_pressed: bool = False) -> None:
+                 estop_pressed: bool = False, answer_s: float = ANSWER_S) -> None:
         self.tr = transport
         transport.set_role("host")
         self.robot = robot
         self.estop_pressed = estop_pressed
+        self.answer_s = float(answer_s)
         self.ack: HelloAck | None = None
         self.can = transport.seq_modulus == 256
 
@@ -174,15 +178,30 @@ class Probe:
         return self.tr.send(self.tr.wire_command(n_rpm, omega_dps, theta_deg)
                             if self.can else Command(n_rpm, omega_dps, theta_deg))
 
+    def in_force(self, sent: Message) -> None:
+        """Wait (up to the answer time) for a sample acknowledging ``sent``, so that what
+        follows is judged against it; without telemetry, a moment."""
+        if self.rate > 0:
+            self.telemetry(lambda m: m.ack_seq == sent.seq)
+        else:
+            self.listen(0.01)
+
     # -- receiving ---------------------------------------------------------------------------
     def listen(self, duration_s: float, keep: Callable[[], Message | None] | None = None,
-               every_s: float = 0.02) -> list[tuple[float, Message]]:
+               every_s: float = 0.02, until: Callable[[Message], bool] | None = None,
+               at_least_s: float = 0.0) -> list[tuple[float, Message]]:
         """Everything received for ``duration_s`` [s], with its host time; ``keep()`` is sent
-        every ``every_s`` [s] meanwhile (a command stream, heartbeats)."""
+        every ``every_s`` [s] meanwhile (a command stream, heartbeats). With ``until``, the
+        listening ends earlier, once a message for which it holds has come and ``at_least_s``
+        [s] have passed."""
         out: list[tuple[float, Message]] = []
-        end = time.monotonic() + duration_s
-        next_send = time.monotonic()
+        start = time.monotonic()
+        end = start + duration_s
+        next_send = start
         while (now := time.monotonic()) < end:
+            if until is not None and now - start >= at_least_s \
+                    and any(until(m) for _, m in out):
+                break
             if keep is not None and now >= next_send:
                 msg = keep()
                 if msg is not None:
@@ -194,11 +213,12 @@ class Probe:
                 out.append((time.monotonic(), msg))
         return out
 
-    def wait(self, predicate: Callable[[Message], bool], timeout_s: float = ANSWER_S,
+    def wait(self, predicate: Callable[[Message], bool], timeout_s: float | None = None,
              keep: Callable[[], Message | None] | None = None, every_s: float = 0.02
              ) -> Message | None:
-        """The first message for which ``predicate`` holds within ``timeout_s`` [s]."""
-        end = time.monotonic() + timeout_s
+        """The first message for which ``predicate`` holds within ``timeout_s`` [s] (default:
+        the answer time)."""
+        end = time.monotonic() + (self.answer_s if timeout_s is None else timeout_s)
         next_send = time.monotonic()
         while (now := time.monotonic()) < end:
             if keep is not None and now >= next_send:
@@ -213,7 +233,7 @@ class Probe:
         return None
 
     def telemetry(self, predicate: Callable[[Telemetry], bool] = lambda m: True,
-                  timeout_s: float = ANSWER_S, **kw) -> Telemetry | None:
+                  timeout_s: float | None = None, **kw) -> Telemetry | None:
         """The first telemetry sample for which ``predicate`` holds."""
         return self.wait(lambda m: isinstance(m, Telemetry) and predicate(m), timeout_s, **kw)
 
@@ -305,7 +325,7 @@ def rule_hello_restart(p: Probe) -> str:
     p.hello()
     p.needs_telemetry()
     period_us = 1e6 / p.rate
-    first = p.telemetry(timeout_s=ANSWER_S + 2.0 / p.rate)
+    first = p.telemetry(timeout_s=p.answer_s + 2.0 / p.rate)
     _fail_if(first is None, "no telemetry after HELLO_ACK")
     _fail_if(first.seq != 1, f"first telemetry after HELLO_ACK has seq {first.seq}, must be 1")
     _fail_if(first.time_us > period_us + 2000, f"first telemetry at time_us {first.time_us}: "
@@ -318,7 +338,7 @@ def rule_hello_restart(p: Probe) -> str:
         p.send(Heartbeat())
     p.listen(0.3, keep=lambda: Heartbeat(), every_s=0.05)
     p.hello()
-    again = p.telemetry(timeout_s=ANSWER_S + 2.0 / p.rate)
+    again = p.telemetry(timeout_s=p.answer_s + 2.0 / p.rate)
     _fail_if(again is None, "no telemetry after the second HELLO")
     _fail_if(again.ack_seq != 0, f"ack_seq {again.ack_seq} after a second HELLO (stale): must "
              "be 0")
@@ -334,7 +354,8 @@ def rule_hello_version(p: Probe) -> str:
     for version in (PROTOCOL_VERSION - 1, PROTOCOL_VERSION + 1):
         p.tr.restart_sequences()
         p.send(Hello(version))
-        msgs = p.drain(ANSWER_S)
+        msgs = [m for _, m in p.listen(p.answer_s, until=lambda m: isinstance(m, ErrorMsg),
+                                       at_least_s=ANSWER_S)]
         errs = p.errors(msgs)
         _fail_if(any(isinstance(m, HelloAck) for m in msgs),
                  f"HELLO of version {version} answered with HELLO_ACK")
@@ -355,7 +376,7 @@ def rule_hello_body(p: Probe) -> str:
         p.raw((0x103, bytes([PROTOCOL_VERSION, 0, 0])))
     else:
         p.raw(p.serial_frame(MsgType.HELLO, b"\x01", seq=0))
-    msgs = p.drain(ANSWER_S)
+    msgs = p.drain(p.answer_s)
     _fail_if(any(isinstance(m, HelloAck) for m in msgs), "a HELLO with a body was answered")
     times = [m.time_us for m in msgs if isinstance(m, Telemetry)]
     _fail_if(any(b < a for a, b in itertools.pairwise(times)),
@@ -399,13 +420,13 @@ def rule_ping(p: Probe) -> str:
     _fail_if(pong is None, "no PONG")
     _fail_if(pong.token != token, f"PONG token {pong.token}, PING's {token}")
     if p.rate > 0:
-        tlm = p.telemetry(timeout_s=ANSWER_S)
+        tlm = p.telemetry(timeout_s=p.answer_s)
         _fail_if(tlm is not None and tlm.ack_seq != fed.seq, "PING moved ack_seq")
     return "PONG with the token; ack_seq unchanged"
 
 
 def _accepts(p: Probe, sent: Command, what: str) -> Telemetry:
-    tlm = p.telemetry(lambda m: m.ack_seq == sent.seq, timeout_s=ANSWER_S)
+    tlm = p.telemetry(lambda m: m.ack_seq == sent.seq, timeout_s=p.answer_s)
     errs = [m for m in p.drain(0.0) if isinstance(m, ErrorMsg)]
     _fail_if(tlm is None, f"{what}: never acknowledged (ack_seq {sent.seq})")
     _fail_if(bool(errs), f"{what}: ERROR {errs[0].code if errs else ''}")
@@ -431,7 +452,9 @@ def rule_command_valid(p: Probe) -> str:
 
 def _refused(p: Probe, send: Callable[[], Any], what: str, base: Command) -> None:
     sent = send()
-    msgs = p.listen(ANSWER_S)
+    # the ERROR within the answer time, and what follows for at least ANSWER_S (telemetry
+    # that must not acknowledge the refused command)
+    msgs = p.listen(p.answer_s, until=lambda m: isinstance(m, ErrorMsg), at_least_s=ANSWER_S)
     errs = p.errors([m for _, m in msgs])
     _fail_if(not errs, f"{what}: no ERROR 2")
     _fail_if(errs[0].code != ErrorCode.BAD_COMMAND, f"{what}: ERROR {errs[0].code}, must be 2")
@@ -441,9 +464,9 @@ def _refused(p: Probe, send: Callable[[], Any], what: str, base: Command) -> Non
             _fail_if(seq is not None and m.ack_seq == seq, f"{what}: acknowledged (ack_seq)")
             _fail_if(max(abs(w) for w in m.wheel_rpm) > p.limit * 1.02,
                      f"{what}: a wheel at {max(abs(w) for w in m.wheel_rpm):.1f} rpm")
-    if p.rate > 0:
-        tlm = [m for _, m in msgs if isinstance(m, Telemetry)]
-        _fail_if(bool(tlm) and tlm[-1].ack_seq != base.seq,
+    tlm = [m for _, m in msgs if isinstance(m, Telemetry)]
+    if p.rate > 0 and tlm:  # (the message is built only where there is a sample to name)
+        _fail_if(tlm[-1].ack_seq != base.seq,
                  f"{what}: ack_seq moved from {base.seq} to {tlm[-1].ack_seq}")
 
 
@@ -459,7 +482,7 @@ def rule_command_non_finite(p: Probe) -> str:
             values = [0.1 * p.limit, 0.0, 90.0]
             values[field_] = bad
             base = p.send(Command(0.1 * p.limit, 0.0, 90.0))
-            p.listen(0.01)
+            p.in_force(base)
             _refused(p, lambda v=tuple(values): p.send(Command(*v)),
                      f"{('n', 'omega', 'theta')[field_]} = {bad}", base)
             cases += 1
@@ -483,7 +506,7 @@ def rule_command_beyond_limit(p: Probe) -> str:
         if _peak(n, w, th, k) <= lim * 1.000001 and abs(th) <= 655.36:
             continue
         base = p.command(0.1 * lim)
-        p.listen(0.01)
+        p.in_force(base)
         _refused(p, lambda c=(n, w, th): p.command(*c), f"({n:g}, {w:g}, {th:g})", base)
         done += 1
     p.end()
@@ -536,7 +559,7 @@ def rule_frame_damaged(p: Probe) -> str:
         p.raw(p.serial_frame(0x7E, b"\x01\x02"))
         p.raw(p.serial_frame(MsgType.COMMAND, cmd, version=PROTOCOL_VERSION - 1))
         what = "garbage, an oversize frame, a bad CRC, an unknown type, a wrong version"
-    msgs = p.drain(ANSWER_S)
+    msgs = p.drain(p.answer_s)
     errs = p.errors(msgs)
     if errs:
         raise RuleFailedError(f"answered damaged frames with ERROR {errs[0].code}")
@@ -838,8 +861,8 @@ def _run_rules(probe: Probe, rules: Sequence[str], results: list,
 
 def run_conformance(transport: Transport, robot: RobotProfile, *,
                     rules: Sequence[str] = (), estop_pressed: bool = False,
-                    progress: Callable[[RuleResult], None] | None = None
-                    ) -> ConformanceReport:
+                    progress: Callable[[RuleResult], None] | None = None,
+                    answer_s: float = ANSWER_S) -> ConformanceReport:
     """Run the rules against the controller at the other end of ``transport``.
 
     Parameters
@@ -854,12 +877,16 @@ def run_conformance(transport: Transport, robot: RobotProfile, *,
         The e-stop was pressed before the run.
     progress : callable, optional
         Called with each result as it comes.
+    answer_s : float
+        How long an answer (HELLO_ACK, ERROR, PONG, an acknowledging sample) may take [s]; the
+        rules that check that nothing answers wait as long. The protocol sets no bound: 0.3 s
+        by default, more for a controller behind a slow adapter or a loaded host.
 
     Returns
     -------
     ConformanceReport
     """
-    probe = Probe(transport, robot, estop_pressed)
+    probe = Probe(transport, robot, estop_pressed, answer_s)
     results: list[RuleResult] = []
     # a signal (SIGTERM, Ctrl-\ ...) unwinds through the rule's STOP below like Ctrl-C,
     # instead of ending the process with the wheels turning
