@@ -96,8 +96,8 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
 
     A wheel whose acceleration towards rest, ``-(c - B y) sign(y)`` with drive output ``c``,
     exceeds ``brake`` [rpm/s] slows at exactly ``brake`` (a drive that coasts instead of
-    braking: slow-decay PWM, a diode bridge). The phase ends when the wheel reaches rest or
-    when the motor's own deceleration has fallen to ``brake``: exactly for a held output
+    braking: fast-decay (coasting) PWM, a diode bridge). The phase ends when the wheel reaches
+    rest or when the motor's own deceleration has fallen to ``brake``: exactly for a held output
     (controller period, no lag), where that deceleration falls at ``B brake``; to first order in
     the piece otherwise (the drive's rate of change at the phase's start). Advances ``y``,
     ``z``, ``dl`` and ``q`` over the phase; returns its length [s] (0 when the limit is not

@@ -76,8 +76,8 @@ class Effects:
     wheel that comes to rest while the drive is below it sticks; with ``braking_limit`` the
     drive slows a turning wheel by at most ``braking_limit_rpm_per_s`` (where the loop asks for
     a steeper deceleration, ``c - B y`` beyond it towards rest, the wheel slows at exactly that
-    rate: a drive that coasts instead of braking, as slow-decay PWM or a bridge without active
-    braking does; acceleration is not limited). ``slip`` scales the body
+    rate: a drive that coasts instead of braking, as fast-decay (coasting) PWM or a bridge
+    without active braking does; acceleration is not limited). ``slip`` scales the body
     twist ``(vx, vy, wz)`` by ``efficiency`` before the pose is integrated; it does not change
     wheel speeds.
 
