@@ -80,6 +80,8 @@ def command(
         + (f", effects {sim_fx.source}" if sim_fx else ""))
     try:
         ctrl.serve(duration_s)
+    except KeyboardInterrupt:
+        pass  # Ctrl-C is how it is stopped (as SIGTERM): a normal end, exit 0
     finally:
         transport.close()
         for fd in keep:

@@ -380,6 +380,7 @@ def plan(settings: BatchSettings,
         key = spec_key(settings.command, g.group, g.period, [f.rel for f in g.files])
         settings_doc = {"command": settings.command, "options": settings.options,
                         "robot": robot_hash, "calibration": cal_hash, "version": __version__,
+                        "stage_revision": stages.REVISIONS.get(settings.command, 1),
                         "write_to": settings.write_to}
         prev = (previous or {}).get(key)
         prev_hash = prev.get("content_hash") if prev and prev.get("status") in (

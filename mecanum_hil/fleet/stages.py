@@ -58,6 +58,13 @@ def _coefficients(cal, ci95: dict[str, tuple[float, float]]) -> dict[str, Any]:
     return row
 
 
+#: Each stage's revision, part of a group's settings hash: raised when what a stage writes for
+#: the same inputs changes, so that a resumed batch runs those groups again instead of keeping
+#: rows the stage no longer writes (shadow 2: a replay that compared nothing is left out, not
+#: counted as 0 alarms).
+REVISIONS = {"fit": 1, "diagnose": 1, "shadow": 2, "measure-video": 1}
+
+
 def run_fit(recordings: Sequence[Any], names: Sequence[str], robot, calibration,
             method: str = "lsq") -> tuple[dict[str, Any], Any]:
     """``mecanum-hil fit`` on one group: the row fields and the fitted calibration."""

@@ -76,19 +76,49 @@ def replaced_when_whole(path: str | Path) -> Iterator[Path]:
     ----------
     path : str or Path
         The output's final place; its folder must exist. A device or pipe there (``/dev/null``,
-        ``>(cmd)``) is written as it is.
+        ``>(cmd)``) is written as it is; a symbolic link, where it points (the link stays); a
+        file's permissions are kept.
     """
     final = Path(path)
     if final.exists() and not final.is_file():  # /dev/null, /dev/stdout, a fifo: as given
         yield final
         return
+    if final.is_symlink():
+        final = final.resolve()
     tmp = part_path(final)
     try:
         yield tmp
+        if final.exists():
+            shutil.copymode(final, tmp)
         os.replace(tmp, final)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+#: A report's staging folder inside its folder: ``.mecanum-hil-PID-XXXX.part``.
+_STAGE_PREFIX, _STAGE_SUFFIX = ".mecanum-hil-", ".part"
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True  # another user's, or not a pid: not ours to judge
+    return True
+
+
+def _clear_dead_stages(folder: Path) -> None:
+    """Remove the staging folders that runs killed where no handler runs (SIGKILL, a power
+    cut) left in ``folder``: only this package's, and only those whose process has ended (a
+    run writing into the same folder keeps its own)."""
+    for stage in folder.glob(f"{_STAGE_PREFIX}*{_STAGE_SUFFIX}"):
+        pid = stage.name[len(_STAGE_PREFIX):].split("-", 1)[0]
+        if stage.is_dir() and not stage.is_symlink() and pid.isdigit() \
+                and not _process_alive(int(pid)):
+            shutil.rmtree(stage, ignore_errors=True)
 
 
 @contextmanager
@@ -104,24 +134,40 @@ def staged_folder(out: str | Path, last: Sequence[str] = ()) -> Iterator[Path]:
     last : sequence of str
         File names moved last, so that a report's index never points at plots of an older run.
 
+    Raises
+    ------
+    ConfigError
+        The folder cannot be made or written, or a folder is in the way of one of the
+        report's files (said before any file is moved).
+
     Notes
     -----
-    Files of an earlier report that this one does not write are left in place.
+    Files of an earlier report that this one does not write are left in place. The staging
+    folder is ``.mecanum-hil-PID-XXXX.part``: two runs into one folder keep theirs apart, and
+    a folder of that form whose process has ended (a run killed by SIGKILL) is removed.
     """
     folder = Path(out)
-    stage = folder / ".part"
-    if stage.exists():  # a run killed where no handler runs (SIGKILL, power)
-        shutil.rmtree(stage, ignore_errors=True)
     try:
-        stage.mkdir(parents=True)
+        folder.mkdir(parents=True, exist_ok=True)
+        _clear_dead_stages(folder)
+        stage = Path(tempfile.mkdtemp(dir=folder, prefix=f"{_STAGE_PREFIX}{os.getpid()}-",
+                                      suffix=_STAGE_SUFFIX))
     except OSError as err:
         raise ConfigError(f"{folder}: cannot write the report there: {err.strerror or err}"
                           ) from None
     try:
         yield stage
         names = sorted(p.name for p in stage.iterdir())
-        for name in [n for n in names if n not in last] + [n for n in names if n in last]:
-            os.replace(stage / name, folder / name)
+        for name in names:
+            there = folder / name
+            if there.is_dir() and not there.is_symlink():
+                raise ConfigError(f"{there}: a folder is in the way of the report's {name}")
+        try:
+            for name in [n for n in names if n not in last] + [n for n in names if n in last]:
+                os.replace(stage / name, folder / name)
+        except OSError as err:
+            raise ConfigError(f"{folder}: cannot put the report in place: "
+                              f"{err.strerror or err}") from None
         stage.rmdir()
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)

@@ -188,20 +188,13 @@ class Probe:
 
     # -- receiving ---------------------------------------------------------------------------
     def listen(self, duration_s: float, keep: Callable[[], Message | None] | None = None,
-               every_s: float = 0.02, until: Callable[[Message], bool] | None = None,
-               at_least_s: float = 0.0) -> list[tuple[float, Message]]:
+               every_s: float = 0.02) -> list[tuple[float, Message]]:
         """Everything received for ``duration_s`` [s], with its host time; ``keep()`` is sent
-        every ``every_s`` [s] meanwhile (a command stream, heartbeats). With ``until``, the
-        listening ends earlier, once a message for which it holds has come and ``at_least_s``
-        [s] have passed."""
+        every ``every_s`` [s] meanwhile (a command stream, heartbeats)."""
         out: list[tuple[float, Message]] = []
-        start = time.monotonic()
-        end = start + duration_s
-        next_send = start
+        end = time.monotonic() + duration_s
+        next_send = time.monotonic()
         while (now := time.monotonic()) < end:
-            if until is not None and now - start >= at_least_s \
-                    and any(until(m) for _, m in out):
-                break
             if keep is not None and now >= next_send:
                 msg = keep()
                 if msg is not None:
@@ -231,6 +224,26 @@ class Probe:
             if msg is not None and predicate(msg):
                 return msg
         return None
+
+    def error_then(self, after_s: float = ANSWER_S
+                   ) -> tuple[list[tuple[float, Message]], float | None]:
+        """Everything received until an ERROR comes (within the answer time) and for
+        ``after_s`` [s] after it (what the controller does once it has refused a frame), with
+        host times; and the ERROR's arrival time (None when none came: then everything of the
+        answer time)."""
+        out: list[tuple[float, Message]] = []
+        end = time.monotonic() + self.answer_s
+        error_at: float | None = None
+        while (now := time.monotonic()) < end:
+            msg = self.tr.recv(end - now)
+            if msg is None:
+                continue
+            at = time.monotonic()
+            out.append((at, msg))
+            if error_at is None and isinstance(msg, ErrorMsg):
+                error_at = at
+                end = at + after_s
+        return out, error_at
 
     def telemetry(self, predicate: Callable[[Telemetry], bool] = lambda m: True,
                   timeout_s: float | None = None, **kw) -> Telemetry | None:
@@ -354,8 +367,7 @@ def rule_hello_version(p: Probe) -> str:
     for version in (PROTOCOL_VERSION - 1, PROTOCOL_VERSION + 1):
         p.tr.restart_sequences()
         p.send(Hello(version))
-        msgs = [m for _, m in p.listen(p.answer_s, until=lambda m: isinstance(m, ErrorMsg),
-                                       at_least_s=ANSWER_S)]
+        msgs = [m for _, m in p.error_then()[0]]
         errs = p.errors(msgs)
         _fail_if(any(isinstance(m, HelloAck) for m in msgs),
                  f"HELLO of version {version} answered with HELLO_ACK")
@@ -452,9 +464,10 @@ def rule_command_valid(p: Probe) -> str:
 
 def _refused(p: Probe, send: Callable[[], Any], what: str, base: Command) -> None:
     sent = send()
-    # the ERROR within the answer time, and what follows for at least ANSWER_S (telemetry
-    # that must not acknowledge the refused command)
-    msgs = p.listen(p.answer_s, until=lambda m: isinstance(m, ErrorMsg), at_least_s=ANSWER_S)
+    # the ERROR within the answer time, then ANSWER_S of what the controller does after it:
+    # its samples must not acknowledge the refused command, nor drive beyond the limit
+    after_s = max(ANSWER_S, 2.0 / p.rate) if p.rate > 0 else ANSWER_S
+    msgs, error_at = p.error_then(after_s)
     errs = p.errors([m for _, m in msgs])
     _fail_if(not errs, f"{what}: no ERROR 2")
     _fail_if(errs[0].code != ErrorCode.BAD_COMMAND, f"{what}: ERROR {errs[0].code}, must be 2")
@@ -464,10 +477,12 @@ def _refused(p: Probe, send: Callable[[], Any], what: str, base: Command) -> Non
             _fail_if(seq is not None and m.ack_seq == seq, f"{what}: acknowledged (ack_seq)")
             _fail_if(max(abs(w) for w in m.wheel_rpm) > p.limit * 1.02,
                      f"{what}: a wheel at {max(abs(w) for w in m.wheel_rpm):.1f} rpm")
-    tlm = [m for _, m in msgs if isinstance(m, Telemetry)]
-    if p.rate > 0 and tlm:  # (the message is built only where there is a sample to name)
-        _fail_if(tlm[-1].ack_seq != base.seq,
-                 f"{what}: ack_seq moved from {base.seq} to {tlm[-1].ack_seq}")
+    if p.rate > 0:
+        after = [m for at, m in msgs if isinstance(m, Telemetry) and at >= error_at]
+        _fail_if(not after, f"{what}: no telemetry in the {after_s:g} s after the ERROR "
+                 f"(announced {p.rate:g} Hz)")
+        _fail_if(after[-1].ack_seq != base.seq,
+                 f"{what}: ack_seq moved from {base.seq} to {after[-1].ack_seq}")
 
 
 def rule_command_non_finite(p: Probe) -> str:

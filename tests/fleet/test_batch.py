@@ -272,3 +272,20 @@ def test_a_replay_that_compared_nothing_is_left_out_not_counted_as_no_alarm(fit_
     row, bad = stages.run_shadow([whole, short], ["whole.csv", "short.csv"], RobotProfile(), cal)
     assert list(row["details"]["replays"]) == ["whole.csv"]
     assert len(bad) == 1 and bad[0].startswith("short.csv: the monitor never armed"), bad
+
+
+def test_a_stage_whose_rows_changed_meaning_is_run_again_on_resume(fleet_archive, dask_client,
+                                                                   tmp_path, monkeypatch):
+    # a table written before a stage changed what it writes must not keep its old rows as
+    # "unchanged" (the shadow stage's 0 alarms for replays that compared nothing)
+    from mecanum_hil.fleet import stages
+    from mecanum_hil.fleet.tasks import COMMANDS
+
+    assert set(stages.REVISIONS) == set(COMMANDS)
+    shutil.copytree(fleet_archive / "robot-b", tmp_path / "archive" / "robot-b")
+    s = BatchSettings("fit", str(tmp_path / "archive"), tmp_path / "r.csv", period="week")
+    run_batch(s, client=dask_client)
+    assert run_batch(s, client=dask_client).counts.unchanged == 2
+    monkeypatch.setitem(stages.REVISIONS, "fit", stages.REVISIONS["fit"] + 1)
+    again = run_batch(s, client=dask_client)
+    assert again.counts.unchanged == 0 and again.counts.done == 2

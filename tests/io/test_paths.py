@@ -58,11 +58,61 @@ def test_a_report_folder_index_moves_in_last(tmp_path, monkeypatch):
     assert sorted(p.name for p in out.iterdir()) == ["a.png", "report.md", "z.png"]
 
 
-def test_a_stage_left_by_a_killed_run_is_cleared(tmp_path):
-    stale = tmp_path / ".part"
-    stale.mkdir()
-    (stale / "half.png").write_text("x")
+def _dead_pid() -> int:
+    import subprocess
+
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
+def test_a_stage_left_by_a_killed_run_is_cleared_and_nothing_else(tmp_path):
+    import os
+
+    dead = tmp_path / f".mecanum-hil-{_dead_pid()}-abc.part"  # SIGKILL left it
+    dead.mkdir()
+    (dead / "half.png").write_text("x")
+    alive = tmp_path / f".mecanum-hil-{os.getppid()}-def.part"  # a run writing here now
+    alive.mkdir()
+    (tmp_path / ".part").mkdir()  # the user's own
     with staged_folder(tmp_path) as stage:
         assert list(stage.iterdir()) == []
         (stage / "whole.png").write_text("y")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["whole.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([".part", alive.name,
+                                                                 "whole.png"])
+
+
+def test_a_file_named_like_a_stage_is_no_obstacle(tmp_path):
+    (tmp_path / ".part").write_text("the user's")
+    with staged_folder(tmp_path) as stage:
+        (stage / "report.md").write_text("new")
+    assert (tmp_path / ".part").read_text() == "the user's"
+    assert (tmp_path / "report.md").read_text() == "new"
+
+
+def test_a_folder_in_the_way_is_said_before_anything_moves(tmp_path):
+    from mecanum_hil.errors import ConfigError
+
+    (tmp_path / "report.md").write_text("old index")
+    (tmp_path / "b.png").mkdir()
+    with pytest.raises(ConfigError, match="a folder is in the way"):
+        with staged_folder(tmp_path, last=("report.md",)) as stage:
+            for name in ("a.png", "b.png", "report.md"):
+                (stage / name).write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.png", "report.md"]
+    assert (tmp_path / "report.md").read_text() == "old index"
+
+
+def test_a_linked_file_is_written_where_it_points_with_its_permissions(tmp_path):
+    import os
+    import stat
+
+    target = tmp_path / "real.png"
+    target.write_text("old")
+    os.chmod(target, 0o640)
+    link = tmp_path / "plot.png"
+    link.symlink_to(target)
+    with replaced_when_whole(link) as tmp:
+        tmp.write_text("new")
+    assert link.is_symlink() and target.read_text() == "new"
+    assert stat.S_IMODE(target.stat().st_mode) == 0o640

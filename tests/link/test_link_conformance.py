@@ -121,6 +121,19 @@ class LateError(SimulatedController):
         return super()._refuse_command(*args, **kwargs)
 
 
+class LateErrorThenTakesIt(SimulatedController):
+    """Answers a bad COMMAND with ERROR 2 0.5 s late, then obeys it anyway (acknowledges it):
+    a late ERROR must not end the watch before the samples that show it."""
+
+    def handle(self, msg):
+        if isinstance(msg, proto.Command) and self.connected and self.command_problem(msg):
+            time.sleep(0.5)
+            self._refuse_command("late")
+            self.ack_seq = msg.seq
+            return
+        super().handle(msg)
+
+
 def _run_against(cls, pty_pair, rules, sim_effects=None, estop=False, answer_s=0.3):
     p = pty_pair()
     ctrl = cls(SerialTransport(fd=p.master),
@@ -236,3 +249,9 @@ def test_a_late_error_is_waited_for_up_to_the_answer_time(pty_pair):
     assert report.failed == ["command.non_finite"]
     report = _run_against(LateError, pty_pair, ["command.non_finite"], answer_s=1.0)
     assert report.ok and report.results[0].duration_s < 9 * 1.0, report.results
+
+
+def test_a_late_error_does_not_hide_a_refused_command_taken(pty_pair):
+    report = _run_against(LateErrorThenTakesIt, pty_pair, ["command.non_finite"], answer_s=1.0)
+    assert report.failed == ["command.non_finite"]
+    assert "acknowledged (ack_seq)" in report.results[0].detail, report.results
