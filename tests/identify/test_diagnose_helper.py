@@ -226,3 +226,21 @@ def test_a_script_without_a_main_guard_runs_once(tmp_path):
     assert out.returncode == 0, out.stderr
     assert marker.read_text() == "ran\n"
     assert int(out.stdout.split()[-1]) >= 2  # the warm-up and at least one candidate
+
+
+def test_an_interrupted_diagnosis_ends_its_helper_at_once(step_case):
+    # Ctrl-C or SIGTERM: the helper's job is of no use; it was left to finish it (up to a
+    # second at exit, after the process had said it was interrupted)
+    rec, cal = step_case
+    (h,) = _started()
+
+    def interrupt_in_round_one(line: str) -> None:
+        if line.startswith("round 1"):
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _diagnosed(rec, cal, jobs=2, echo=interrupt_in_round_one)
+    assert h.broken
+    h._proc.wait(5)  # killed, not waiting for stdin to close
+    (h2,) = _started()  # the next diagnosis starts a new one
+    assert h2 is not h and not h2.broken

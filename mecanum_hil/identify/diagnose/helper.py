@@ -228,10 +228,14 @@ def helpers_for(jobs: int | None, warm: Callable[[], Any] | None = None) -> list
     return out
 
 
-def release(helpers: list[Helper]) -> None:
-    """End the helpers :func:`helpers_for` started for one call (the shared one stays)."""
+def release(helpers: list[Helper], kept_too: bool = False) -> None:
+    """End the helpers :func:`helpers_for` started for one call (the shared one stays); with
+    ``kept_too`` (an interrupted diagnosis) kill them all at once, the shared one included (a
+    later diagnosis starts a new one)."""
     for h in helpers:
-        if h is not _shared:
+        if kept_too:
+            h.stop("interrupted")
+        elif h is not _shared:
             h.close()
 
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ...errors import ConfigError, DiagnoseError, FitError
+from ...errors import ConfigError, DiagnoseError, FitError, SessionTerminated
 from ...io.recording import Recording
 from ...model.calibration import EFFECTS, Calibration, exchange_drive_lag
 from ...model.robot import RobotProfile
@@ -344,6 +344,11 @@ def diagnose(
         with one_blas_thread():  # many small products of tall matrices (identify/fit.py)
             return _diagnose(recordings, calibration, robot, names, candidates, max_rounds,
                              echo, tuple(helpers))
+    except (KeyboardInterrupt, SessionTerminated):
+        # interrupted: the helpers' jobs are of no use, end them now rather than let them
+        # finish (up to a second, and the kept helper at exit)
+        release(helpers, kept_too=True)
+        raise
     finally:
         release(helpers)
 
