@@ -26,6 +26,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ConfigError, RecordingError
+from .paths import replaced_when_whole
 from .recording import COMMAND_COLUMNS, POSE_COLUMNS, WHEEL_COLUMNS, Recording
 
 #: Library string of the MCAP header: how the importer knows its own files.
@@ -271,11 +272,11 @@ def export_mcap(rec: Recording, out: str | Path, predicted: Recording | None = N
     # at 1 kHz is millions of messages); equal times keep their role order
     msgs = heapq.merge(*(gen for _, gen in streams), key=lambda m: m[1])
     p = Path(out)
-    tmp = p.with_name(p.name + ".tmp")
     counts: dict[str, int] = {}
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
-        with tmp.open("wb") as fh:
+        # written beside it and put in place whole: nothing half-written left behind
+        with replaced_when_whole(p) as tmp, tmp.open("wb") as fh:
             w = Writer(fh, compression=CompressionType.ZSTD)
             w.start(profile="", library=LIBRARY)
             schema_ids = {name: w.register_schema(name, "jsonschema",
@@ -295,13 +296,6 @@ def export_mcap(rec: Recording, out: str | Path, predicted: Recording | None = N
                 "extra_columns": json.dumps(list(rec.extra)),
                 "source": source, "tool_version": __version__})
             w.finish()
-        tmp.replace(p)
-    except BaseException as err:
-        try:
-            tmp.unlink(missing_ok=True)  # nothing half-written left behind
-        except OSError:
-            pass
-        if isinstance(err, OSError):
-            raise RecordingError(f"{p}: cannot write: {err.strerror or err}") from err
-        raise
+    except OSError as err:
+        raise RecordingError(f"{p}: cannot write: {err.strerror or err}") from err
     return ExportSummary(p, {CHANNELS[r].topic: n for r, n in counts.items()})

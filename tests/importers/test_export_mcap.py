@@ -167,3 +167,24 @@ def test_an_imported_recording_exported_imports_back(recording, tmp_path, capsys
     back = tmp_path / "back.csv"
     assert main(["import", str(out), "--out", str(back)]) == 0, capsys.readouterr().err
     assert read_recording(back).metadata["import"]["wheel_radius_m"] == 0.102
+
+
+def test_an_export_cut_short_leaves_the_previous_file(recording, tmp_path, monkeypatch, capsys):
+    from mcap.writer import Writer
+
+    out = tmp_path / "run.mcap"
+    args = ["export", str(recording), "--out", str(out), "--calibration", "paper"]
+    assert main(args) == 0
+    before = out.read_bytes()
+    calls = itertools.count()
+    real = Writer.add_message
+
+    def interrupted(self, *a, **k):
+        if next(calls) == 1000:
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(Writer, "add_message", interrupted)
+    assert main(args) == 130
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir() if "run" in p.name) == ["run.mcap"]
