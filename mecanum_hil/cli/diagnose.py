@@ -41,8 +41,7 @@ def command(
     """
     import json
 
-    from ..errors import ConfigError
-    from ..identify.diagnose import CANDIDATES, diagnose
+    from ..identify.diagnose import candidate_pool, diagnose
     from ..identify.diagnose.reference import reference_comparison
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile, save_calibration
@@ -56,10 +55,7 @@ def command(
     names = [p.stem for p in recordings]
     if len(set(names)) != len(names):
         names = [str(p) for p in recordings]
-    pool = CANDIDATES if candidates is None else tuple(
-        c.strip() for c in candidates.split(",") if c.strip())
-    if not pool:
-        raise ConfigError(f"--candidates names no effect; the library: {', '.join(CANDIDATES)}")
+    pool = candidate_pool(None if candidates is None else candidates.split(","))
     echo = None if json_out else typer.echo
     diag = diagnose(recs, cal, rob, names=names, candidates=pool, echo=echo, jobs=jobs)
     if out is not None:

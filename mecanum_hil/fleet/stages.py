@@ -195,16 +195,9 @@ def check_options(command: str, options: dict[str, Any]) -> None:
             if method not in ("lsq", "paper-grid"):
                 raise ConfigError(f"--method must be lsq or paper-grid, got {method!r}")
         if command == "diagnose" and options.get("candidates") is not None:
-            from ..model.calibration import EFFECTS
+            from ..identify.diagnose import candidate_pool
 
-            names = list(options["candidates"])
-            if not names:
-                raise ConfigError(f"--candidates names no effect; the library: "
-                                  f"{', '.join(EFFECTS)}")
-            unknown = [c for c in names if c not in EFFECTS]
-            if unknown:
-                raise ConfigError(f"--candidates: unknown effect(s) {', '.join(unknown)}; the "
-                                  f"library: {', '.join(EFFECTS)}")
+            candidate_pool(list(options["candidates"]))
         if command == "shadow":
             from ..monitor import ShadowConfig
 

@@ -82,7 +82,7 @@ def test_a_bad_calibration_is_refused_before_dask_and_the_table_kept(small_archi
     ("measure-video", ["--roi", "9:1,2,3"], "--roi '9:1,2,3'"),
     ("shadow", ["--threshold", "-1"], "threshold_h"),
     ("shadow", ["--noise-rpm", "0"], "noise_rpm"),
-    ("diagnose", ["--candidates", "nope,dead_time"], "unknown effect(s) nope"),
+    ("diagnose", ["--candidates", "nope,dead_time"], "unknown effect(s) 'nope'"),
     ("diagnose", ["--candidates", ","], "--candidates names no effect"),
 ])
 def test_a_bad_stage_option_is_refused_before_dask_and_the_table_kept(

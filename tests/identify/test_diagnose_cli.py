@@ -99,7 +99,7 @@ def test_cli_errors_are_one_line(tmp_path, campaign):
     r = cli("diagnose", p, p, "--candidates", "backlash")
     assert r.returncode == 1
     assert r.stderr.startswith("error: ") and r.stderr.count("\n") == 1
-    assert r.returncode == 1 and "unknown effect 'backlash'" in r.stderr
+    assert r.returncode == 1 and "unknown effect(s) 'backlash'" in r.stderr
     r = cli("diagnose", p, "--candidates", " , ")
     assert r.returncode == 1 and r.stderr.count("\n") == 1
     assert "--candidates names no effect" in r.stderr

@@ -30,7 +30,13 @@ The method, one file per step (``docs/diagnose.md`` has the details and the reas
 
 from __future__ import annotations
 
-from .candidates import CANDIDATES, CandidateScore, effect_parameters, fit_candidate
+from .candidates import (
+    CANDIDATES,
+    CandidateScore,
+    candidate_pool,
+    effect_parameters,
+    fit_candidate,
+)
 from .heldout import HeldOut, heldout_score
 from .localise import (
     ResidualCheck,
@@ -43,6 +49,6 @@ from .selection import DiagnoseStep, Diagnosis, diagnose
 
 __all__ = [
     "CANDIDATES", "CandidateScore", "DiagnoseStep", "Diagnosis", "HeldOut", "ResidualCheck",
-    "_Evaluator", "diagnose", "effect_parameters", "fit_candidate", "heldout_score",
-    "initial_pose_at_rest", "lag1_autocorrelation", "residual_check",
+    "_Evaluator", "candidate_pool", "diagnose", "effect_parameters", "fit_candidate",
+    "heldout_score", "initial_pose_at_rest", "lag1_autocorrelation", "residual_check",
 ]

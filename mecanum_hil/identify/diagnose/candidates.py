@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from ...errors import ConfigError, FitError
+from ...errors import ConfigError, DiagnoseError, FitError
 from ...io.recording import Recording
 from ...model.calibration import EFFECTS, Calibration
 from ...model.kinematics import command_to_wheels
@@ -31,6 +31,28 @@ CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "rate_limit", "deadban
                                "braking_limit", "slip")
 
 _COEFFICIENTS = ("A", "B", "C")
+
+
+def candidate_pool(names: Iterable[str] | None) -> tuple[str, ...]:
+    """The effects a diagnosis tries: ``names`` (blank ones dropped, spaces stripped; ``None``:
+    :data:`CANDIDATES`), each checked against the effect library. The one check of
+    ``diagnose --candidates``, ``batch diagnose --candidates`` and :func:`~.selection.diagnose`.
+
+    Raises
+    ------
+    DiagnoseError
+        No effect named, or a name the library does not have.
+    """
+    if names is None:
+        return CANDIDATES
+    pool = tuple(n.strip() for n in names if n.strip())
+    if not pool:
+        raise DiagnoseError(f"--candidates names no effect; the library: {', '.join(EFFECTS)}")
+    unknown = [n for n in pool if n not in EFFECTS]
+    if unknown:
+        raise DiagnoseError(f"unknown effect(s) {', '.join(map(repr, unknown))}; the library: "
+                            f"{', '.join(EFFECTS)}")
+    return pool
 
 def effect_parameters(effect: str) -> tuple[str, ...]:
     """The engine's parameter names (:data:`~mecanum_hil.identify.fit.PARAMETER_NAMES`) of an

@@ -29,6 +29,7 @@ from .candidates import (
     CandidateScore,
     _effect_values,
     _Fitted,
+    candidate_pool,
     effect_parameters,
     fit_candidate,
 )
@@ -439,9 +440,7 @@ def _checked_recordings(recordings, names, candidates) -> tuple[list[Recording],
     recs = [initial_pose_at_rest(r) for r in recordings]
     if not recs:
         raise DiagnoseError("no recordings given")
-    for c in candidates:
-        if c not in EFFECTS:
-            raise DiagnoseError(f"unknown effect {c!r}; the library has {', '.join(EFFECTS)}")
+    candidate_pool(candidates)
     names = tuple(names) if names is not None else tuple(
         str(r.metadata.get("profile", f"recording {i + 1}")) for i, r in enumerate(recs))
     for rec, name in zip(recs, names, strict=True):
