@@ -422,7 +422,8 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
     candidates round by round while one qualifies, then describe what remains."""
     say = echo or (lambda _msg: None)
     rob = robot or RobotProfile()
-    recs, names = _checked_recordings(recordings, names, candidates)
+    candidates = candidate_pool(candidates)
+    recs, names = _checked_recordings(recordings, names)
     ctx = _Context(_Evaluator(recs, rob), recs, rob, names, say, helpers)
     loc0 = _localise_given(ctx, calibration)
     accepted = [e for e in EFFECTS if e in calibration.effects.active()]
@@ -435,12 +436,11 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
     return _conclude(ctx, model, calibration, baseline, loc0, rmse_base, noise)
 
 
-def _checked_recordings(recordings, names, candidates) -> tuple[list[Recording], tuple[str, ...]]:
+def _checked_recordings(recordings, names) -> tuple[list[Recording], tuple[str, ...]]:
     """Check the inputs; return the recordings (initial pose at rest) and their names."""
     recs = [initial_pose_at_rest(r) for r in recordings]
     if not recs:
         raise DiagnoseError("no recordings given")
-    candidate_pool(candidates)
     names = tuple(names) if names is not None else tuple(
         str(r.metadata.get("profile", f"recording {i + 1}")) for i, r in enumerate(recs))
     for rec, name in zip(recs, names, strict=True):
