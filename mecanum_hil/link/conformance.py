@@ -464,8 +464,9 @@ def rule_command_valid(p: Probe) -> str:
 
 def _refused(p: Probe, send: Callable[[], Any], what: str, base: Command) -> None:
     sent = send()
-    # the ERROR within the answer time, then ANSWER_S of what the controller does after it:
-    # its samples must not acknowledge the refused command, nor drive beyond the limit
+    # the ERROR within the answer time, then ANSWER_S (two telemetry periods at least) of what
+    # the controller does after it: its samples must not acknowledge the refused command, nor
+    # drive beyond the limit
     after_s = max(ANSWER_S, 2.0 / p.rate) if p.rate > 0 else ANSWER_S
     msgs, error_at = p.error_then(after_s)
     errs = p.errors([m for _, m in msgs])

@@ -54,6 +54,7 @@ def candidate_pool(names: Iterable[str] | None) -> tuple[str, ...]:
                             f"{', '.join(EFFECTS)}")
     return pool
 
+
 def effect_parameters(effect: str) -> tuple[str, ...]:
     """The engine's parameter names (:data:`~mecanum_hil.identify.fit.PARAMETER_NAMES`) of an
     effect: ``gains`` -> ``gains[0]`` .. ``gains[3]``, ``efficiency`` -> three."""

@@ -228,12 +228,12 @@ def helpers_for(jobs: int | None, warm: Callable[[], Any] | None = None) -> list
     return out
 
 
-def release(helpers: list[Helper], kept_too: bool = False) -> None:
-    """End the helpers :func:`helpers_for` started for one call (the shared one stays); with
-    ``kept_too`` (an interrupted diagnosis) kill them all at once, the shared one included (a
-    later diagnosis starts a new one)."""
+def release(helpers: list[Helper], interrupted: bool = False) -> None:
+    """End the helpers :func:`helpers_for` started for one call (the shared one stays); after
+    an interrupted diagnosis (Ctrl-C, SIGTERM) kill them all at once, the shared one included
+    (their jobs are of no use; a later diagnosis starts a new one)."""
     for h in helpers:
-        if kept_too:
+        if interrupted:
             h.stop("interrupted")
         elif h is not _shared:
             h.close()

@@ -341,17 +341,16 @@ def diagnose(
         Fewer than two recordings, no measured wheel speeds, or an unknown candidate.
     """
     helpers = helpers_for(jobs, warm_up)
+    interrupted = False
     try:
         with one_blas_thread():  # many small products of tall matrices (identify/fit.py)
             return _diagnose(recordings, calibration, robot, names, candidates, max_rounds,
                              echo, tuple(helpers))
     except (KeyboardInterrupt, SessionTerminated):
-        # interrupted: the helpers' jobs are of no use, end them now rather than let them
-        # finish (up to a second, and the kept helper at exit)
-        release(helpers, kept_too=True)
+        interrupted = True
         raise
     finally:
-        release(helpers)
+        release(helpers, interrupted)
 
 
 @dataclass(frozen=True)
