@@ -56,6 +56,7 @@ PARAMETER_NAMES: tuple[str, ...] = (
     "gains[0]", "gains[1]", "gains[2]", "gains[3]",
     "efficiency[0]", "efficiency[1]", "efficiency[2]",
     "controller_period_s", "drive_lag_s", "breakaway_rpm_per_s", "braking_limit_rpm_per_s",
+    "coast_decel_rpm_per_s", "no_load_rpm",
 )
 
 _INDEXED = re.compile(r"^(gains|efficiency)\[(\d)\]$")
@@ -80,6 +81,8 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "drive_lag_s": (0.0, 5.0),
     "breakaway_rpm_per_s": (0.0, math.inf),
     "braking_limit_rpm_per_s": (1e-6, math.inf),
+    "coast_decel_rpm_per_s": (0.0, math.inf),
+    "no_load_rpm": (1.0, math.inf),
 }
 
 # Typical magnitude below which a finite-difference step stops shrinking with the value.

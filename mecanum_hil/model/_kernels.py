@@ -147,8 +147,95 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
 
 
 @njit(cache=True, inline="always")
-def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, y, z, hold, dl, tab, q, eb, g,
-                 ea):
+def _fast_decay_run(v, f, k, t):
+    """Speed magnitude [rpm] and its integral [rpm s] after ``t`` seconds of ``v' = f - k v``."""
+    if k * t < 1e-12:
+        return v + f * t, v * t + 0.5 * f * t * t
+    e = -math.expm1(-k * t)  # 1 - exp(-k t)
+    v_ss = f / k
+    return v_ss + (v - v_ss) * (1.0 - e), v_ss * t + (v - v_ss) * e / k
+
+
+@njit(cache=True, inline="always")
+def _fast_decay_move(yi, c, rem, B, u0, iy0, brk):
+    """Wheel speed [rpm] after ``rem`` seconds of a held loop output ``c`` [rpm/s] through the
+    fast-decay drive of :func:`_fast_decay_piece`, and the speed's integral [rpm s]: exact."""
+    v = abs(yi)
+    if yi != 0.0:
+        s = 1.0 if yi > 0.0 else -1.0
+    else:
+        s = 1.0 if c >= 0.0 else -1.0
+    if v == 0.0 and abs(c) <= brk:
+        return 0.0, 0.0  # held by static friction
+    d = max(s * c + u0, 0.0)
+    f = d - u0
+    k = B + d * iy0
+    v_new, area = _fast_decay_run(v, f, k, rem)
+    if v_new >= 0.0:
+        return s * v_new, s * area
+    # at rest within the piece (only while coasting, f < 0): when, then on in the direction of
+    # c, or held there
+    if k * rem < 1e-12:
+        t0 = v / -f
+    else:
+        t0 = math.log1p(-v * k / f) / k  # v_ss + (v - v_ss) exp(-k t0) = 0
+    t0 = min(max(t0, 0.0), rem)
+    area = s * _fast_decay_run(v, f, k, t0)[1]
+    if abs(c) <= brk or c == 0.0:
+        return 0.0, area
+    s = 1.0 if c > 0.0 else -1.0
+    d = s * c + u0
+    v_new, a1 = _fast_decay_run(0.0, d - u0, B + d * iy0, rem - t0)
+    return s * v_new, area + s * a1
+
+
+@njit(cache=True, inline="always")
+def _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, u0, iy0, y, z, hold, dl, q):
+    """Advance wheel ``i`` over ``rem`` seconds through a fast-decay (coasting) PWM drive.
+
+    The loop's output ``c`` [rpm/s] (held, lagged or the continuous PI's, limited to ``dmax``)
+    is the duty's push ``d`` less a Coulomb friction ``u0`` [rpm/s]. The push acts only in the
+    wheel's direction of motion ``s`` and falls with speed as the back-EMF rises:
+    ``s y' = max(s c + u0, 0) (1 - |y| iy0) - u0 - B |y|`` (``iy0 = 1 / no_load_rpm``). A duty
+    that would oppose the motion is off and the wheel coasts; at rest it starts in the
+    direction of ``c``. For a held output (controller period) the piece is exact. The
+    continuous PI's output is held over the piece at its middle, predicted from a first pass
+    (second order in the piece); a lagged drive's output is its mean over the piece. A wheel
+    that coasts to rest while ``|c|`` is within ``brk`` stays there.
+    """
+    yi = y[i]
+    zi = z[i]
+    clipped = False
+    if per > 0:
+        c = hold[i]
+    else:
+        # the continuous PI at the piece's middle: its integral half a piece on, the speed
+        # the piece's mean (a first pass at the output the piece starts with)
+        e = u - yi
+        c = min(max(A * e + C * zi, -dmax), dmax)
+        if a == np.inf:
+            _, area = _fast_decay_move(yi, c, rem, B, u0, iy0, brk)
+            e = u - area / rem
+        c = A * e + C * (zi + 0.5 * e * rem)
+        clipped = c > dmax or c < -dmax
+        c = min(max(c, -dmax), dmax)
+    if a < np.inf:
+        cin = c
+        ea = math.exp(-a * rem)
+        c = dl[i] if a * rem < 1e-12 else \
+            cin + (dl[i] - cin) * (-math.expm1(-a * rem)) / (a * rem)
+        dl[i] = cin + (dl[i] - cin) * ea
+    y_new, area = _fast_decay_move(yi, c, rem, B, u0, iy0, brk)
+    q[i] += area
+    if per <= 0 and (not clipped or (c > 0) != (u - yi > 0)):
+        zi += u * rem - area
+    y[i] = y_new
+    z[i] = zi
+
+
+@njit(cache=True, inline="always")
+def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, u0, iy0, y, z, hold, dl, tab,
+                 q, eb, g, ea):
     """Advance wheel ``i`` over ``ts`` seconds on the path of the drive's own dynamics.
 
     Between controller ticks (``per > 0``) the held output drives the motor exactly; a
@@ -158,9 +245,14 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, y, z, hold, dl, ta
     wheel at rest with ``brk > 0`` stays at rest until the drive's magnitude exceeds ``brk``,
     at the instant it does (found in closed form, so the model is smooth in ``brk``). A wheel
     the loop would slow faster than ``brake`` [rpm/s] slows at ``brake`` first
-    (:func:`_braking_phase`). Accumulates the integral of the speed over the piece into
-    ``q[i]``. ``eb, g, ea``: :func:`_lag_factors` of ``ts`` (when the path needs them).
+    (:func:`_braking_phase`). With a fast-decay drive (``u0`` finite, see
+    :func:`_fast_decay_piece`) the wheel moves by that instead. Accumulates the integral of the
+    speed over the piece into ``q[i]``. ``eb, g, ea``: :func:`_lag_factors` of ``ts`` (when the
+    path needs them).
     """
+    if u0 < np.inf:
+        _fast_decay_piece(i, u, ts, A, B, C, per, a, brk, dmax, u0, iy0, y, z, hold, dl, q)
+        return
     rem = ts
     if brake < np.inf:
         rem = ts - _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q)
@@ -400,7 +492,7 @@ def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A,
 
 @njit(cache=True, inline="always")
 def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                            saturating, per, a_lag, brk, brake, A, B, C, dmax):
+                            saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax):
     """Advance the four wheels over one sub-step on the path of the drive's own dynamics.
 
     The sub-step is cut into pieces that end at the controller's ticks (period ``per`` [s]),
@@ -426,7 +518,7 @@ def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tic
         else:  # the closed-form PI path (tab) needs none
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
-            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax,
+            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, u0, iy0,
                          y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
@@ -478,10 +570,11 @@ def simulate_kernel(
     deadband, top_speed, rate_limit : (N,) float64
         Effect parameters (0, inf and inf when absent); ``rate_limit`` in [rpm/s].
     gains : (N, 4) float64;  efficiency : (N, 3) float64
-    dyn : (N, 4) float64
+    dyn : (N, 6) float64
         The drive's own dynamics: ``controller_period_s`` [s], ``drive_lag_s`` [s],
         ``breakaway_rpm_per_s`` [rpm/s] (0 when absent), ``braking_limit_rpm_per_s`` [rpm/s]
-        (inf when absent).
+        (inf when absent), the fast-decay drive's ``coast_decel_rpm_per_s`` [rpm/s] and
+        ``no_load_rpm`` [rpm] (inf when absent).
     state : (N, 21) float64
         Initial wheel state (see ``STATE_WIDTH``).
     pose0 : (N, 3) float64
@@ -509,7 +602,9 @@ def simulate_kernel(
         a_lag = 1.0 / lag if lag > 0 else np.inf
         brk = dyn[r, 2]
         brake = dyn[r, 3]
-        dynamics = per > 0 or lag > 0 or brk > 0 or brake < np.inf
+        u0 = dyn[r, 4]
+        iy0 = 1.0 / dyn[r, 5]
+        dynamics = per > 0 or lag > 0 or brk > 0 or brake < np.inf or u0 < np.inf
         X = pose0[r, 0]
         Y = pose0[r, 1]
         phi = math.radians(pose0[r, 2])
@@ -547,7 +642,7 @@ def simulate_kernel(
                 if dynamics:
                     until_tick = _drive_dynamics_substep(
                         tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                        saturating, per, a_lag, brk, brake, A, B, C, dmax)
+                        saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax)
                 else:
                     _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating,
                                          A, B, C, drive_max, top)

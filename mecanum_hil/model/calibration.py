@@ -77,7 +77,14 @@ class Effects:
     drive slows a turning wheel by at most ``braking_limit_rpm_per_s`` (where the loop asks for
     a steeper deceleration, ``c - B y`` beyond it towards rest, the wheel slows at exactly that
     rate: a drive that coasts instead of braking, as fast-decay (coasting) PWM or a bridge
-    without active braking does; acceleration is not limited). ``slip`` scales the body
+    without active braking does; acceleration is not limited); with ``fast_decay`` the drive
+    is a fast-decay (coasting) PWM bridge: the loop's output ``c`` is the duty's push ``d``
+    less a Coulomb friction ``coast_decel_rpm_per_s`` (``u0``); the push acts only in the
+    wheel's direction of motion (a duty that would oppose it is off: the wheel coasts, slowed
+    by ``u0 + B |y|``) and falls with speed as the back-EMF rises, to nothing at
+    ``no_load_rpm`` (``Y0``): ``s y' = max(s c + u0, 0) (1 - |y| / Y0) - u0 - B |y|``, ``s``
+    the sign of the motion. ``Y0`` infinite is a braking limit of ``u0 + B |y|``; the two
+    effects are not used together. ``slip`` scales the body
     twist ``(vx, vy, wz)`` by ``efficiency`` before the pose is integrated; it does not change
     wheel speeds.
 
@@ -106,6 +113,12 @@ class Effects:
     braking_limit_rpm_per_s : float
         Largest deceleration of a turning wheel towards rest the drive can produce [rpm/s];
         ``inf`` when absent.
+    coast_decel_rpm_per_s : float
+        Fast-decay drive: the Coulomb friction that slows a coasting wheel, and the offset of
+        the duty's push from the loop's output [rpm/s]; ``inf`` when absent.
+    no_load_rpm : float
+        Fast-decay drive: the speed at which the full push falls to nothing (back-EMF) [rpm];
+        ``inf`` when absent or without that droop.
     """
 
     dead_time_s: float = 0.0
@@ -118,12 +131,24 @@ class Effects:
     drive_lag_s: float = 0.0
     breakaway_rpm_per_s: float = 0.0
     braking_limit_rpm_per_s: float = math.inf
+    coast_decel_rpm_per_s: float = math.inf
+    no_load_rpm: float = math.inf
 
     def __post_init__(self) -> None:
         # 0 would hold a turning wheel at its speed for ever, a negative limit or NaN is no limit
         if not self.braking_limit_rpm_per_s > 0:
             raise ConfigError("braking_limit_rpm_per_s must be > 0 (inf when absent), got "
                               f"{self.braking_limit_rpm_per_s!r}")
+        if not self.coast_decel_rpm_per_s >= 0 or not self.no_load_rpm > 0:
+            raise ConfigError("fast_decay needs coast_decel_rpm_per_s >= 0 and no_load_rpm > 0 "
+                              f"(inf when absent), got {self.coast_decel_rpm_per_s!r} and "
+                              f"{self.no_load_rpm!r}")
+        if math.isinf(self.coast_decel_rpm_per_s) and math.isfinite(self.no_load_rpm):
+            raise ConfigError("fast_decay's no_load_rpm needs a finite coast_decel_rpm_per_s")
+        if self.fast_decay and math.isfinite(self.braking_limit_rpm_per_s):
+            raise ConfigError("fast_decay and braking_limit are not used together: a fast-decay "
+                              "drive already coasts (its braking limit is coast_decel_rpm_per_s "
+                              "+ B |y|)")
 
     def active(self) -> dict[str, dict[str, Any]]:
         """The effects that are present, by name, with their parameters."""
@@ -131,7 +156,10 @@ class Effects:
         for name, spec in EFFECTS.items():
             params = {p: getattr(self, p) for p in spec.parameters}
             if any(params[p] != spec.absent[p] for p in spec.parameters):
-                out[name] = {p: (list(v) if isinstance(v, tuple) else v) for p, v in params.items()}
+                # an infinite parameter of an effect that is present (a fast-decay drive
+                # without droop) is left out, as the files and JSON leave it
+                out[name] = {p: (list(v) if isinstance(v, tuple) else v) for p, v in params.items()
+                             if not (isinstance(v, float) and math.isinf(v))}
         return out
 
     @property
@@ -141,11 +169,17 @@ class Effects:
                 or self.drive_dynamics)
 
     @property
+    def fast_decay(self) -> bool:
+        """Whether the drive is a fast-decay (coasting) PWM bridge."""
+        return math.isfinite(self.coast_decel_rpm_per_s)
+
+    @property
     def drive_dynamics(self) -> bool:
-        """Whether an effect of the drive's own dynamics (period, lag, breakaway, braking limit)
-        is present."""
+        """Whether an effect of the drive's own dynamics (period, lag, breakaway, braking limit,
+        fast decay) is present."""
         return (self.controller_period_s > 0 or self.drive_lag_s > 0
-                or self.breakaway_rpm_per_s > 0 or math.isfinite(self.braking_limit_rpm_per_s))
+                or self.breakaway_rpm_per_s > 0 or math.isfinite(self.braking_limit_rpm_per_s)
+                or self.fast_decay)
 
     def without(self, name: str) -> Effects:
         """A copy with effect ``name`` removed."""
@@ -193,6 +227,12 @@ EFFECTS: dict[str, EffectSpec] = {
     "braking_limit": EffectSpec(
         "braking_limit", ("braking_limit_rpm_per_s",), {"braking_limit_rpm_per_s": math.inf},
         "the drive slows a turning wheel at most this fast (it coasts, not brakes) [rpm/s]"),
+    "fast_decay": EffectSpec(
+        "fast_decay", ("coast_decel_rpm_per_s", "no_load_rpm"),
+        {"coast_decel_rpm_per_s": math.inf, "no_load_rpm": math.inf},
+        "fast-decay PWM: the drive pushes only along the motion, less as the speed nears "
+        "no_load_rpm [rpm], and coasts (friction coast_decel_rpm_per_s [rpm/s]) instead of "
+        "braking"),
 }
 
 
@@ -329,6 +369,10 @@ def _read_effects(reader: TableReader | None) -> Effects:
         elif name == "braking_limit":
             values["braking_limit_rpm_per_s"] = sub.number(
                 "braking_limit_rpm_per_s", minimum=0, strict_minimum=True)
+        elif name == "fast_decay":
+            values["coast_decel_rpm_per_s"] = sub.number("coast_decel_rpm_per_s", minimum=0.0)
+            values["no_load_rpm"] = sub.number("no_load_rpm", math.inf, minimum=0,
+                                               strict_minimum=True)
     return Effects(**values)
 
 

@@ -85,7 +85,8 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
     """The model's state (``STATE_WIDTH`` values) in steady state at given wheel speeds.
 
     A recording that starts in motion starts the model here: each wheel at its measured speed
-    ``y``, its drive holding it (``B y``), the integral ``z`` such that the PI output equals
+    ``y``, its drive holding it (``B y``; through a fast-decay drive the output whose push
+    balances friction and the pole at ``y``), the integral ``z`` such that the PI output equals
     that drive for the wheel's set-point ``u`` (the target through deadband and wheel gain):
     ``A (u - y) + C z = B y``.
 
@@ -104,12 +105,18 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
     u = np.where(np.abs(target_rpm) < e.deadband_rpm, 0.0,
                  np.asarray(target_rpm, dtype=float)) * np.asarray(e.gains)
     A, B, C = calibration.coefficients
+    hold = B * y
+    if math.isfinite(e.coast_decel_rpm_per_s):
+        # a fast-decay drive holds |y| with the push (u0 + B |y|) / (1 - |y| / Y0), less u0
+        u0 = e.coast_decel_rpm_per_s
+        droop = np.clip(1.0 - np.abs(y) / e.no_load_rpm, 1e-3, None)
+        hold = np.sign(y) * ((u0 + B * np.abs(y)) / droop - u0)
     state = np.zeros(STATE_WIDTH)
     state[:4] = y
-    state[4:8] = (B * y - A * (u - y)) / C
+    state[4:8] = (hold - A * (u - y)) / C
     state[8:12] = u
-    state[12:16] = B * y
-    state[16:20] = B * y
+    state[12:16] = hold
+    state[16:20] = hold
     return state
 
 

@@ -52,8 +52,9 @@ def effect_arrays(effects: Sequence[Effects]) -> tuple[np.ndarray, ...]:
     -------
     tuple of ndarray
         ``deadband (N,)`` [rpm], ``gains (N, 4)`` [-], ``top_speed (N,)`` [rpm],
-        ``rate_limit (N,)`` [rpm/s], ``efficiency (N, 3)`` [-], ``drive (N, 4)`` (controller
-        period [s], drive lag [s], breakaway [rpm/s], braking limit [rpm/s]), in the kernel's
+        ``rate_limit (N,)`` [rpm/s], ``efficiency (N, 3)`` [-], ``drive (N, 6)`` (controller
+        period [s], drive lag [s], breakaway [rpm/s], braking limit [rpm/s], the fast-decay
+        drive's coasting deceleration [rpm/s] and no-load speed [rpm]), in the kernel's
         argument order.
     """
     return (
@@ -63,7 +64,8 @@ def effect_arrays(effects: Sequence[Effects]) -> tuple[np.ndarray, ...]:
         np.array([e.rate_limit_rpm_per_s for e in effects], dtype=float),
         np.array([e.efficiency for e in effects], dtype=float),
         np.array([(e.controller_period_s, e.drive_lag_s, e.breakaway_rpm_per_s,
-                   e.braking_limit_rpm_per_s) for e in effects], dtype=float).reshape(-1, 4),
+                   e.braking_limit_rpm_per_s, e.coast_decel_rpm_per_s, e.no_load_rpm)
+                  for e in effects], dtype=float).reshape(-1, 6),
     )
 
 

@@ -49,7 +49,8 @@ P_TOL = 41  # timing tolerance [s]
 P_SAFETY = 42  # noise estimate margin [standard errors]
 P_PER, P_LAG, P_BRK = 43, 44, 45  # the drive's own dynamics (0 when absent)
 P_BRAKE = 46  # the braking limit [rpm/s] (inf when absent)
-P_WIDTH = 47
+P_U0, P_Y0 = 47, 48  # fast-decay drive: coasting deceleration [rpm/s], no-load speed [rpm]
+P_WIDTH = 49
 
 # --- float state ``fs`` ------------------------------------------------------------------------
 S_Y, S_Z, S_UE, S_TGT = 0, 4, 8, 12  # 4 values each
@@ -109,7 +110,8 @@ def _advance_piece(pp, fs, h, tab, q):
     saturating = top < np.inf
     ramping = rl < np.inf
     per = pp[P_PER]
-    dynamics = per > 0 or pp[P_LAG] > 0 or pp[P_BRK] > 0 or pp[P_BRAKE] < np.inf
+    dynamics = per > 0 or pp[P_LAG] > 0 or pp[P_BRK] > 0 or pp[P_BRAKE] < np.inf or \
+        pp[P_U0] < np.inf
     nsub = 1
     if saturating or ramping or dynamics:
         nsub = max(1, math.ceil(h / pp[P_SUB] - 1e-9))
@@ -176,8 +178,8 @@ def _advance_piece(pp, fs, h, tab, q):
 @njit(cache=True)
 def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
     """One sub-step of the wheels with the drive's own dynamics (controller period, drive
-    lag, breakaway, braking limit), exactly as the simulator's kernel advances it (pieces end at
-    ticks)."""
+    lag, breakaway, braking limit, fast decay), exactly as the simulator's kernel advances it
+    (pieces end at ticks)."""
     A = pp[P_A]
     B = pp[P_B]
     C = pp[P_C]
@@ -185,6 +187,8 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
     a_lag = 1.0 / pp[P_LAG] if pp[P_LAG] > 0 else np.inf
     brk = pp[P_BRK]
     brake = pp[P_BRAKE]
+    u0 = pp[P_U0]
+    iy0 = 1.0 / pp[P_Y0]
     dmax = drive_max if saturating else np.inf
     rl = pp[P_RL]
     ub = np.empty(4)
@@ -215,8 +219,8 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
         else:
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
-            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, y, z, hold,
-                         dl, tab, q, eb_p, g_p, ea_p)
+            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, u0, iy0, y, z,
+                         hold, dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
             fs[S_UNTIL] -= piece
@@ -343,6 +347,11 @@ def _slope(pp, fs, i):
             drive = -lim
     if y == 0.0 and abs(drive) <= pp[P_BRK]:
         return 0.0  # held by static friction
+    u0 = pp[P_U0]
+    if u0 < np.inf:  # a fast-decay drive: the push along the motion, less friction
+        s = 1.0 if y > 0.0 or (y == 0.0 and drive >= 0.0) else -1.0
+        return s * (max(s * drive + u0, 0.0) * (1.0 - abs(y) / pp[P_Y0]) - u0
+                    - pp[P_B] * abs(y))
     slope = drive - pp[P_B] * y
     brake = pp[P_BRAKE]
     if y > 0.0 and slope < -brake:

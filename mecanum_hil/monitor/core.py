@@ -180,6 +180,7 @@ def _params(cal: Calibration, robot: RobotProfile, cfg: ShadowConfig) -> np.ndar
     pp[kn.P_PER], pp[kn.P_LAG], pp[kn.P_BRK] = (e.controller_period_s, e.drive_lag_s,
                                                e.breakaway_rpm_per_s)
     pp[kn.P_BRAKE] = e.braking_limit_rpm_per_s
+    pp[kn.P_U0], pp[kn.P_Y0] = e.coast_decel_rpm_per_s, e.no_load_rpm
     pp[kn.P_DRIFT], pp[kn.P_THRESH] = cfg.drift_k, cfg.threshold_h
     pp[kn.P_WARM], pp[kn.P_MINN], pp[kn.P_CLEAR] = cfg.warmup_s, cfg.min_warmup_samples, cfg.clear_s
     pp[kn.P_PWIN] = cfg.pose_window_s

@@ -1,5 +1,5 @@
 """The drive's own dynamics in the simulator: controller period, drive lag, breakaway, braking
-limit."""
+limit, fast-decay drive."""
 
 from __future__ import annotations
 
@@ -71,12 +71,14 @@ def test_controller_period_holds_the_output():
     assert w[-1] == pytest.approx(60.0, abs=0.5)
 
 
-def _reference(u_rpm, A, B, C, brake, period_s=0.0, lag_s=0.0, top_rpm=np.inf, h=2e-6):
+def _reference(u_rpm, A, B, C, brake, period_s=0.0, lag_s=0.0, top_rpm=np.inf, h=2e-6,
+               coast=None, no_load=np.inf):
     """Wheel speed [rpm] at T of a PI loop (output limited to ``B top_rpm``, integrating only
     while the error does not push further into the limit) through an optional drive lag around
-    a first-order motor with the braking limit, by forward Euler on a fine grid (the truth the
-    kernel's pieces are checked against): ``u_rpm`` is the target in force from each sample of
-    T."""
+    a first-order motor with the braking limit, or through a fast-decay drive (friction
+    ``coast`` [rpm/s], no-load speed ``no_load`` [rpm]), by forward Euler on a fine grid (the
+    truth the kernel's pieces are checked against): ``u_rpm`` is the target in force from each
+    sample of T."""
     dmax = B * top_rpm
     y = z = hold = dl = 0.0
     next_tick = 0.0
@@ -103,7 +105,16 @@ def _reference(u_rpm, A, B, C, brake, period_s=0.0, lag_s=0.0, top_rpm=np.inf, h
             if lag_s > 0:
                 dl += (c - dl) * h / lag_s
                 c = dl
-            acc = c - B * y
+            if coast is not None:
+                s = 1.0 if y > 0 or (y == 0 and c >= 0) else -1.0
+                acc = s * (max(s * c + coast, 0.0) * (1.0 - abs(y) / no_load) - coast
+                           - B * abs(y))
+                if y != 0 and (y + acc * h) * y < 0:  # at rest within the step: on from there
+                    y = 0.0
+                    k += 1
+                    continue
+            else:
+                acc = c - B * y
             if y > 0 and acc < -brake:
                 acc = -brake
             elif y < 0 and acc > brake:
@@ -178,6 +189,9 @@ def test_a_braking_limit_beyond_every_deceleration_is_the_paper_model():
             breakaway_rpm_per_s=1200.0),
     Effects(controller_period_s=0.005, drive_lag_s=0.01, breakaway_rpm_per_s=1500.0,
             top_speed_rpm=70.0, rate_limit_rpm_per_s=800.0),
+    Effects(coast_decel_rpm_per_s=600.0, no_load_rpm=150.0),
+    Effects(coast_decel_rpm_per_s=600.0, no_load_rpm=150.0, controller_period_s=0.005,
+            drive_lag_s=0.01, breakaway_rpm_per_s=300.0, top_speed_rpm=70.0),
 ])
 def test_a_simulation_continues_exactly_from_its_final_state(effects):
     cal = Calibration(effects=effects)
@@ -241,3 +255,76 @@ def test_a_braking_limit_must_be_positive(bad):
 
     with pytest.raises(ConfigError, match="braking_limit_rpm_per_s must be > 0"):
         Effects(braking_limit_rpm_per_s=bad)
+
+
+# --- the fast-decay (coasting) PWM drive
+
+
+@pytest.mark.parametrize("period_s", [0.0, 0.008])
+def test_a_fast_decay_drive_follows_the_reference(period_s):
+    # a stiff loop (A 100 1/s) stops from 80 rpm and reverses: the push along the motion falls
+    # with speed
+    # (no-load 200 rpm), and where the loop asks to brake the wheel coasts at 800 rpm/s + B y
+    A, B, C, coast, no_load = 100.0, 20.0, 600.0, 800.0, 200.0
+    cmd = _stop_commands()
+    fx = Effects(coast_decel_rpm_per_s=coast, no_load_rpm=no_load, controller_period_s=period_s)
+    w = simulate(cmd, T, Calibration(A=A, B=B, C=C, effects=fx)).wheel_rpm[0, :, 0]
+    ref = _reference(cmd[:, 0], A, B, C, np.inf, period_s, coast=coast, no_load=no_load)
+    # exact between ticks with a held output; the continuous PI's output is held over each
+    # 1-ms sub-step at its middle
+    assert np.abs(w - ref).max() < (0.05 if period_s else 0.3)
+    slope = np.diff(w) / np.diff(T)
+    towards_rest = -np.sign(w[:-1]) * slope
+    moving = (np.abs(w[:-1]) > 1.0) & (w[:-1] * w[1:] > 0)
+    # never slows faster than coasting does, and coasts on the stop
+    assert (towards_rest[moving] <= coast + B * np.abs(w[:-1][moving]) + 1e-6).all()
+    mid = 0.5 * np.abs(w[:-1] + w[1:])
+    ratio = towards_rest[300:450] / (coast + B * mid[300:450])
+    assert ratio.max() == pytest.approx(1.0, abs=0.01)  # it does coast: the duty is off
+    assert w[-1] < -35.0  # and the push reverses it from rest
+
+
+def test_a_fast_decay_drive_without_droop_is_a_braking_limit_without_a_pole():
+    # no back-EMF droop and no motor pole: the drive coasts at exactly the braking limit
+    cmd = _stop_commands()
+    a = simulate(cmd, T, Calibration(A=30.0, B=0.0, C=600.0, effects=Effects(
+        coast_decel_rpm_per_s=800.0))).wheel_rpm[0, :, 0]
+    b = simulate(cmd, T, Calibration(A=30.0, B=0.0, C=600.0, effects=Effects(
+        braking_limit_rpm_per_s=800.0))).wheel_rpm[0, :, 0]
+    assert np.abs(a - b).max() < 0.3
+
+
+def test_a_fast_decay_drive_starts_in_its_steady_state():
+    from mecanum_hil.model.simulate import steady_state
+
+    cal = Calibration(effects=Effects(coast_decel_rpm_per_s=500.0, no_load_rpm=180.0))
+    cmd = np.zeros((T.size, 3))
+    cmd[:, 0], cmd[:, 2] = 60.0, 90.0
+    y0 = np.full(4, 60.0)  # theta 90 deg: every wheel's target is n
+    state = steady_state(cal, y0, y0)
+    w = simulate(cmd, T, cal, initial_state=state[None, :]).wheel_rpm[0]
+    assert np.abs(w - 60.0).max() < 1e-6
+
+
+def test_a_fast_decay_drive_round_trips_and_leaves_out_an_infinite_no_load_speed(tmp_path):
+    for eff in (Effects(coast_decel_rpm_per_s=2900.0, no_load_rpm=700.0),
+                Effects(coast_decel_rpm_per_s=2900.0)):
+        path = save_calibration(Calibration(effects=eff), tmp_path / "c.toml")
+        assert "[effects.fast_decay]" in path.read_text()
+        assert "inf" not in path.read_text()
+        assert load_calibration(path).effects == eff
+    assert Effects(coast_decel_rpm_per_s=2900.0).active() == {
+        "fast_decay": {"coast_decel_rpm_per_s": 2900.0}}
+
+
+@pytest.mark.parametrize("kw, message", [
+    ({"coast_decel_rpm_per_s": 500.0, "braking_limit_rpm_per_s": 800.0}, "not used together"),
+    ({"no_load_rpm": 300.0}, "needs a finite coast_decel"),
+    ({"coast_decel_rpm_per_s": -1.0}, "coast_decel_rpm_per_s >= 0"),
+    ({"coast_decel_rpm_per_s": 500.0, "no_load_rpm": 0.0}, "no_load_rpm > 0"),
+])
+def test_a_fast_decay_drive_is_checked(kw, message):
+    from mecanum_hil.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        Effects(**kw)

@@ -19,6 +19,8 @@ EFFECTS = {
                            efficiency=(0.9, 0.8, 0.95)),
     "drive_dynamics": Effects(controller_period_s=0.006, breakaway_rpm_per_s=900.0,
                               braking_limit_rpm_per_s=700.0, dead_time_s=0.02),
+    "fast_decay": Effects(coast_decel_rpm_per_s=600.0, no_load_rpm=150.0,
+                          controller_period_s=0.006, dead_time_s=0.02),
 }
 
 

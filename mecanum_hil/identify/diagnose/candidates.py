@@ -28,7 +28,18 @@ from .localise import _Evaluator
 
 CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "rate_limit", "deadband", "wheel_gain",
                                "controller_period", "drive_lag", "breakaway",
-                               "braking_limit", "slip")
+                               "braking_limit", "fast_decay", "slip")
+
+#: Effects that are not in one model together: a fast-decay drive already coasts (its braking
+#: limit is ``coast_decel_rpm_per_s + B |y|``).
+EXCLUDES: dict[str, tuple[str, ...]] = {"fast_decay": ("braking_limit",),
+                                        "braking_limit": ("fast_decay",)}
+
+
+def compatible(pool: Iterable[str], present: Iterable[str]) -> list[str]:
+    """The candidates of ``pool`` that can join a model with the effects ``present``."""
+    barred = {x for e in present for x in EXCLUDES.get(e, ())}
+    return [c for c in pool if c not in barred]
 
 _COEFFICIENTS = ("A", "B", "C")
 
@@ -171,6 +182,9 @@ MULTI_START: dict[str, tuple[float, ...]] = {"breakaway": (1.0, 2.0), "drive_lag
 GRID_RESTART: tuple[str, ...] = ("saturation",)
 
 
+#: A fast-decay drive's no-load speed starts at this multiple of the fastest measured speed.
+FAST_DECAY_NO_LOAD = 2.0
+
 #: A braking limit starts at the steepest measured deceleration only when that is at least
 #: this share of the steepest change of speed over the same window, and beyond what the noise
 #: makes over it (else at the steepest change).
@@ -244,6 +258,12 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
         return {"drive_lag_s": max(0.15 * _rise_time_s(ev, noise_rpm), _sample_period_s(ev))}
     if effect == "breakaway":
         return {"breakaway_rpm_per_s": 0.0}  # read off the data in fit_candidate (needs A, C)
+    if effect == "fast_decay":
+        # a coasting wheel slows at the friction (the steepest measured deceleration, as for
+        # a braking limit); the push falls to nothing well above the fastest measured speed
+        peak = max(float(np.nanmax(np.abs(_smoothed(r.wheel_rpm)))) for r in recs)
+        return {"coast_decel_rpm_per_s": _start_values("braking_limit", ev, noise_rpm)[
+            "braking_limit_rpm_per_s"], "no_load_rpm": FAST_DECAY_NO_LOAD * max(peak, 1.0)}
     if effect == "braking_limit":
         # a drive that cannot brake harder caps the measured deceleration: start at the
         # steepest one, over the data's own time scale (the rise time, at least two samples)
@@ -302,6 +322,11 @@ def _candidate_bounds(effect: str, guess: Mapping[str, float],
     if effect == "braking_limit":
         g = guess["braking_limit_rpm_per_s"]
         return {"braking_limit_rpm_per_s": (min(1.0, 0.05 * g), 20.0 * g)}
+    if effect == "fast_decay":
+        g = guess["coast_decel_rpm_per_s"]
+        peak = guess["no_load_rpm"] / FAST_DECAY_NO_LOAD
+        return {"coast_decel_rpm_per_s": (0.0, 20.0 * g),
+                "no_load_rpm": (1.05 * peak, 100.0 * peak)}
     return {}
 
 
@@ -678,14 +703,16 @@ def _resolved(ev: _Evaluator, fitted: _Fitted, base: Calibration, base_free: Seq
 def _least_values(effect: str, bounds: Mapping[str, tuple[float, float]]
                    ) -> dict[str, float]:
     """An effect's parameters where, within its search range, it does least: no delay, lag or
-    breakaway (0), unit gains and efficiencies, the highest ceiling, ramp limit and braking
-    limit (which may still act: a ramp limit on the set-point acts on every step)."""
+    breakaway (0), unit gains and efficiencies, the highest ceiling, ramp limit, braking limit
+    and fast-decay friction and no-load speed (which may still act: a ramp limit on the
+    set-point acts on every step)."""
     out = {}
     for n in effect_parameters(effect):
         lo, hi = bounds.get(n, (-math.inf, math.inf))
         if n.startswith(("gains", "efficiency")):
             v = 1.0
-        elif n in ("top_speed_rpm", "rate_limit_rpm_per_s", "braking_limit_rpm_per_s"):
+        elif n in ("top_speed_rpm", "rate_limit_rpm_per_s", "braking_limit_rpm_per_s",
+                   "coast_decel_rpm_per_s", "no_load_rpm"):
             v = hi
         else:
             v = 0.0

@@ -30,6 +30,7 @@ from .candidates import (
     _effect_values,
     _Fitted,
     candidate_pool,
+    compatible,
     effect_parameters,
     fit_candidate,
 )
@@ -494,7 +495,8 @@ def _candidate_rounds(ctx: _Context, model: _Model, candidates: Sequence[str],
     """Rounds of candidates not yet in the model: first on the wheel speeds (scores in units
     of the noise variance), then slip on the pose (in units of the pose noise); updates
     ``model``."""
-    wheel_cands = [c for c in candidates if c != "slip" and c not in accepted]
+    wheel_cands = compatible([c for c in candidates if c != "slip" and c not in accepted],
+                             accepted)
     pose_cands = [c for c in candidates if c == "slip" and c not in accepted]
     for channel, pool in (("wheel", wheel_cands), ("pose", pose_cands)):
         if channel == "pose":
@@ -537,7 +539,7 @@ def _rounds_on_channel(ctx: _Context, model: _Model, channel: str, pool: list[st
                                                       scale2, f0):
             continue
         _add_winner(ctx, model, channel, win, fits[win.effect], held[win.effect], scores)
-        pool = [c for c in pool if c != win.effect]
+        pool = compatible([c for c in pool if c != win.effect], [win.effect])
 
 
 def _score_current(ctx: _Context, model: _Model, channel: str, scale2: float
