@@ -24,7 +24,8 @@ def command(
     candidates: Annotated[str | None, typer.Option(
         "--candidates", help="Comma-separated effects to consider (default: the whole library: "
                              "dead_time, saturation, rate_limit, deadband, wheel_gain, "
-                             "controller_period, drive_lag, breakaway, braking_limit, slip).")
+                             "controller_period, drive_lag, breakaway, braking_limit, fast_decay, "
+                             "slip).")
     ] = None,
     jobs: Annotated[int | None, typer.Option(
         "--jobs", min=1, help="Processes that fit each round's candidates, this one included "

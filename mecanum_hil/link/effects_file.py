@@ -7,7 +7,7 @@ Layout (every table optional)::
     [effects.wheel_gain]
     gains = [1.0, 1.0, 1.0, 0.9]
     [effects.breakaway]            # the drive's own dynamics too: controller_period, drive_lag,
-    breakaway_rpm_per_s = 1500.0   # breakaway, braking_limit (docs/model.md)
+    breakaway_rpm_per_s = 1500.0   # breakaway, braking_limit, fast_decay (docs/model.md)
 
     [unmodelled.resonance]         # effects OUTSIDE the model's library, for checking that
     natural_hz = 3.0               # diagnose reports them as unexplained: a lightly damped

@@ -288,19 +288,19 @@ def exchange_drive_lag(calibration: Calibration) -> Calibration | None:
     ``1 / (tau B)`` give exactly the same wheel speeds for every command, with every effect
     that acts on the target or on the controller output (dead time, deadband, gains, rate limit,
     saturation, controller period). Wheel speeds alone cannot tell the two apart; breakaway,
-    which acts on the lagged drive, and a braking limit, which acts on the motor's
-    acceleration, can.
+    which acts on the lagged drive, and a braking limit or a fast-decay drive, which act on
+    the motor's acceleration, can.
 
     Returns
     -------
     Calibration or None
         The twin (intervals and metrics dropped); ``None`` without a drive lag, with ``B <= 0``
-        or with breakaway or a braking limit (no exact twin).
+        or with breakaway, a braking limit or a fast-decay drive (no exact twin).
     """
     fx = calibration.effects
     tau, B = fx.drive_lag_s, calibration.B
     if not (tau > 0 and B > 0) or fx.breakaway_rpm_per_s > 0 or \
-            math.isfinite(fx.braking_limit_rpm_per_s):
+            math.isfinite(fx.braking_limit_rpm_per_s) or fx.fast_decay:
         return None
     k = 1.0 / (tau * B)
     twin = calibration.with_coefficients(calibration.A * k, 1.0 / tau, calibration.C * k)

@@ -121,6 +121,24 @@ def test_names_and_recovers_each_hidden_effect(effect, tmp_path):
     assert d.calibration.effects.active().keys() == {effect}
 
 
+@pytest.mark.slow
+def test_a_fast_decay_drive_is_named_with_its_friction_and_no_load_speed(tmp_path):
+    # a coasting drive's friction shows only where the loop asks to brake harder than it: on
+    # the paper's slow loop the reversal, not the stops (on a campaign without a reversal the
+    # friction and the motor pole trade exactly: B + u0 / Y0 is what the driven wheels see)
+    fx = sim_effects_for(Effects(coast_decel_rpm_per_s=200.0, no_load_rpm=300.0),
+                         wheel_rpm_std=NOISE_RPM, seed=1)
+    path = save_sim_effects(fx, tmp_path / "robot-effects.toml")
+    recs = paper_campaign(path, ROBOT, profiles=campaign_profiles(
+        **{**SHORT_CAMPAIGN, "reverse": True}), seed=1)
+    d = _diagnose(recs)
+    assert d.effects == ["fast_decay"], d.to_json()
+    found = d.steps[0].parameters
+    assert found["coast_decel_rpm_per_s"] == pytest.approx(200.0, rel=0.2)
+    assert found["no_load_rpm"] == pytest.approx(300.0, rel=0.2)
+    assert d.rmse_final < 1.5 * NOISE_RPM and not d.unexplained
+
+
 def test_no_hidden_effect_names_nothing(tmp_path):
     d = _diagnose(_campaign(tmp_path, Effects(), seed=2))
     assert d.effects == []

@@ -81,11 +81,15 @@ def effect_parameters(effect: str) -> tuple[str, ...]:
 
 
 def _effect_values(cal: Calibration, effect: str) -> dict[str, Any]:
-    """An effect's parameters as in :class:`Effects` (lists for gains and efficiency)."""
+    """An effect's parameters as in :class:`Effects` (lists for gains and efficiency; an
+    infinite one, a fast-decay drive without droop, left out as :meth:`Effects.active` does)."""
     out = {}
     for p in EFFECTS[effect].parameters:
         v = getattr(cal.effects, p)
-        out[p] = [float(x) for x in v] if isinstance(v, tuple) else float(v)
+        if isinstance(v, tuple):
+            out[p] = [float(x) for x in v]
+        elif math.isfinite(v):
+            out[p] = float(v)
     return out
 
 

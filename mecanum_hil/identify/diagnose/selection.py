@@ -465,8 +465,10 @@ def _refit_own_parameters(ctx: _Context, initial: Calibration, accepted: Sequenc
                           ) -> tuple[Calibration, list[str], dict[str, tuple[float, float]]]:
     """The baseline: A, B, C and the parameters of the effects the model has (``accepted``)
     refitted; returns it, the parameters freed and their 95 % intervals."""
+    # an infinite parameter (a fast-decay drive without droop) stays as it is
     free = list(_COEFFICIENTS) + [p for e in accepted for p in effect_parameters(e)
-                                  if e != "deadband"]
+                                  if e != "deadband"
+                                  and math.isfinite(parameter_value(initial, p))]
     try:
         res = fit_parameters(ctx.recs, initial, ctx.robot, free,
                              x0={n: parameter_value(initial, n) for n in free},
