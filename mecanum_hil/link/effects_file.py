@@ -34,12 +34,13 @@ The file is read only by the simulated controller, never by fitting or diagnosis
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from ..io.toml_config import TableReader, load_toml, toml_value, write_toml
-from ..model.calibration import EFFECTS, Effects, read_effects_table
+from ..model.calibration import EFFECTS, EXCLUDES, Effects, read_effects_table
 
 
 @dataclass(frozen=True)
@@ -123,8 +124,13 @@ def _unmodelled(doc: TableReader) -> dict[str, dict[str, float]]:
 
 
 def apply_effect_params(effects: Effects, named: dict[str, dict[str, Any]]) -> Effects:
-    """``effects`` with the named effects' parameters replaced."""
+    """``effects`` with the named effects' parameters replaced; an effect that cannot share a
+    model with a named one (:data:`~mecanum_hil.model.calibration.EXCLUDES`: a fast-decay drive
+    and a braking limit) is removed, as the named one replaces it."""
     values: dict[str, Any] = {}
+    for name in named:
+        for other in EXCLUDES.get(name, ()):
+            values.update(EFFECTS[other].absent)
     for params in named.values():
         for key, value in params.items():
             values[key] = tuple(value) if isinstance(value, list) else value
@@ -186,7 +192,9 @@ def sim_effects_to_toml(sim: SimEffects, header: str = "") -> str:
 
     def table(name: str, params: dict[str, Any]) -> None:
         lines.extend(["", f"[{name}]"] if lines else [f"[{name}]"])
-        lines.extend(f"{k} = {toml_value(v)}" for k, v in params.items())
+        # an infinite parameter (a fast-decay drive without droop) is left out, as absent
+        lines.extend(f"{k} = {toml_value(v)}" for k, v in params.items()
+                     if not (isinstance(v, float) and math.isinf(v)))
 
     for name, params in sim.effects.items():
         table(f"effects.{name}", params)

@@ -146,6 +146,19 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
     return t_l
 
 
+@njit(cache=True)
+def holding_drive(B, u0, no_load, y):
+    """The loop output [rpm/s] that holds a wheel at ``y`` [rpm] in steady state: ``B y``, or
+    through a fast-decay drive (``u0`` finite) the push that balances friction and the pole,
+    less the friction: ``sign(y) ((u0 + B |y|) / (1 - |y| / no_load) - u0)`` (the droop held
+    at 1e-3 of the full push at or beyond the no-load speed)."""
+    if not u0 < np.inf:
+        return B * y
+    droop = max(1.0 - abs(y) / no_load, 1e-3)
+    push = (u0 + B * abs(y)) / droop - u0
+    return push if y >= 0.0 else -push
+
+
 @njit(cache=True, inline="always")
 def _fast_decay_run(v, f, k, t):
     """Speed magnitude [rpm] and its integral [rpm s] after ``t`` seconds of ``v' = f - k v``."""
@@ -168,7 +181,7 @@ def _fast_decay_move(yi, c, rem, B, u0, iy0, brk):
     if v == 0.0 and abs(c) <= brk:
         return 0.0, 0.0  # held by static friction
     d = max(s * c + u0, 0.0)
-    f = d - u0
+    f = max(s * c, -u0)  # d - u0, exact for a large u0
     k = B + d * iy0
     v_new, area = _fast_decay_run(v, f, k, rem)
     if v_new >= 0.0:
@@ -184,8 +197,7 @@ def _fast_decay_move(yi, c, rem, B, u0, iy0, brk):
     if abs(c) <= brk or c == 0.0:
         return 0.0, area
     s = 1.0 if c > 0.0 else -1.0
-    d = s * c + u0
-    v_new, a1 = _fast_decay_run(0.0, d - u0, B + d * iy0, rem - t0)
+    v_new, a1 = _fast_decay_run(0.0, abs(c), B + (abs(c) + u0) * iy0, rem - t0)
     return s * v_new, area + s * a1
 
 
@@ -219,15 +231,16 @@ def _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, u0, iy0, y, z, hold
         c = A * e + C * (zi + 0.5 * e * rem)
         clipped = c > dmax or c < -dmax
         c = min(max(c, -dmax), dmax)
+    cin = c  # the controller's (clipped) output, before the lag
     if a < np.inf:
-        cin = c
         ea = math.exp(-a * rem)
         c = dl[i] if a * rem < 1e-12 else \
             cin + (dl[i] - cin) * (-math.expm1(-a * rem)) / (a * rem)
         dl[i] = cin + (dl[i] - cin) * ea
     y_new, area = _fast_decay_move(yi, c, rem, B, u0, iy0, brk)
     q[i] += area
-    if per <= 0 and (not clipped or (c > 0) != (u - yi > 0)):
+    # anti-windup on the controller's output, as the other paths
+    if per <= 0 and (not clipped or (cin > 0) != (u - yi > 0)):
         zi += u * rem - area
     y[i] = y_new
     z[i] = zi
@@ -246,13 +259,11 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, u0, iy0, y, z, hol
     at the instant it does (found in closed form, so the model is smooth in ``brk``). A wheel
     the loop would slow faster than ``brake`` [rpm/s] slows at ``brake`` first
     (:func:`_braking_phase`). With a fast-decay drive (``u0`` finite, see
-    :func:`_fast_decay_piece`) the wheel moves by that instead. Accumulates the integral of the
+    :func:`_fast_decay_piece`) the wheel moves by that once it has left rest (never with a
+    braking limit: the two are not in one model). Accumulates the integral of the
     speed over the piece into ``q[i]``. ``eb, g, ea``: :func:`_lag_factors` of ``ts`` (when the
     path needs them).
     """
-    if u0 < np.inf:
-        _fast_decay_piece(i, u, ts, A, B, C, per, a, brk, dmax, u0, iy0, y, z, hold, dl, q)
-        return
     rem = ts
     if brake < np.inf:
         rem = ts - _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q)
@@ -301,6 +312,9 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, u0, iy0, y, z, hol
             if rem <= 1e-12:
                 return
     # moving
+    if u0 < np.inf:
+        _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, u0, iy0, y, z, hold, dl, q)
+        return
     if rem != ts:
         eb, g, ea = _lag_factors(B, a, rem)
     zi = z[i]

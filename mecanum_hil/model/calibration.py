@@ -42,6 +42,12 @@ File layout::
     breakaway_rpm_per_s = 3000.0
     [effects.braking_limit]
     braking_limit_rpm_per_s = 2000.0
+
+or, in place of ``braking_limit`` (the two are not in one model), a fast-decay drive::
+
+    [effects.fast_decay]
+    coast_decel_rpm_per_s = 2900.0
+    no_load_rpm = 700.0              # optional (absent: no droop)
 """
 
 from __future__ import annotations
@@ -234,6 +240,11 @@ EFFECTS: dict[str, EffectSpec] = {
         "no_load_rpm [rpm], and coasts (friction coast_decel_rpm_per_s [rpm/s]) instead of "
         "braking"),
 }
+
+#: Effects that are not in one model together: a fast-decay drive already coasts (its braking
+#: limit is ``coast_decel_rpm_per_s + B |y|``).
+EXCLUDES: dict[str, tuple[str, ...]] = {"fast_decay": ("braking_limit",),
+                                        "braking_limit": ("fast_decay",)}
 
 
 @dataclass(frozen=True)

@@ -98,19 +98,15 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
     target_rpm : array_like, shape (4,)
         Wheel targets of the first command (inverse kinematics) [rpm].
     """
-    from ._kernels import STATE_WIDTH
+    from ._kernels import STATE_WIDTH, holding_drive
 
     e = calibration.effects
     y = np.asarray(wheel_rpm, dtype=float)
     u = np.where(np.abs(target_rpm) < e.deadband_rpm, 0.0,
                  np.asarray(target_rpm, dtype=float)) * np.asarray(e.gains)
     A, B, C = calibration.coefficients
-    hold = B * y
-    if math.isfinite(e.coast_decel_rpm_per_s):
-        # a fast-decay drive holds |y| with the push (u0 + B |y|) / (1 - |y| / Y0), less u0
-        u0 = e.coast_decel_rpm_per_s
-        droop = np.clip(1.0 - np.abs(y) / e.no_load_rpm, 1e-3, None)
-        hold = np.sign(y) * ((u0 + B * np.abs(y)) / droop - u0)
+    hold = np.array([holding_drive(B, e.coast_decel_rpm_per_s, e.no_load_rpm, float(v))
+                     for v in y])
     state = np.zeros(STATE_WIDTH)
     state[:4] = y
     state[4:8] = (hold - A * (u - y)) / C

@@ -24,7 +24,13 @@ import math
 import numpy as np
 
 from .._jit import njit
-from ..model._kernels import _controller_tick, _drive_piece, _exp_se2, _lag_factors
+from ..model._kernels import (
+    _controller_tick,
+    _drive_piece,
+    _exp_se2,
+    _lag_factors,
+    holding_drive,
+)
 from ..model.discretise import discretise_step
 
 _RPM_S_TO_RAD = 2.0 * math.pi / 60.0
@@ -378,18 +384,21 @@ def _start(row, pp, fs):
     _set_targets(pp, fs)
     for i in range(4):
         w = row[4 + i]
+        # the drive holding that speed (as the simulator's steady state): B y, or the push
+        # of a fast-decay drive that balances friction and the pole there
+        hold = 0.0
         if start_meas and not math.isnan(w):
-            # steady state at the measured speed: drive A (u - y) + C z = B y with u = y
+            # steady state at the measured speed: drive A (u - y) + C z = hold with u = y
+            hold = holding_drive(pp[P_B], pp[P_U0], pp[P_Y0], w)
             fs[S_Y + i] = w
-            fs[S_Z + i] = pp[P_B] * w / pp[P_C]
+            fs[S_Z + i] = hold / pp[P_C]
             fs[S_UE + i] = w
         else:
             fs[S_Y + i] = 0.0
             fs[S_Z + i] = 0.0
             fs[S_UE + i] = 0.0
-        # the drive holding that speed (as the simulator's steady state): B y
-        fs[S_HOLD + i] = pp[P_B] * fs[S_Y + i]
-        fs[S_DL + i] = pp[P_B] * fs[S_Y + i]
+        fs[S_HOLD + i] = hold
+        fs[S_DL + i] = hold
     fs[S_UNTIL] = 0.0
     if not (math.isnan(row[8]) or math.isnan(row[9]) or math.isnan(row[10])):
         fs[S_PX] = row[8]

@@ -98,6 +98,34 @@ gains = [1.0, 0.0, 1.0, 1.0]
     assert abs(got[595][1]) < 2.0 and got[595][0] == pytest.approx(60.0, abs=1.0)
 
 
+def test_a_fault_switching_a_braking_limit_on_replaces_a_fast_decay_drive(tmp_path):
+    # the two are not in one model: the effect a fault names replaces the other (a second
+    # reading found the simulated robot died at the fault's time with a ConfigError)
+    fx = load_sim_effects(_write(tmp_path, """
+[effects.fast_decay]
+coast_decel_rpm_per_s = 800.0
+[noise]
+wheel_rpm_std = 0.0
+[[faults]]
+at_s = 0.25
+[faults.effects.braking_limit]
+braking_limit_rpm_per_s = 600.0
+"""))
+    model = ControllerModel(CAL, ROBOT, fx, rate_hz=RATE)
+    cmd = np.tile([60.0, 0.0, 90.0], (400, 1))
+    _drive(model, cmd, list(range(0, 400, 9)))
+    assert model.effects.braking_limit_rpm_per_s == 600.0 and not model.effects.fast_decay
+
+
+def test_an_effects_file_without_a_no_load_speed_saves_and_loads(tmp_path):
+    from mecanum_hil.link.effects_file import save_sim_effects, sim_effects_for
+
+    fx = sim_effects_for(Effects(coast_decel_rpm_per_s=200.0))
+    path = save_sim_effects(fx, tmp_path / "fx.toml")
+    assert "inf" not in path.read_text()
+    assert load_sim_effects(path).effects == fx.effects
+
+
 def test_estop_fault_holds_the_wheels_at_zero(tmp_path):
     fx = load_sim_effects(_write(tmp_path, "[[faults]]\nat_s = 0.1\nestop = true\n"))
     model = ControllerModel(CAL, ROBOT, fx, rate_hz=RATE)

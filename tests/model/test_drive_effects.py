@@ -328,3 +328,27 @@ def test_a_fast_decay_drive_is_checked(kw, message):
 
     with pytest.raises(ConfigError, match=message):
         Effects(**kw)
+
+
+@pytest.mark.parametrize("A, C", [(100.0, 600.0), (30.0, 2000.0)])
+def test_a_fast_decay_drive_with_a_lag_and_a_ceiling_follows_the_reference(A, C):
+    # saturated through a lag into a reversal: the integrator must stop winding up on the
+    # controller's clipped output, not on the lagged one that still has the old sign (a second
+    # reading found 7-13 rpm of error there)
+    B, coast, no_load = 20.0, 800.0, 200.0
+    cmd = _stop_commands()
+    fx = Effects(coast_decel_rpm_per_s=coast, no_load_rpm=no_load, drive_lag_s=0.05,
+                 top_speed_rpm=70.0)
+    w = simulate(cmd, T, Calibration(A=A, B=B, C=C, effects=fx)).wheel_rpm[0, :, 0]
+    ref = _reference(cmd[:, 0], A, B, C, np.inf, lag_s=0.05, top_rpm=70.0, coast=coast,
+                     no_load=no_load)
+    assert np.abs(w - ref).max() < 0.6
+
+
+def test_breakaway_through_a_fast_decay_drive_is_smooth_in_its_threshold():
+    # the instant a stuck wheel leaves rest is found in closed form, as without the drive: the
+    # wheel speeds change with the threshold, so least squares can fit it
+    sums = [_wheel(Effects(breakaway_rpm_per_s=b, coast_decel_rpm_per_s=500.0,
+                           no_load_rpm=300.0)).sum() for b in np.linspace(3000.0, 3000.5, 6)]
+    steps = np.diff(sums)
+    assert np.abs(steps).min() > 1e-3 and steps.min() / steps.max() > 0.9  # one sign, smooth

@@ -69,6 +69,22 @@ def test_streamed_prediction_equals_simulate_on_irregular_times(name):
     assert mon.alarms == []
 
 
+@pytest.mark.parametrize("effects", [
+    Effects(), Effects(coast_decel_rpm_per_s=2900.0, no_load_rpm=700.0),
+    Effects(coast_decel_rpm_per_s=2900.0, no_load_rpm=700.0, controller_period_s=0.005,
+            drive_lag_s=0.01)])
+def test_a_robot_joined_in_motion_starts_the_model_holding_its_speed(effects):
+    # joining a robot that runs steadily at 300 rpm: the model starts there, its drive holding
+    # it (a fast-decay drive needs a larger push than B y: a second reading found the monitor
+    # started it at B y, predicted a slowdown to 229 rpm and raised alarms on every wheel)
+    cal = Calibration(effects=effects)
+    mon = ShadowMonitor(cal, config=ShadowConfig(noise_rpm=1.0))
+    for t in np.arange(200) / 200.0:
+        mon.on_telemetry(t, (300.0, 0.0, 90.0), (300.0,) * 4)
+        assert np.abs(mon.predicted[:4] - 300.0).max() < 1e-6
+    assert mon.alarms == []
+
+
 def test_long_dead_time_grows_the_command_queue_live_and_in_replay():
     # 0.5 s dead time at 1 kHz: 500 commands pending, far beyond the initial queue of 64
     t = np.arange(3001) / 1000.0

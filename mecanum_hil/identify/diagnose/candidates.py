@@ -11,7 +11,7 @@ import numpy as np
 
 from ...errors import ConfigError, DiagnoseError, FitError
 from ...io.recording import Recording
-from ...model.calibration import EFFECTS, Calibration
+from ...model.calibration import EFFECTS, EXCLUDES, Calibration
 from ...model.kinematics import command_to_wheels
 from ...model.robot import RobotProfile
 from ...model.simulate import simulate
@@ -29,11 +29,6 @@ from .localise import _Evaluator
 CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "rate_limit", "deadband", "wheel_gain",
                                "controller_period", "drive_lag", "breakaway",
                                "braking_limit", "fast_decay", "slip")
-
-#: Effects that are not in one model together: a fast-decay drive already coasts (its braking
-#: limit is ``coast_decel_rpm_per_s + B |y|``).
-EXCLUDES: dict[str, tuple[str, ...]] = {"fast_decay": ("braking_limit",),
-                                        "braking_limit": ("fast_decay",)}
 
 
 def compatible(pool: Iterable[str], present: Iterable[str]) -> list[str]:
