@@ -384,7 +384,10 @@ def _read_effects(reader: TableReader | None) -> Effects:
             values["coast_decel_rpm_per_s"] = sub.number("coast_decel_rpm_per_s", minimum=0.0)
             values["no_load_rpm"] = sub.number("no_load_rpm", math.inf, minimum=0,
                                                strict_minimum=True)
-    return Effects(**values)
+    try:
+        return Effects(**values)
+    except ConfigError as err:  # effects that are not in one model: name the file's tables
+        raise ConfigError(f"{reader.source}: [{reader.prefix}]: {err}") from None
 
 
 def read_effects_table(table: Mapping[str, Any], source: str) -> Effects:

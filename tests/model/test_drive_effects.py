@@ -352,3 +352,15 @@ def test_breakaway_through_a_fast_decay_drive_is_smooth_in_its_threshold():
                            no_load_rpm=300.0)).sum() for b in np.linspace(3000.0, 3000.5, 6)]
     steps = np.diff(sums)
     assert np.abs(steps).min() > 1e-3 and steps.min() / steps.max() > 0.9  # one sign, smooth
+
+
+def test_a_calibration_file_with_both_coasting_effects_names_the_file(tmp_path):
+    from mecanum_hil.errors import ConfigError
+
+    path = tmp_path / "both.toml"
+    path.write_text("[motor]\nA = 1.0\nB = 1.0\nC = 10.0\n[effects.fast_decay]\n"
+                    "coast_decel_rpm_per_s = 100.0\n[effects.braking_limit]\n"
+                    "braking_limit_rpm_per_s = 50.0\n")
+    with pytest.raises(ConfigError, match=r"both\.toml: \[effects\]: fast_decay and "
+                                          r"braking_limit are not used together"):
+        load_calibration(path)

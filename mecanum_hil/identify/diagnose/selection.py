@@ -497,8 +497,11 @@ def _candidate_rounds(ctx: _Context, model: _Model, candidates: Sequence[str],
     """Rounds of candidates not yet in the model: first on the wheel speeds (scores in units
     of the noise variance), then slip on the pose (in units of the pose noise); updates
     ``model``."""
-    wheel_cands = compatible([c for c in candidates if c != "slip" and c not in accepted],
-                             accepted)
+    wanted = [c for c in candidates if c != "slip" and c not in accepted]
+    wheel_cands = compatible(wanted, accepted)
+    if len(wheel_cands) < len(wanted):
+        ctx.say(f"not tried: {', '.join(c for c in wanted if c not in wheel_cands)} (not in one "
+                f"model with {', '.join(accepted)}, which the model has)")
     pose_cands = [c for c in candidates if c == "slip" and c not in accepted]
     for channel, pool in (("wheel", wheel_cands), ("pose", pose_cands)):
         if channel == "pose":
