@@ -105,7 +105,8 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
     u = np.where(np.abs(target_rpm) < e.deadband_rpm, 0.0,
                  np.asarray(target_rpm, dtype=float)) * np.asarray(e.gains)
     A, B, C = calibration.coefficients
-    hold = np.array([holding_drive(B, e.coast_decel_rpm_per_s, e.no_load_rpm, float(v))
+    # the kernel's Python source: four numbers need no compiled code (mecanum_hil._jit)
+    hold = np.array([holding_drive.py_func(B, e.coast_decel_rpm_per_s, e.no_load_rpm, float(v))
                      for v in y])
     state = np.zeros(STATE_WIDTH)
     state[:4] = y
