@@ -170,19 +170,26 @@ def _fast_decay_run(v, f, k, t):
 
 
 @njit(cache=True, inline="always")
-def _fast_decay_move(yi, c, rem, B, u0, iy0, brk):
-    """Wheel speed [rpm] after ``rem`` seconds of a held loop output ``c`` [rpm/s] through the
-    fast-decay drive of :func:`_fast_decay_piece`, and the speed's integral [rpm s]: exact."""
-    v = abs(yi)
+def _fast_decay_rates(yi, c, B, u0, iy0):
+    """The fast-decay drive's equation at speed ``yi`` [rpm] with loop output ``c`` [rpm/s]:
+    the direction of motion ``s`` (of ``c`` at rest), and ``f``, ``k`` of ``|y|' = f - k |y|``
+    (``f = d - u0`` with the duty's push ``d = max(s c + u0, 0)``, ``k = B + d iy0``)."""
     if yi != 0.0:
         s = 1.0 if yi > 0.0 else -1.0
     else:
         s = 1.0 if c >= 0.0 else -1.0
+    d = max(s * c + u0, 0.0)
+    return s, max(s * c, -u0), B + d * iy0  # max(s c, -u0) = d - u0, exact for a large u0
+
+
+@njit(cache=True, inline="always")
+def _fast_decay_move(yi, c, rem, B, u0, iy0, brk):
+    """Wheel speed [rpm] after ``rem`` seconds of a held loop output ``c`` [rpm/s] through the
+    fast-decay drive of :func:`_fast_decay_piece`, and the speed's integral [rpm s]: exact."""
+    v = abs(yi)
     if v == 0.0 and abs(c) <= brk:
         return 0.0, 0.0  # held by static friction
-    d = max(s * c + u0, 0.0)
-    f = max(s * c, -u0)  # d - u0, exact for a large u0
-    k = B + d * iy0
+    s, f, k = _fast_decay_rates(yi, c, B, u0, iy0)
     v_new, area = _fast_decay_run(v, f, k, rem)
     if v_new >= 0.0:
         return s * v_new, s * area
@@ -194,10 +201,10 @@ def _fast_decay_move(yi, c, rem, B, u0, iy0, brk):
         t0 = math.log1p(-v * k / f) / k  # v_ss + (v - v_ss) exp(-k t0) = 0
     t0 = min(max(t0, 0.0), rem)
     area = s * _fast_decay_run(v, f, k, t0)[1]
-    if abs(c) <= brk or c == 0.0:
+    if abs(c) <= brk:
         return 0.0, area
-    s = 1.0 if c > 0.0 else -1.0
-    v_new, a1 = _fast_decay_run(0.0, abs(c), B + (abs(c) + u0) * iy0, rem - t0)
+    s, f, k = _fast_decay_rates(0.0, c, B, u0, iy0)
+    v_new, a1 = _fast_decay_run(0.0, f, k, rem - t0)
     return s * v_new, area + s * a1
 
 
@@ -527,9 +534,9 @@ def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tic
             _controller_tick(ub, per, A, C, dmax, y, z, hold)
             until_tick = per
         piece = min(rem, until_tick) if per > 0 else rem
-        if per > 0 or a_lag < np.inf or saturating:
+        if u0 == np.inf and (per > 0 or a_lag < np.inf or saturating):
             eb_p, g_p, ea_p = _lag_factors(B, a_lag, piece)
-        else:  # the closed-form PI path (tab) needs none
+        else:  # the closed-form PI path (tab) and a fast-decay drive need none
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
             _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, u0, iy0,

@@ -28,6 +28,7 @@ from ..model._kernels import (
     _controller_tick,
     _drive_piece,
     _exp_se2,
+    _fast_decay_rates,
     _lag_factors,
     holding_drive,
 )
@@ -220,9 +221,9 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
             _controller_tick(ub, per, A, C, dmax, y, z, hold)
             fs[S_UNTIL] = per
         piece = min(rem, fs[S_UNTIL]) if per > 0 else rem
-        if per > 0 or a_lag < np.inf or saturating:
+        if u0 == np.inf and (per > 0 or a_lag < np.inf or saturating):
             eb_p, g_p, ea_p = _lag_factors(B, a_lag, piece)
-        else:
+        else:  # the closed-form PI path and a fast-decay drive need none
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
             _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, u0, iy0, y, z,
@@ -355,9 +356,8 @@ def _slope(pp, fs, i):
         return 0.0  # held by static friction
     u0 = pp[P_U0]
     if u0 < np.inf:  # a fast-decay drive: the push along the motion, less friction
-        s = 1.0 if y > 0.0 or (y == 0.0 and drive >= 0.0) else -1.0
-        return s * (max(s * drive + u0, 0.0) * (1.0 - abs(y) / pp[P_Y0]) - u0
-                    - pp[P_B] * abs(y))
+        s, f, k = _fast_decay_rates(y, drive, pp[P_B], u0, 1.0 / pp[P_Y0])
+        return s * (f - k * abs(y))
     slope = drive - pp[P_B] * y
     brake = pp[P_BRAKE]
     if y > 0.0 and slope < -brake:
