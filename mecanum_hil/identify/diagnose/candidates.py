@@ -104,6 +104,11 @@ def _smoothed(w: np.ndarray) -> np.ndarray:
     return out
 
 
+def _peak_rpm(recs: Sequence[Recording]) -> float:
+    """The fastest smoothed measured wheel speed of the recordings [rpm]."""
+    return max(float(np.nanmax(np.abs(_smoothed(r.wheel_rpm)))) for r in recs)
+
+
 def _steepest_rpm_per_s(t: np.ndarray, w: np.ndarray) -> float:
     """The largest absolute slope of the smoothed wheel speeds between consecutive measured
     samples [rpm/s] (0 without two)."""
@@ -236,7 +241,7 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
         best = max([1.0] + [_steepest_rpm_per_s(r.t_s, r.wheel_rpm) for r in recs])
         return {"rate_limit_rpm_per_s": best}
     if effect == "saturation":
-        peak = max(float(np.nanmax(np.abs(_smoothed(r.wheel_rpm)))) for r in recs)
+        peak = _peak_rpm(recs)
         return {"top_speed_rpm": 1.02 * peak}
     if effect == "wheel_gain":
         # steady-state ratio of measured speed to target, per wheel
@@ -260,7 +265,7 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
     if effect == "fast_decay":
         # a coasting wheel slows at the friction (the steepest measured deceleration, as for
         # a braking limit); the push falls to nothing well above the fastest measured speed
-        peak = max(float(np.nanmax(np.abs(_smoothed(r.wheel_rpm)))) for r in recs)
+        peak = _peak_rpm(recs)
         return {"coast_decel_rpm_per_s": _start_values("braking_limit", ev, noise_rpm)[
             "braking_limit_rpm_per_s"], "no_load_rpm": FAST_DECAY_NO_LOAD * max(peak, 1.0)}
     if effect == "braking_limit":
