@@ -248,6 +248,11 @@ class _Prepared:
     start_target: np.ndarray      # (4,) wheel targets of the first command [rpm]
     clock_s: float | None = None  # the controller's clock at the first sample [s]
 
+    @property
+    def wheel_measured(self) -> np.ndarray:
+        """The wheels measured somewhere in the recording, (4,) bool."""
+        return self.wheel_mask.any(axis=0)
+
     def initial_states(self, calibs: Sequence[Calibration]) -> np.ndarray | None:
         """Steady states at the measured start speeds, with the controller's tick phase, one per
         calibration; None for the default (at rest, first tick at the first sample)."""
@@ -412,20 +417,33 @@ def one_blas_thread():
                 _blas_saved.clear()
 
 
-def _simulate(p: _Prepared, calibs: Sequence[Calibration], robot: RobotProfile):
+def _simulate(p: _Prepared, calibs: Sequence[Calibration], robot: RobotProfile, pose: bool):
     state = p.initial_states(calibs)
     with few_threads(len(calibs) * p.t_s.size * 4):
         traj = simulate_batch(p.commands, p.t_s, list(calibs), robot, initial_pose=p.pose0,
                               initial_state=state,
-                              initial_command=p.commands[0] if p.start_rpm.any() else None)
+                              initial_command=p.commands[0] if p.start_rpm.any() else None,
+                              **_outputs([p], pose))
     return traj.wheel_rpm, traj.pose
 
 
+def _outputs(members: Sequence[_Prepared], pose: bool) -> dict:
+    """What a fit simulates of recordings run as one batch: with the pose, everything; else
+    the wheels measured in any of them, and no pose (NaN; see :func:`simulate_batch`)."""
+    if pose:
+        return {}
+    wheels = np.zeros(4, dtype=bool)
+    for p in members:
+        wheels |= p.wheel_measured
+    return {"wheels": wheels, "pose": False}
+
+
 def _simulate_all(data: Sequence[_Prepared], calibs: Sequence[Calibration],
-                  robot: RobotProfile) -> list[tuple[np.ndarray, np.ndarray]]:
+                  robot: RobotProfile, pose: bool = True) -> list[tuple[np.ndarray, np.ndarray]]:
     """Wheel speeds and poses, shape (len(calibs), T, .), of every recording: recordings on the
     same time grid run as one batch (a campaign's steps: one call instead of one per
-    recording; each robot's result does not depend on its batch)."""
+    recording; each robot's result does not depend on its batch). Without ``pose`` only the
+    measured wheels are simulated, and the poses are NaN."""
     groups: dict[bytes, list[int]] = {}
     for i, p in enumerate(data):
         groups.setdefault(p.t_s.tobytes(), []).append(i)
@@ -433,7 +451,7 @@ def _simulate_all(data: Sequence[_Prepared], calibs: Sequence[Calibration],
     k = len(calibs)
     for idx in groups.values():
         if len(idx) == 1:
-            out[idx[0]] = _simulate(data[idx[0]], calibs, robot)
+            out[idx[0]] = _simulate(data[idx[0]], calibs, robot, pose)
             continue
         m = len(idx)
         members = [data[i] for i in idx]
@@ -453,11 +471,12 @@ def _simulate_all(data: Sequence[_Prepared], calibs: Sequence[Calibration],
         per_robot = [c for c in calibs for _ in range(m)]
         with few_threads(k * m * members[0].t_s.size * 4):
             traj = simulate_batch(cmds, members[0].t_s, per_robot, robot, initial_pose=pose0,
-                                  initial_state=state, initial_command=cmd0)
+                                  initial_state=state, initial_command=cmd0,
+                                  **_outputs(members, pose))
         wheels = traj.wheel_rpm.reshape(k, m, *traj.wheel_rpm.shape[1:])
-        pose = traj.pose.reshape(k, m, *traj.pose.shape[1:])
+        poses = traj.pose.reshape(k, m, *traj.pose.shape[1:])
         for j, i in enumerate(idx):
-            out[i] = (wheels[:, j], pose[:, j])
+            out[i] = (wheels[:, j], poses[:, j])
     return out
 
 
@@ -497,7 +516,8 @@ def _residual_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration], rob
         if rows is not None:
             return rows
     parts = []
-    for p, (wheels, pose) in zip(data, _simulate_all(data, calibs, robot), strict=True):
+    fitted = _simulate_all(data, calibs, robot, _fits_pose(data, pose_weight))
+    for p, (wheels, pose) in zip(data, fitted, strict=True):
         parts.append((p.wheel_rpm[None] - wheels)[:, p.wheel_mask])
         if pose_weight > 0 and p.pose_mask.any():
             d = p.pose[None] - pose

@@ -414,13 +414,19 @@ def _store_state(state_out, r, y, z, ue, hold, dl, until_tick):
 
 
 @njit(cache=True, inline="always")
-def _record_sample(wheels_out, pose_out, r, t, y, X, Y, phi):
-    """Write robot ``r``'s wheel speeds [rpm] and pose (``phi`` [rad] as [deg]) at sample ``t``."""
+def _record_sample(wheels_out, pose_out, r, t, y, X, Y, phi, active, with_pose):
+    """Write robot ``r``'s wheel speeds [rpm] and pose (``phi`` [rad] as [deg]) at sample ``t``:
+    NaN for a wheel not ``active`` and, without ``with_pose``, for the pose."""
     for i in range(4):
-        wheels_out[r, t, i] = y[i]
-    pose_out[r, t, 0] = X
-    pose_out[r, t, 1] = Y
-    pose_out[r, t, 2] = math.degrees(phi)
+        wheels_out[r, t, i] = y[i] if active[i] else np.nan
+    if with_pose:
+        pose_out[r, t, 0] = X
+        pose_out[r, t, 1] = Y
+        pose_out[r, t, 2] = math.degrees(phi)
+    else:
+        pose_out[r, t, 0] = np.nan
+        pose_out[r, t, 1] = np.nan
+        pose_out[r, t, 2] = np.nan
 
 
 @njit(cache=True, inline="always")
@@ -467,13 +473,13 @@ def _ramp_setpoints(tgt, ue, ub, ramping, rl, hs):
 
 @njit(cache=True, inline="always")
 def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A, B, C,
-                         drive_max, top):
+                         drive_max, top, active):
     """Advance the four wheels over one sub-step on the closed-form path.
 
     ``coef``: the sub-step's row of the kernel's ``table`` (its exact discretisation). A wheel
     whose drive is at the saturation limit moves exactly towards ``top`` [rpm] instead, its
     integrator frozen while the error pushes further (anti-windup). Writes the integral of each
-    wheel's speed over the sub-step into ``q`` [rpm s].
+    wheel's speed over the sub-step into ``q`` [rpm s]. Wheels not ``active`` stay as they are.
     """
     a11 = coef[0]
     a12 = coef[1]
@@ -488,6 +494,8 @@ def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A,
     hs = coef[10]
     _ramp_setpoints(tgt, ue, ub, ramping, rl, hs)
     for i in range(4):
+        if not active[i]:
+            continue
         u = ub[i]
         yi = y[i]
         zi = z[i]
@@ -513,13 +521,14 @@ def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A,
 
 @njit(cache=True, inline="always")
 def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                            saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax):
+                            saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax, active):
     """Advance the four wheels over one sub-step on the path of the drive's own dynamics.
 
     The sub-step is cut into pieces that end at the controller's ticks (period ``per`` [s]),
     each advanced by :func:`_drive_piece`. ``coef``: the sub-step's row of the kernel's
     ``table``; ``tab``: scratch (11,). Writes the integral of each wheel's speed over the
-    sub-step into ``q`` [rpm s]; returns the time to the next tick [s].
+    sub-step into ``q`` [rpm s]; returns the time to the next tick [s]. Wheels not ``active``
+    stay as they are.
     """
     hs = coef[10]
     _ramp_setpoints(tgt, ue, ub, ramping, rl, hs)
@@ -539,8 +548,9 @@ def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tic
         else:  # the closed-form PI path (tab) and a fast-decay drive need none
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
-            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, u0, iy0,
-                         y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
+            if active[i]:
+                _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, u0, iy0,
+                             y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
             until_tick -= piece
@@ -570,7 +580,7 @@ def _advance_pose(q, ex, ey, ez, k, lin, X, Y, phi, cph, sph):
 def simulate_kernel(
     commands, didx, nsub, table, coeffs, k, wheel_radius_m,
     deadband, gains, top_speed, rate_limit, efficiency, dyn,
-    state, pose0, wheels_out, pose_out, state_out, pose_final,
+    state, pose0, active, with_pose, record, wheels_out, pose_out, state_out, pose_final,
 ):
     """Simulate N robots over T samples.
 
@@ -600,8 +610,17 @@ def simulate_kernel(
         Initial wheel state (see ``STATE_WIDTH``).
     pose0 : (N, 3) float64
         Initial pose ``(X [m], Y [m], phi [deg])``.
-    wheels_out : (N, T, 4); pose_out : (N, T, 3)
-        Wheel speeds [rpm] and pose at each sample (written).
+    active : (4,) bool
+        The wheels to simulate: the others stay in their initial state and are written NaN.
+    with_pose : bool
+        Whether to compute the pose (needs all four wheels ``active``); without, the pose is
+        written NaN (``pose_final`` too). A fit of wheel speeds needs only the measured wheels,
+        and no pose.
+    record : (T,) int64
+        The output row of each step's start (``-1``: not written): a grid refined at a dead
+        time's delayed command changes writes only its samples.
+    wheels_out : (N, S, 4); pose_out : (N, S, 3)
+        Wheel speeds [rpm] and pose at each recorded sample (written).
     state_out : (N, 21); pose_final : (N, 3)
         State and pose at the last sample (written).
     """
@@ -647,7 +666,9 @@ def simulate_kernel(
         last_w = np.nan
         last_th = np.nan
         for t in range(T):
-            _record_sample(wheels_out, pose_out, r, t, y, X, Y, phi)
+            if record[t] >= 0:
+                _record_sample(wheels_out, pose_out, r, record[t], y, X, Y, phi, active,
+                               with_pose)
             if t == T - 1:
                 break
             n = commands[r, t, 0]
@@ -663,15 +684,17 @@ def simulate_kernel(
                 if dynamics:
                     until_tick = _drive_dynamics_substep(
                         tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                        saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax)
+                        saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax, active)
                 else:
                     _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating,
-                                         A, B, C, drive_max, top)
-                X, Y, phi, cph, sph = _advance_pose(q, ex, ey, ez, k, lin, X, Y, phi, cph, sph)
+                                         A, B, C, drive_max, top, active)
+                if with_pose:
+                    X, Y, phi, cph, sph = _advance_pose(q, ex, ey, ez, k, lin, X, Y, phi, cph,
+                                                        sph)
         _store_state(state_out, r, y, z, ue, hold, dl, until_tick)
-        pose_final[r, 0] = X
-        pose_final[r, 1] = Y
-        pose_final[r, 2] = math.degrees(phi)
+        pose_final[r, 0] = X if with_pose else np.nan
+        pose_final[r, 1] = Y if with_pose else np.nan
+        pose_final[r, 2] = math.degrees(phi) if with_pose else np.nan
 
 
 @njit(cache=True)

@@ -143,12 +143,21 @@ def _memo(key, make):
 
 
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
-    """Refine the time grid so a dead time is exact; return grid, delayed commands, sample index."""
-    grid, src, sample_idx = _memo(("delay", t.tobytes(), float(delay_s)),
-                                  lambda: _delay_plan(t, float(delay_s)))
+    """Refine the time grid so a dead time is exact; return grid, delayed commands and each
+    grid point's sample (-1: none, see :func:`_recorded`)."""
+    grid, src, record = _memo(("delay", t.tobytes(), float(delay_s)),
+                              lambda: _recorded(*_delay_plan(t, float(delay_s))))
     delayed = np.where((src >= 0)[None, :, None], cmd[:, np.clip(src, 0, None), :],
                        initial_command[:, None, :])
-    return grid, delayed, sample_idx
+    return grid, delayed, record
+
+
+def _recorded(grid: np.ndarray, src: np.ndarray, sample_idx: np.ndarray):
+    """A delay plan with the samples' places on the grid turned round: each grid point's
+    sample, -1 where it is none (the kernel's ``record``)."""
+    record = np.full(grid.size, -1, dtype=np.int64)
+    record[sample_idx] = np.arange(sample_idx.size)
+    return grid, src, record
 
 
 def _delay_plan(t: np.ndarray, delay_s: float):
@@ -243,6 +252,8 @@ def simulate_batch(
     initial_command=None,
     max_substep_s: float = 1e-3,
     out: Trajectory | None = None,
+    wheels=None,
+    pose: bool = True,
 ) -> Trajectory:
     """Simulate N robots, each with its own command stream and calibration.
 
@@ -270,19 +281,27 @@ def simulate_batch(
     out : Trajectory, optional
         A trajectory of the same shape whose arrays are overwritten instead of allocating new
         ones (a training loop or benchmark that simulates again and again).
+    wheels : array_like of bool, shape (4,), optional
+        The wheels to simulate (default: all four); the others are NaN in ``wheel_rpm`` and
+        stay in their initial state. The wheels are independent given the commands, so those
+        simulated are the same as in a full simulation; a fit of the measured wheels alone
+        needs no more. Needs ``pose=False`` unless all four are simulated.
+    pose : bool
+        Whether to compute the pose; without, ``pose`` is NaN (a fit of wheel speeds alone).
 
     Returns
     -------
     Trajectory
     """
     robot = robot or RobotProfile()
+    active = _active_wheels(wheels, pose)
     t = _times(time_s)
     cmd, calibs, shared = _robots_and_commands(commands, t, calibration)
     n_rob = len(calibs)
     pose0, state0, cmd0 = _initial_values(n_rob, initial_pose, initial_state, initial_command)
-    wheels, pose, final_state = _output_arrays(out, n_rob, t.size)
+    wheel_rpm, poses, final_state = _output_arrays(out, n_rob, t.size)
     final_pose = np.empty((n_rob, 3))
-    outputs = (wheels, pose, final_state, final_pose)
+    outputs = (wheel_rpm, poses, final_state, final_pose)
 
     # Robots are simulated in groups sharing a time grid: the same dead time (its grid is split at
     # the delayed command changes) and the same path (sub-stepped or closed-form), so a robot's
@@ -293,13 +312,32 @@ def simulate_batch(
         members = np.flatnonzero([k == key for k in keys])
         whole = members.size == n_rob
         group = calibs if whole else [calibs[i] for i in members]
-        grid, gcmd, sample_idx = _group_commands(t, cmd, cmd0, members, whole, shared, delay)
+        grid, gcmd, record = _group_commands(t, cmd, cmd0, members, whole, shared, delay)
         table, didx, nsub = _group_steps(group, grid, max_substep_s if nonlinear else None)
         args = _kernel_inputs(group, robot, gcmd, table, didx, nsub,
                               state0 if whole else np.ascontiguousarray(state0[members]),
                               pose0 if whole else np.ascontiguousarray(pose0[members]))
-        _run_group(args, members, whole, grid.size, sample_idx, outputs)
-    return Trajectory(t, np.asarray(cmd), wheels, pose, final_state)
+        _run_group((*args, active, bool(pose), record), members, whole, t.size, outputs)
+    return Trajectory(t, np.asarray(cmd), wheel_rpm, poses, final_state)
+
+
+def _active_wheels(wheels, pose: bool) -> np.ndarray:
+    """The kernel's ``active``: the wheels to simulate, (4,) bool, read-only (one type for the
+    compiled kernel)."""
+    if wheels is None:
+        return _ALL_WHEELS
+    given = np.asarray(wheels)
+    if given.shape != (4,) or given.dtype != bool:
+        raise ConfigError(f"wheels must be 4 booleans, got {wheels!r}")
+    if pose and not given.all():
+        raise ConfigError("the pose needs all four wheels simulated: pass pose=False")
+    active = given.copy()
+    active.flags.writeable = False
+    return active
+
+
+_ALL_WHEELS = np.ones(4, dtype=bool)
+_ALL_WHEELS.flags.writeable = False
 
 
 def _robots_and_commands(commands, t: np.ndarray, calibration):
@@ -367,19 +405,20 @@ def _output_arrays(out: Trajectory | None, n_rob: int, n_t: int):
 
 def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: np.ndarray,
                     whole: bool, shared: bool, delay: float):
-    """A group's time grid, its commands on that grid and the samples' places on it (None when
-    the grid is ``t``): with a dead time the grid is refined at the delayed command changes."""
+    """A group's time grid, its commands on that grid and each grid point's sample (the
+    kernel's ``record``): with a dead time the grid is refined at the delayed command changes."""
     one = shared and members.size > 1 and bool(np.all(cmd0[members] == cmd0[members[0]]))
     if one:  # the robots' (delayed) commands are one stream: computed once, not copied
         gcmd = np.broadcast_to(cmd[0], (members.size, t.size, 3))
     else:
         gcmd = cmd if whole else cmd[members]
     if delay > 0 and one:
-        grid, first, sample_idx = _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]])
-        return grid, np.broadcast_to(first[0], (members.size, grid.size, 3)), sample_idx
+        grid, first, record = _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]])
+        return grid, np.broadcast_to(first[0], (members.size, grid.size, 3)), record
     if delay > 0:
         return _delay_grid(t, gcmd, float(delay), cmd0[members])
-    return t, gcmd, None
+    # read-only, as a dead time's (memoised): one type for the compiled kernel
+    return t, gcmd, _memo(("record", t.size), lambda: (np.arange(t.size, dtype=np.int64),))[0]
 
 
 def _group_steps(group: Sequence[Calibration], grid: np.ndarray, max_substep_s: float | None):
@@ -408,32 +447,25 @@ def _kernel_inputs(group: Sequence[Calibration], robot: RobotProfile, gcmd: np.n
     )
 
 
-def _run_group(args: tuple, members: np.ndarray, whole: bool, grid_size: int,
-               sample_idx: np.ndarray | None, outputs: tuple) -> None:
+def _run_group(args: tuple, members: np.ndarray, whole: bool, n_samples: int,
+               outputs: tuple) -> None:
     """Run the kernel for a group and write its results into the rows ``members`` of
-    ``outputs`` (wheels, pose, final state, final pose), at the samples ``sample_idx`` of its
-    grid; all robots on the samples' own grid write there directly."""
+    ``outputs`` (wheels, pose, final state, final pose); a group of all robots writes there
+    directly (the kernel writes the samples of its grid, ``record``)."""
     from .._jit import pick
     from ._kernels import STATE_WIDTH, simulate_kernel
 
     nsub = args[2]
     # a small job runs in the interpreter: numba's start-up costs more than it (_jit.py)
     kernel = pick(simulate_kernel, members.size * max(int(nsub.sum()), 1))
-    if sample_idx is None and whole:
+    if whole:
         kernel(*args, *outputs)
         return
-    gw = np.empty((members.size, grid_size, 4))
-    gp = np.empty((members.size, grid_size, 3))
-    gs = np.empty((members.size, STATE_WIDTH))
-    gf = np.empty((members.size, 3))
-    kernel(*args, gw, gp, gs, gf)
-    if sample_idx is not None:
-        gw, gp = gw[:, sample_idx], gp[:, sample_idx]
-    wheels, pose, final_state, final_pose = outputs
-    wheels[members] = gw
-    pose[members] = gp
-    final_state[members] = gs
-    final_pose[members] = gf
+    part = (np.empty((members.size, n_samples, 4)), np.empty((members.size, n_samples, 3)),
+            np.empty((members.size, STATE_WIDTH)), np.empty((members.size, 3)))
+    kernel(*args, *part)
+    for full, mine in zip(outputs, part, strict=True):
+        full[members] = mine
 
 
 def simulate(

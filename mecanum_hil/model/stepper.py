@@ -33,6 +33,10 @@ from .kinematics import DEFAULT_POSE
 from .motor import TABLE_WIDTH
 from .robot import RobotProfile
 
+#: The kernel's ``active``: a stepper simulates all four wheels (and the pose).
+_ALL_WHEELS = np.ones(4, dtype=bool)
+_ALL_WHEELS.flags.writeable = False
+
 #: Default longest sub-step on the sub-stepped path (saturation, rate limit) [s].
 DEFAULT_MAX_SUBSTEP_S = 1e-3
 
@@ -219,6 +223,8 @@ class BatchStepper:
         self._cmd = np.zeros((n, pieces + 1, 3))
         self._didx = np.append(np.arange(pieces, dtype=np.int64), 0)
         self._nsub = np.append(self.plan.nsub, 0).astype(np.int64)
+        self._record = np.arange(pieces + 1, dtype=np.int64)
+        self._record.flags.writeable = False  # as the simulator's: one type for the kernel
         self._wheels_out = np.zeros((n, pieces + 1, 4))
         self._pose_out = np.zeros((n, pieces + 1, 3))
 
@@ -294,6 +300,7 @@ class BatchStepper:
             self._kernel(
                 self._cmd, self._didx, self._nsub, self._tables, self.coefficients,
                 float(k.k), float(k.wheel_radius_m), *self._effect_args,
-                self.state, self.pose, self._wheels_out, self._pose_out, self.state, self.pose)
+                self.state, self.pose, _ALL_WHEELS, True, self._record, self._wheels_out,
+                self._pose_out, self.state, self.pose)
         finally:
             numba.set_num_threads(previous)

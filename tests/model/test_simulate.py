@@ -284,3 +284,43 @@ def test_compiled_grid_helpers_equal_numpy(monkeypatch):
     # past _FEW_LENGTHS distinct lengths the scan gives up and numpy's sort is used
     key = np.arange(sim._FEW_LENGTHS + 1, dtype=float)[::-1]
     assert not compiled(unique_keys_kernel)(key, sim._FEW_LENGTHS)[2]
+
+
+@pytest.mark.parametrize("effects", [
+    Effects(),
+    Effects(dead_time_s=0.0137, gains=(0.9, 1.0, 1.1, 1.0)),
+    Effects(top_speed_rpm=40.0, rate_limit_rpm_per_s=400.0),
+    Effects(dead_time_s=0.011, breakaway_rpm_per_s=300.0, drive_lag_s=0.01,
+            controller_period_s=0.004),
+    Effects(coast_decel_rpm_per_s=300.0, no_load_rpm=200.0, dead_time_s=0.005),
+])
+def test_the_wheels_asked_for_are_those_of_a_full_simulation(effects):
+    """``wheels=`` and ``pose=False`` (a fit of measured wheel speeds): the wheels simulated
+    are the full simulation's, bit for bit, final state included; the others and the pose are
+    NaN, on every path (closed form, sub-stepped limits, the drive's own dynamics, a dead
+    time's refined grid), in a batch and from a moving start."""
+    t = uniform_time(1.0, 500)
+    cmd = hold(30, 20, 45, t)
+    cmd[200:] = [60, -30, 120]
+    cal = replace(PAPER, effects=effects)
+    cals = [cal, replace(cal, A=20.0)]
+    start = np.zeros((2, 12))
+    start[1, :4] = [5.0, -3.0, 2.0, 1.0]
+    full = simulate_batch(cmd, t, cals, initial_state=start)
+    some = np.array([True, False, True, False])
+    part = simulate_batch(cmd, t, cals, initial_state=start, wheels=some, pose=False)
+    np.testing.assert_array_equal(part.wheel_rpm[..., some], full.wheel_rpm[..., some])
+    assert np.isnan(part.wheel_rpm[..., ~some]).all() and np.isnan(part.pose).all()
+    np.testing.assert_array_equal(part.final_state[:, [0, 2, 4, 6]],
+                                  full.final_state[:, [0, 2, 4, 6]])
+    nopose = simulate_batch(cmd, t, cals, initial_state=start, pose=False)
+    np.testing.assert_array_equal(nopose.wheel_rpm, full.wheel_rpm)
+    assert np.isnan(nopose.pose).all()
+
+
+def test_a_pose_needs_all_four_wheels():
+    t = uniform_time(0.1, 100)
+    with pytest.raises(ConfigError, match="all four wheels"):
+        simulate(hold(10, 0, 90, t), t, PAPER, wheels=np.array([True, True, False, False]))
+    with pytest.raises(ConfigError, match="4 booleans"):
+        simulate(hold(10, 0, 90, t), t, PAPER, wheels=[1, 1, 0, 0], pose=False)
