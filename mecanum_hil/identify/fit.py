@@ -253,6 +253,24 @@ class _Prepared:
         """The wheels measured somewhere in the recording, (4,) bool."""
         return self.wheel_mask.any(axis=0)
 
+    @functools.cached_property
+    def wheel_index(self) -> np.ndarray:
+        """Flat indices of the measured wheel samples in a (T, 4) array (C order)."""
+        return np.flatnonzero(self.wheel_mask.ravel())
+
+    @functools.cached_property
+    def wheel_values(self) -> np.ndarray:
+        """The measured wheel speeds [rpm], in the order of :attr:`wheel_index`."""
+        return self.wheel_rpm.ravel()[self.wheel_index]
+
+    def wheel_residuals(self, wheels: np.ndarray) -> np.ndarray:
+        """Measured minus model wheel speeds at the measured samples, one row per model:
+        ``wheels`` (M, T, 4) [rpm] -> (M, measured samples)."""
+        flat = wheels.reshape(wheels.shape[0], -1)
+        # laid out as a boolean mask's result (Fortran order): sums over it then run in the
+        # same order, and a fit follows the same path to the last bit
+        return (self.wheel_values[:, None] - flat.T[self.wheel_index]).T
+
     def initial_states(self, calibs: Sequence[Calibration]) -> np.ndarray | None:
         """Steady states at the measured start speeds, with the controller's tick phase, one per
         calibration; None for the default (at rest, first tick at the first sample)."""
@@ -504,7 +522,7 @@ def _paper_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration],
             state = np.stack([steady_state(c, p.start_rpm, p.start_target) for c in calibs])
             y0, z0 = state[:, :4], state[:, 4:8]
         wheels = wheel_speeds(co, h_s, h_idx, targets.T, y0, z0).transpose(0, 2, 1)
-        parts.append((p.wheel_rpm[None] - wheels)[:, p.wheel_mask])
+        parts.append(p.wheel_residuals(wheels))
     return np.concatenate(parts, axis=1)
 
 
@@ -518,7 +536,7 @@ def _residual_rows(data: Sequence[_Prepared], calibs: Sequence[Calibration], rob
     parts = []
     fitted = _simulate_all(data, calibs, robot, _fits_pose(data, pose_weight))
     for p, (wheels, pose) in zip(data, fitted, strict=True):
-        parts.append((p.wheel_rpm[None] - wheels)[:, p.wheel_mask])
+        parts.append(p.wheel_residuals(wheels))
         if pose_weight > 0 and p.pose_mask.any():
             d = p.pose[None] - pose
             d[..., 2] = (d[..., 2] + 180.0) % 360.0 - 180.0  # headings compare modulo a turn

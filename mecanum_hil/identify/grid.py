@@ -113,7 +113,8 @@ def grid_data(data, calibration: Calibration, robot: RobotProfile) -> GridData:
         t = p.t_s
         cmd = p.commands[None]
         if eff.dead_time_s > 0:
-            grid, cmd, sample_idx = _delay_grid(t, cmd, float(eff.dead_time_s), np.zeros((1, 3)))
+            grid, cmd, record = _delay_grid(t, cmd, float(eff.dead_time_s), np.zeros((1, 3)))
+            sample_idx = np.flatnonzero(record >= 0)  # the samples' places on the grid
         else:
             grid, sample_idx = t, np.arange(t.size)
         c = cmd[0]

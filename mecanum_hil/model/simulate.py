@@ -187,8 +187,9 @@ def _delay_plan(t: np.ndarray, delay_s: float):
     return grid, src, sample_idx
 
 
-def _step_tables(calibs: Sequence[Calibration], dt: np.ndarray, max_substep_s: float | None):
-    """Discretisation tables for the distinct step lengths, and per-step row and sub-step count.
+def _step_tables(calibs: Sequence[Calibration], grid: np.ndarray, max_substep_s: float | None):
+    """Discretisation tables for the distinct step lengths of ``grid``, and per grid point the
+    row and sub-step count of the step it starts (0 for the last, which starts none).
 
     The tables come from the compiled :func:`~mecanum_hil.model.stepper.discretise_many`
     (equal to :func:`~mecanum_hil.model.motor.discretise` to rounding): recordings timed by a
@@ -197,14 +198,24 @@ def _step_tables(calibs: Sequence[Calibration], dt: np.ndarray, max_substep_s: f
     """
     from .discretise import discretise_many
 
-    didx, nsub, h_uniq = _memo(("steps", dt.tobytes(), max_substep_s),
-                               lambda: _step_lengths(dt, max_substep_s))
+    didx, nsub, h_uniq = _memo(("steps", grid.tobytes(), max_substep_s),
+                               lambda: _grid_steps(grid, max_substep_s))
     # each distinct coefficient set once (a Jacobian's perturbations share most)
     rows: dict[tuple[float, float, float], int] = {}
     which = np.array([rows.setdefault(tuple(c.coefficients), len(rows)) for c in calibs],
                      dtype=np.int64)
     table = discretise_many(np.array(list(rows), dtype=float), h_uniq)
     return np.ascontiguousarray(table[which]), didx, nsub
+
+
+def _grid_steps(grid: np.ndarray, max_substep_s: float | None):
+    """:func:`_step_lengths` of a grid's steps, with the row and sub-step count of its last
+    point (which starts no step) set to 0."""
+    if grid.size == 1:
+        return np.zeros(1, np.int64), np.zeros(1, np.int64), _step_lengths(np.ones(1),
+                                                                           max_substep_s)[2]
+    didx, nsub, h_uniq = _step_lengths(np.diff(grid), max_substep_s)
+    return np.append(didx, 0), np.append(nsub, 0), h_uniq
 
 
 def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
@@ -313,7 +324,7 @@ def simulate_batch(
         whole = members.size == n_rob
         group = calibs if whole else [calibs[i] for i in members]
         grid, gcmd, record = _group_commands(t, cmd, cmd0, members, whole, shared, delay)
-        table, didx, nsub = _group_steps(group, grid, max_substep_s if nonlinear else None)
+        table, didx, nsub = _step_tables(group, grid, max_substep_s if nonlinear else None)
         args = _kernel_inputs(group, robot, gcmd, table, didx, nsub,
                               state0 if whole else np.ascontiguousarray(state0[members]),
                               pose0 if whole else np.ascontiguousarray(pose0[members]))
@@ -413,22 +424,15 @@ def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: n
     else:
         gcmd = cmd if whole else cmd[members]
     if delay > 0 and one:
-        grid, first, record = _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]])
+        # a fit runs one stream through the same dead time again and again
+        grid, first, record = _memo(
+            ("delayed", t.tobytes(), float(delay), cmd[0].tobytes(), cmd0[members[0]].tobytes()),
+            lambda: _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]]))
         return grid, np.broadcast_to(first[0], (members.size, grid.size, 3)), record
     if delay > 0:
         return _delay_grid(t, gcmd, float(delay), cmd0[members])
     # read-only, as a dead time's (memoised): one type for the compiled kernel
     return t, gcmd, _memo(("record", t.size), lambda: (np.arange(t.size, dtype=np.int64),))[0]
-
-
-def _group_steps(group: Sequence[Calibration], grid: np.ndarray, max_substep_s: float | None):
-    """The kernel's step tables for a group on ``grid`` (see :func:`_step_tables`), with the
-    row and sub-step count of the last sample (which starts no step) set to 0."""
-    table, didx, nsub = _step_tables(
-        group, np.diff(grid) if grid.size > 1 else np.array([1.0]), max_substep_s)
-    if grid.size == 1:
-        return table, np.zeros(1, np.int64), np.zeros(1, np.int64)
-    return table, np.append(didx, 0), np.append(nsub, 0)
 
 
 def _kernel_inputs(group: Sequence[Calibration], robot: RobotProfile, gcmd: np.ndarray,

@@ -224,7 +224,8 @@ class BatchStepper:
         self._didx = np.append(np.arange(pieces, dtype=np.int64), 0)
         self._nsub = np.append(self.plan.nsub, 0).astype(np.int64)
         self._record = np.arange(pieces + 1, dtype=np.int64)
-        self._record.flags.writeable = False  # as the simulator's: one type for the kernel
+        for plan in (self._didx, self._nsub, self._record):
+            plan.flags.writeable = False  # as the simulator's (memoised): one kernel type
         self._wheels_out = np.zeros((n, pieces + 1, 4))
         self._pose_out = np.zeros((n, pieces + 1, 3))
 
