@@ -766,9 +766,10 @@ def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, 
     data-based values for top speed and rate limit."""
     given = dict(x0 or {})
     start = {n: given.get(n, parameter_value(calibration, n)) for n in free}
-    defaults = _data_start_values(data)
-    for n in free:
-        if n not in given and not math.isfinite(start[n]):
+    missing = [n for n in free if n not in given and not math.isfinite(start[n])]
+    if missing:  # read off the data only when needed (a refit gives every start)
+        defaults = _data_start_values(data)
+        for n in missing:
             start[n] = defaults.get(n, 1.0)
     base = with_parameters(calibration, {n: v for n, v in start.items() if n not in _COEFFICIENTS})
     grid_names = [n for n in _COEFFICIENTS if n in free and n not in given]

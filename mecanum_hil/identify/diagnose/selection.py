@@ -425,6 +425,9 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
     candidates = candidate_pool(candidates)
     recs, names = _checked_recordings(recordings, names)
     ctx = _Context(_Evaluator(recs, rob), recs, rob, names, say, helpers)
+    # the reference model does not depend on the model: a helper fits it while this process
+    # starts the rounds (it is the helper's first job, after its warm-up)
+    reference = helpers[0].submit(fit_reference, recs, rob) if helpers else None
     loc0 = _localise_given(ctx, calibration)
     accepted = [e for e in EFFECTS if e in calibration.effects.active()]
     baseline, free, ci95 = _refit_own_parameters(ctx, calibration, accepted)
@@ -433,7 +436,7 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
     noise = _noise_level(ctx.ev, baseline)
     model = _Model(baseline, [n for n in free if n != "deadband_rpm"], dict(ci95))
     _candidate_rounds(ctx, model, candidates, accepted, noise, max_rounds)
-    return _conclude(ctx, model, calibration, baseline, loc0, rmse_base, noise)
+    return _conclude(ctx, model, calibration, baseline, loc0, rmse_base, noise, reference)
 
 
 def _checked_recordings(recordings, names) -> tuple[list[Recording], tuple[str, ...]]:
@@ -775,15 +778,17 @@ def _add_winner(ctx: _Context, model: _Model, channel: str, win: CandidateScore,
 
 
 def _conclude(ctx: _Context, model: _Model, initial: Calibration, baseline: Calibration,
-              loc0: Localisation, rmse_base: float, noise: float) -> Diagnosis:
+              loc0: Localisation, rmse_base: float, noise: float,
+              reference: Future | None = None) -> Diagnosis:
     """What remains of the final model's residual, described and compared with the reference
-    model, and the :class:`Diagnosis`."""
+    model (fitted by a helper when ``reference`` holds its job), and the
+    :class:`Diagnosis`."""
     final = _rmse_per_recording(ctx.ev, model.current)
     check = residual_check(final[3], noise)
     loc1 = localise(ctx.recs, _predictions(ctx.ev, model.current), ctx.robot, ctx.names)
     unexplained = check.structured
     shape = residual_shape(ctx.recs, final[3], ctx.robot)
-    rmse_ref, base_rm = _compare_with_reference(ctx, baseline, final[0])
+    rmse_ref, base_rm = _compare_with_reference(ctx, baseline, final[0], reference)
     ctx.say("what remains: " + shape.describe())
     ctx.say(f"final model: wheel RMSE {final[0]:.3f} rpm = {check.ratio:.2f} x noise, lag-1 "
             f"autocorrelation {check.lag1_autocorrelation:.2f} -> "
@@ -796,12 +801,18 @@ def _conclude(ctx: _Context, model: _Model, initial: Calibration, baseline: Cali
                      _findings(final_cal, ctx.recs, ctx.robot, ctx.say), tuple(model.refits))
 
 
-def _compare_with_reference(ctx: _Context, baseline: Calibration, rmse_final: float
-                            ) -> tuple[float, tuple]:
+def _compare_with_reference(ctx: _Context, baseline: Calibration, rmse_final: float,
+                            job: Future | None = None) -> tuple[float, tuple]:
     """Fit the generic reference model (:mod:`.reference`) and log the share of its gap the
     named effects close; returns its wheel RMSE [rpm] (NaN without one) and the baseline's
-    :func:`_rmse_per_recording`."""
-    ref = fit_reference(ctx.recs, ctx.robot)
+    :func:`_rmse_per_recording`. ``job``: a helper's fit of it, used when it has answered by
+    now (else, or when it failed, the fit runs here)."""
+    # the helper's answer when it is there (not waited for: it was one of the helper's first
+    # jobs, so one still open means a stalled helper; a failed one is the same)
+    if job is not None and job.done() and job.exception() is None:
+        ref = job.result()
+    else:
+        ref = fit_reference(ctx.recs, ctx.robot)
     rmse_ref = ref.rmse_rpm if ref is not None else math.nan
     base_rm = _rmse_per_recording(ctx.ev, baseline)
     if ref is not None:
