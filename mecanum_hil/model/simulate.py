@@ -384,7 +384,8 @@ def _initial_values(n_rob: int, initial_pose, initial_state, initial_command):
     (N, 3), each broadcast from what was given (a 12-column state is padded with zeros)."""
     from ._kernels import STATE_WIDTH, WHEEL_STATE_WIDTH
 
-    pose0 = np.ascontiguousarray(np.broadcast_to(np.asarray(initial_pose, float), (n_rob, 3)))
+    pose0 = np.empty((n_rob, 3))
+    pose0[:] = np.asarray(initial_pose, float)
     state0 = np.zeros((n_rob, STATE_WIDTH))
     if initial_state is not None:
         given = np.asarray(initial_state, float)
@@ -429,6 +430,14 @@ def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: n
             ("delayed", t.tobytes(), float(delay), cmd[0].tobytes(), cmd0[members[0]].tobytes()),
             lambda: _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]]))
         return grid, np.broadcast_to(first[0], (members.size, grid.size, 3)), record
+    if delay > 0 and members.size == 1:
+        # a fit's lone robot (a trial point without its Jacobian) runs one stream through the
+        # same dead time again and again: its delayed commands are remembered, and a (writable)
+        # copy handed on, as np.where gives them
+        grid, first, record = _memo(
+            ("delayed", t.tobytes(), float(delay), gcmd.tobytes(), cmd0[members].tobytes()),
+            lambda: _delay_grid(t, gcmd, float(delay), cmd0[members]))
+        return grid, first.copy(), record
     if delay > 0:
         return _delay_grid(t, gcmd, float(delay), cmd0[members])
     # read-only, as a dead time's (memoised): one type for the compiled kernel

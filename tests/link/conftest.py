@@ -55,13 +55,16 @@ def virtual_channel() -> str:
 class ScriptedController:
     """A controller played by the test on a pty master: answers HELLO, then after the first
     COMMAND sends ``telemetry`` samples, each preceded by whatever ``before(i)`` returns (raw
-    bytes: garbage, damaged frames ...). ``skip(i)`` true makes sample i a sequence gap."""
+    bytes: garbage, damaged frames ...). ``skip(i)`` true makes sample i a sequence gap.
+    ``acks`` makes each sample acknowledge the last COMMAND read (``ack_seq``, else 0);
+    ``stall_of(i)`` [s] stops the controller, reading nothing, before sample i."""
 
     def __init__(self, master: int, telemetry: int = 40, period_s: float = 0.004,
                  before=lambda i: b"", skip=lambda i: False,
                  hello_version: int = proto.PROTOCOL_VERSION, then=None, rate_hz: int = 250,
                  wheel_limit_rpm: float = 130.0, time_step_us: int = 4000, seq_of=None,
-                 time_of=None, status_of=None, pong: bool = False, wheels_of=None) -> None:
+                 time_of=None, status_of=None, pong: bool = False, wheels_of=None,
+                 acks: bool = False, stall_of=None) -> None:
         self.master = master
         self.telemetry = telemetry
         self.period_s = period_s
@@ -78,6 +81,8 @@ class ScriptedController:
         # wheels_of(i) -> the four wheel readings of sample i
         self.wheels_of = wheels_of or (lambda i: (float(i), float(i) + 0.5, -float(i), 1.0))
         self.pong = pong  # answer PINGs (also after the telemetry ran out)
+        self.acks = acks
+        self.stall_of = stall_of or (lambda i: 0.0)
         self.sent_values: list[tuple[float, ...]] = []
         self.received: list = []
         self.stop = threading.Event()
@@ -106,6 +111,8 @@ class ScriptedController:
         streaming = False
         i = 0
         next_t = 0.0
+        ack_seq = 0
+        stalled = -1  # the last sample stalled before
         while not self.stop.is_set():
             try:
                 data = os.read(self.master, 4096)
@@ -115,6 +122,8 @@ class ScriptedController:
                 return
             for msg in dec.feed(data):
                 self.received.append(msg)
+                if isinstance(msg, proto.Command):
+                    ack_seq = msg.seq
                 if isinstance(msg, proto.Hello):
                     ack = proto.HelloAck(self.hello_version, self.rate_hz, 250, "scripted",
                                          wheel_limit_rpm=self.wheel_limit_rpm)
@@ -127,13 +136,18 @@ class ScriptedController:
                     self._write(proto.encode(proto.Pong(msg.token, seq=seq)))
                     seq += 1
             if streaming and i < self.telemetry and time.monotonic() >= next_t:
+                if stalled < i and self.stall_of(i) > 0:
+                    stalled = i
+                    time.sleep(self.stall_of(i))
+                    continue  # read what came meanwhile first
                 if self.skip(i):
                     seq += 1
                 wheels = self.wheels_of(i)
                 tseq = self.seq_of(i, seq) if self.seq_of else seq
                 t_us = self.time_of(i) if self.time_of else i * self.time_step_us
                 self._write(self.before(i) + proto.encode(
-                    proto.Telemetry(t_us, wheels, self.status_of(i), 0, tseq)))
+                    proto.Telemetry(t_us, wheels, self.status_of(i),
+                                    ack_seq if self.acks else 0, tseq)))
                 self.sent_values.append(wheels)
                 seq += 1
                 i += 1

@@ -477,3 +477,20 @@ def test_readings_a_recording_cannot_hold_are_written_empty_and_the_file_stays_r
     events = [e for e in meta["link_events"] if e["event"] == "invalid_reading"]
     assert len(events) == 3  # wheel 1 from sample 5 (once for 5-6), wheel 2, wheel 3
     assert "wheel 1: inf" in events[0]["detail"] and "wheel 3: 1e+30" in events[2]["detail"]
+
+
+def test_a_stalled_controller_acknowledging_a_batch_of_commands_counts_each_latency(
+        pty_pair, scripted, host_serial, tmp_path):
+    """A controller that stalls reads the commands sent meanwhile at once, and its next sample
+    acknowledges the last (``ack_seq``), and with it the others. Only the last one's latency
+    was counted: the longest ones were lost, and ``ack_max`` (the worst case a recording's
+    timing is judged by) came out below the stall."""
+    p = pty_pair()
+    scripted(p.master, telemetry=150, acks=True, stall_of=lambda i: 0.08 if i == 40 else 0.0)
+    t, cmd = _stream(0.4)
+    res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
+                             config=FAST)
+    assert res.reason == "completed", res.message
+    lat = res.latency_ms
+    assert lat["ack_n"] == t.size  # every command acknowledged, each counted once
+    assert lat["ack_max"] >= 60.0  # the first command sent in the 80 ms stall
