@@ -462,8 +462,7 @@ class _Session:
             ctrl_t = self._controller_time_s(msg.time_us)
             self._check_rate(now, ctrl_t)
             self._note_status(now, msg.status)
-            if msg.ack_seq in self._acks:
-                self.ack.append(now - self._acks.pop(msg.ack_seq))
+            self._take_acks(msg.ack_seq, now)
             if self.t0 is None:
                 return  # before the first command: nothing is in force yet
             self.telemetry += 1
@@ -483,6 +482,24 @@ class _Session:
             raise TelemetryCheckError(
                 "controller_reset", f"{self.tr.port}: a HELLO_ACK came in the middle of the "
                 "run: the controller restarted its session")
+
+    def _take_acks(self, ack_seq: int, now: float) -> None:
+        """Count the latency of every command a sample acknowledges.
+
+        ``ack_seq`` is the last frame the controller accepted, and it handles frames in order:
+        a sample acknowledges every command sent up to it, not only the one of that ``seq``.
+        A controller that handled several commands between two samples (after a stall, all
+        of them at once) acknowledges the earlier ones only through the last one's ``seq``;
+        counting that one alone lost the longest latencies, ``ack_max`` under load most of
+        all. Pending commands are kept in the order sent; ``seq`` wraps.
+        """
+        modulus = self.tr.seq_modulus
+        while self._acks:
+            seq, sent = next(iter(self._acks.items()))
+            if (ack_seq - seq) % modulus >= modulus // 2:
+                return  # sent after what the sample acknowledges: still pending
+            del self._acks[seq]
+            self.ack.append(now - sent)
 
     def pump_until(self, deadline: float) -> None:
         while True:
