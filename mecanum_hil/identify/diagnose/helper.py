@@ -94,6 +94,11 @@ class Helper:
         with self._lock:
             return self.ready() and not self._waiting
 
+    def pending(self) -> list[Future]:
+        """The jobs sent and not yet answered, in the order sent."""
+        with self._lock:
+            return list(self._waiting)
+
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         """Run ``fn(*args)`` in the helper (``fn`` a module-level function); the future holds
         its result, or an exception when the helper failed."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
@@ -600,23 +601,44 @@ def _score_candidates(ctx: _Context, model: _Model, pool: Sequence[str], channel
     held-out scores of those scored held out, by effect.
 
     The candidates are independent jobs: where :mod:`.helper` processes are ready, each takes
-    the costliest job left (by the time each took last round) while this process works
-    through the rest; the lines are said in the pool's order, and the results are the same
-    either way."""
+    the costliest job left (by the time each took last round) as soon as it is idle, while this
+    process works through the rest; the lines are said in the pool's order, and the results
+    are the same either way."""
     def expected_s(effect: str) -> float:
         return ctx.cost_s.get(effect, _COST_PRIOR.get(effect, 0.0))
 
     order = sorted(pool, key=lambda e: -expected_s(e))
     done: dict[str, tuple[CandidateScore, _Fitted | None, HeldOut | None, str, float]] = {}
     away: dict[str, tuple[Future, Helper, float]] = {}
+    # ``order`` and ``away`` are shared with the helpers' reader threads (:func:`feed`)
+    lock = threading.Lock()
     said = 0
 
     def args(effect: str) -> tuple:
         return (ctx.ev, effect, model.current, tuple(model.free), ctx.names, channel, noise,
                 scale2, s0, f0)
 
+    def feed(h: Helper) -> None:
+        """Hand ``h`` the costliest job left if it is idle; called again (from its reader
+        thread) when it answers, so a helper never waits for this process to end a job of
+        its own before it gets the next (a third of a second a round, measured)."""
+        with lock:
+            if not (order and h.idle()):
+                return
+            effect = order.pop(0)
+            fut = h.submit(_timed_candidate, *args(effect))
+            away[effect] = (fut, h, time.perf_counter())
+        fut.add_done_callback(lambda f: fed_on(f, h))
+
+    def fed_on(f: Future, h: Helper) -> None:
+        # an answer, not a failure: a helper fails its jobs while it holds its own lock (stop)
+        if not f.cancelled() and f.exception() is None:
+            feed(h)
+
     def collect(block: bool) -> None:
-        for effect, (fut, h, sent) in list(away.items()):
+        with lock:
+            jobs = list(away.items())
+        for effect, (fut, h, sent) in jobs:
             if not (block or fut.done()):
                 continue
             late = sent + HELPER_LATE_FACTOR * expected_s(effect) + HELPER_LATE_S
@@ -627,18 +649,23 @@ def _score_candidates(ctx: _Context, model: _Model, pool: Sequence[str], channel
                 pass  # late: the job runs here; the helper gets no job until it answers
             except Exception as err:  # it failed (helper.py): not used again
                 h.stop(err)
-            del away[effect]
+            with lock:
+                del away[effect]
             done[effect] = result or _timed_candidate(*args(effect))
             ctx.cost_s[effect] = done[effect][4]
 
-    while order or away:
+    for h in ctx.helpers:
+        # a helper still busy with another job (the reference model) is fed when it answers
+        for fut in h.pending():
+            fut.add_done_callback(lambda f, h=h: fed_on(f, h))
+    while True:
         for h in ctx.helpers:
-            if order and h.idle():
-                away[order[0]] = (h.submit(_timed_candidate, *args(order[0])), h,
-                                  time.perf_counter())
-                order.pop(0)
-        if order:
-            effect = order.pop(0)
+            feed(h)
+        with lock:
+            if not (order or away):
+                break
+            effect = order.pop(0) if order else None
+        if effect is not None:
             done[effect] = _timed_candidate(*args(effect))
             ctx.cost_s[effect] = done[effect][4]
         collect(block=not order)
