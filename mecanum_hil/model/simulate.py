@@ -121,11 +121,15 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
 #: simulates the same recording hundreds of times, and these cost as much as a short kernel.
 _PLANS: OrderedDict = OrderedDict()
 _PLANS_MAX = 64
+#: ... and at most this many bytes of arrays in all: a long recording's plans are megabytes.
+_PLANS_MAX_BYTES = 64 * 2 ** 20
 _PLANS_LOCK = threading.Lock()
+_plans_bytes = 0
 
 
 def _memo(key, make):
     """``make()`` for ``key`` (hashable, the full input), remembered for the last calls."""
+    global _plans_bytes
     with _PLANS_LOCK:
         hit = _PLANS.get(key)
         if hit is not None:
@@ -136,10 +140,16 @@ def _memo(key, make):
         if isinstance(v, np.ndarray):
             v.flags.writeable = False
     with _PLANS_LOCK:
-        _PLANS[key] = value
-        while len(_PLANS) > _PLANS_MAX:
-            _PLANS.popitem(last=False)
+        if key not in _PLANS:
+            _PLANS[key] = value
+            _plans_bytes += _nbytes(value)
+        while len(_PLANS) > _PLANS_MAX or (_plans_bytes > _PLANS_MAX_BYTES and len(_PLANS) > 1):
+            _plans_bytes -= _nbytes(_PLANS.popitem(last=False)[1])
     return value
+
+
+def _nbytes(value: tuple) -> int:
+    return sum(v.nbytes for v in value if isinstance(v, np.ndarray))
 
 
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
