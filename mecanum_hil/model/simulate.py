@@ -346,7 +346,9 @@ def _active_wheels(wheels, pose: bool) -> np.ndarray:
     """The kernel's ``active``: the wheels to simulate, (4,) bool, read-only (one type for the
     compiled kernel)."""
     if wheels is None:
-        return _ALL_WHEELS
+        from .stepper import ALL_WHEELS
+
+        return ALL_WHEELS
     given = np.asarray(wheels)
     if given.shape != (4,) or given.dtype != bool:
         raise ConfigError(f"wheels must be 4 booleans, got {wheels!r}")
@@ -356,9 +358,6 @@ def _active_wheels(wheels, pose: bool) -> np.ndarray:
     active.flags.writeable = False
     return active
 
-
-_ALL_WHEELS = np.ones(4, dtype=bool)
-_ALL_WHEELS.flags.writeable = False
 
 
 def _robots_and_commands(commands, t: np.ndarray, calibration):
@@ -434,20 +433,16 @@ def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: n
         gcmd = np.broadcast_to(cmd[0], (members.size, t.size, 3))
     else:
         gcmd = cmd if whole else cmd[members]
-    if delay > 0 and one:
-        # a fit runs one stream through the same dead time again and again
+    if delay > 0 and (one or members.size == 1):
+        # one stream (a fit's Jacobian, or its lone trial point) through the same dead time
+        # again and again: its delayed commands are remembered
         grid, first, record = _memo(
-            ("delayed", t.tobytes(), float(delay), cmd[0].tobytes(), cmd0[members[0]].tobytes()),
+            ("delayed", t.tobytes(), float(delay), gcmd[0].tobytes(),
+             cmd0[members[0]].tobytes()),
             lambda: _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]]))
-        return grid, np.broadcast_to(first[0], (members.size, grid.size, 3)), record
-    if delay > 0 and members.size == 1:
-        # a fit's lone robot (a trial point without its Jacobian) runs one stream through the
-        # same dead time again and again: its delayed commands are remembered, and a (writable)
-        # copy handed on, as np.where gives them
-        grid, first, record = _memo(
-            ("delayed", t.tobytes(), float(delay), gcmd.tobytes(), cmd0[members].tobytes()),
-            lambda: _delay_grid(t, gcmd, float(delay), cmd0[members]))
-        return grid, first.copy(), record
+        if one:
+            return grid, np.broadcast_to(first[0], (members.size, grid.size, 3)), record
+        return grid, first.copy(), record  # writable, as np.where gives them: one kernel type
     if delay > 0:
         return _delay_grid(t, gcmd, float(delay), cmd0[members])
     # read-only, as a dead time's (memoised): one type for the compiled kernel

@@ -33,9 +33,10 @@ from .kinematics import DEFAULT_POSE
 from .motor import TABLE_WIDTH
 from .robot import RobotProfile
 
-#: The kernel's ``active``: a stepper simulates all four wheels (and the pose).
-_ALL_WHEELS = np.ones(4, dtype=bool)
-_ALL_WHEELS.flags.writeable = False
+#: The kernel's ``active`` for all four wheels (a stepper's, and ``simulate_batch``'s default):
+#: read-only, as the simulator's other plans, so the compiled kernel sees one type.
+ALL_WHEELS = np.ones(4, dtype=bool)
+ALL_WHEELS.flags.writeable = False
 
 #: Default longest sub-step on the sub-stepped path (saturation, rate limit) [s].
 DEFAULT_MAX_SUBSTEP_S = 1e-3
@@ -301,7 +302,7 @@ class BatchStepper:
             self._kernel(
                 self._cmd, self._didx, self._nsub, self._tables, self.coefficients,
                 float(k.k), float(k.wheel_radius_m), *self._effect_args,
-                self.state, self.pose, _ALL_WHEELS, True, self._record, self._wheels_out,
+                self.state, self.pose, ALL_WHEELS, True, self._record, self._wheels_out,
                 self._pose_out, self.state, self.pose)
         finally:
             numba.set_num_threads(previous)
