@@ -248,7 +248,7 @@ class _Prepared:
     start_target: np.ndarray      # (4,) wheel targets of the first command [rpm]
     clock_s: float | None = None  # the controller's clock at the first sample [s]
 
-    @property
+    @functools.cached_property
     def wheel_measured(self) -> np.ndarray:
         """The wheels measured somewhere in the recording, (4,) bool."""
         return self.wheel_mask.any(axis=0)
