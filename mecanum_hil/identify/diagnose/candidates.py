@@ -289,6 +289,14 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
     return {}
 
 
+def _corner_starts(effect: str, ev: _Evaluator) -> list[dict[str, float]]:
+    """Further start values of an effect for the grid restart from a corner
+    (:func:`_searched`): a ceiling at the fastest smoothed measured speed itself."""
+    if effect == "saturation":
+        return [{"top_speed_rpm": _peak_rpm(ev.recs)}]
+    return []
+
+
 def _breakaway_start(ev: _Evaluator, cal: Calibration, noise_rpm: float) -> float:
     """The drive a wheel at rest felt when it started to move: the PI output of ``cal`` at the
     measured time the wheel first left rest after a target jump (``A u + C u t``)."""
@@ -733,11 +741,16 @@ def _searched(ev: _Evaluator, effect: str, base: Calibration, cal: Calibration,
         # from a corner no local search leaves (C -> 0 mimics a ceiling with a lower gain):
         # the engine's coarse grid restarts A, B, C with the effect at its start, and the
         # joint search runs from each of the grid's best minima; the search from where the
-        # model is competes with them
-        x0 = {n: parameter_value(cal, n) for n in free if n not in _COEFFICIENTS}
+        # model is competes with them. A ceiling is also held at the fastest measured speed
+        # itself: 2 % above a plateau its misfit on a loop that reaches the plateau can
+        # outweigh the corner's, and the grid then offers only corners, where the ceiling
+        # never engages and its search cannot move
+        # (the searches differ only in free parameters: each result is a calibration of cal's)
+        starts = [cal] + [with_parameters(cal, values) for values in _corner_starts(effect, ev)]
         res = _best_fit([
-            lambda: fit_parameters(ev.recs, cal, ev.robot, free, x0=x0, bounds=bounds,
-                                   sources=sources),
+            *(lambda c=c: fit_parameters(ev.recs, c, ev.robot, free, x0={
+                n: parameter_value(c, n) for n in free if n not in _COEFFICIENTS},
+                bounds=bounds, sources=sources) for c in starts),
             lambda: fit_parameters(ev.recs, cal, ev.robot, free,
                                    x0={n: parameter_value(cal, n) for n in free},
                                    bounds=bounds, sources=sources)])
