@@ -38,7 +38,7 @@ from ..io.recording import Recording
 from ..model.calibration import Calibration, Effects
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
-from ..model.simulate import simulate_batch, steady_state
+from ..model.simulate import simulate_batch, steady_state, unchanging
 from ..prediction import (
     controller_clock_s,
     initial_state,
@@ -325,7 +325,7 @@ def prepare(recordings: Sequence[Recording], robot: RobotProfile,
         pose = np.asarray(rec.pose, dtype=float)
         pose0 = start_pose(rec)
         out.append(_Prepared(
-            np.asarray(rec.t_s, dtype=float), np.asarray(rec.commands, dtype=float), wheel,
+            _unchanging(rec.t_s), _unchanging(rec.commands), wheel,
             np.isfinite(wheel), pose, np.isfinite(pose), pose0,
             pose_scale(rec.t_s[-1] - rec.t_s[0], robot), src, start,
             command_to_wheels(rec.commands[:1, 0], rec.commands[:1, 1], rec.commands[:1, 2],
@@ -343,6 +343,13 @@ def prepare(recordings: Sequence[Recording], robot: RobotProfile,
     if np.ptp(measured) == 0.0:
         raise FitError("no excitation: every measured wheel speed has the same value")
     return out
+
+
+def _unchanging(a) -> np.ndarray:
+    """A private copy of ``a`` (float) that nothing changes: the simulator remembers what it
+    learnt about it (its bytes, its checks) instead of redoing it on every simulation. (Not
+    made read-only: numba compiles its kernels again for read-only arguments.)"""
+    return unchanging(np.array(a, dtype=float))
 
 
 @contextmanager
@@ -616,6 +623,11 @@ class _Problem:
         # a watched search: its best cost after each evaluation, and its best point
         self._trace: list[float] | None = None
         self._best: tuple[float, np.ndarray] | None = None
+        # the effects of recent points by their values: a Jacobian's perturbations of A, B, C
+        # share them, and building them (checked dataclasses) costs as much as a short kernel
+        self._coefficients = [n for n in self.free if n in _COEFFICIENTS]
+        self._effect_names = [n for n in self.free if n not in _COEFFICIENTS]
+        self._effects: dict[tuple[float, ...], Effects] = {}
 
     def watch(self, x0: np.ndarray) -> None:
         """Start watching a search from ``x0`` for a stall
@@ -646,7 +658,18 @@ class _Problem:
                 raise _SearchStalledError(solution(x_best, cost, 5, len(self._trace)))
 
     def calibration_at(self, x) -> Calibration:
-        return with_parameters(self.calibration, dict(zip(self.free, map(float, x), strict=True)))
+        """The calibration at point ``x``: :func:`with_parameters` of the free parameters."""
+        values = dict(zip(self.free, map(float, x), strict=True))
+        key = tuple(values[n] for n in self._effect_names)
+        effects = self._effects.get(key)
+        if effects is None:
+            effects = with_parameters(self.calibration,
+                                      {n: values[n] for n in self._effect_names}).effects
+            if len(self._effects) >= 64:
+                self._effects.clear()
+            self._effects[key] = effects
+        return replace(self.calibration, **{n: values[n] for n in self._coefficients},
+                       effects=effects, ci95={}, info={})
 
     def steps(self, x: np.ndarray) -> np.ndarray:
         floor = np.array([_FD_FLOOR.get(n, 1.0) for n in self.free])

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import threading
+import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -68,11 +69,72 @@ class Trajectory:
 
 def _times(time_s) -> np.ndarray:
     t = np.asarray(time_s, dtype=float)
+    facts = _array_facts(t)
+    if facts is not None and "times" in facts:
+        return t
     if t.ndim != 1 or t.size < 1:
         raise ConfigError("time_s must be a 1-D array with at least one sample")
     if not np.isfinite(t).all() or (np.diff(t) <= 0).any():
         raise ConfigError("time_s must be finite and strictly increasing")
+    if facts is not None:
+        facts["times"] = True
     return t
+
+
+#: What was learnt about arrays that cannot change (read-only, and so is every array they view;
+#: or declared :func:`unchanging`), by identity: their bytes (the plans' keys below) and the
+#: checks they passed. A fit passes the same recording thousands of times, and copying and
+#: hashing its bytes cost as much as a short kernel. An entry goes when its array does.
+_FACTS: dict[int, tuple[weakref.ref, dict, bool]] = {}
+
+
+def _frozen(a: np.ndarray) -> bool:
+    """Whether nothing can write ``a``'s elements: it and every array it views are read-only,
+    down to one that owns its memory."""
+    while isinstance(a, np.ndarray):
+        if a.flags.writeable:
+            return False
+        a = a.base
+    return a is None
+
+
+def _array_facts(a: np.ndarray, trusted: bool = False) -> dict | None:
+    """The facts remembered about ``a`` (a dict to fill), or None when ``a`` may change.
+    ``trusted``: nothing changes ``a`` from now on, though it may be writeable
+    (:func:`unchanging`)."""
+    key = id(a)
+    hit = _FACTS.get(key)
+    if hit is not None and hit[0]() is a and (hit[2] or not a.flags.writeable):
+        return hit[1]
+    if not (trusted or _frozen(a)):
+        return None
+    facts: dict = {}
+    _FACTS[key] = (weakref.ref(a, lambda _, key=key: _FACTS.pop(key, None)), facts, trusted)
+    return facts
+
+
+def unchanging(a: np.ndarray) -> np.ndarray:
+    """Declare that nothing will change the elements of ``a`` any more, and return it.
+
+    A caller that simulates the same commands and times again and again (a fit: thousands of
+    times) declares them so, and the simulator keeps what it learnt about them (their bytes,
+    the checks they passed) instead of copying and hashing them on every call. A read-only
+    array needs no declaration; one that is written after it was declared gives wrong results.
+    """
+    _array_facts(a, trusted=True)
+    return a
+
+
+def _bytes_of(a: np.ndarray) -> bytes:
+    """``a.tobytes()``, the same bytes object each time for an array that cannot change (its
+    hash is then computed once)."""
+    facts = _array_facts(a)
+    if facts is None:
+        return a.tobytes()
+    b = facts.get("bytes")
+    if b is None:
+        b = facts["bytes"] = a.tobytes()
+    return b
 
 
 def uniform_time(duration_s: float, rate_hz: float) -> np.ndarray:
@@ -139,6 +201,7 @@ def _memo(key, make):
     for v in value:
         if isinstance(v, np.ndarray):
             v.flags.writeable = False
+            _array_facts(v, trusted=True)
     with _PLANS_LOCK:
         if key not in _PLANS:
             _PLANS[key] = value
@@ -155,7 +218,7 @@ def _nbytes(value: tuple) -> int:
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
     """Refine the time grid so a dead time is exact; return grid, delayed commands and each
     grid point's sample (-1: none, see :func:`_recorded`)."""
-    grid, src, record = _memo(("delay", t.tobytes(), float(delay_s)),
+    grid, src, record = _memo(("delay", _bytes_of(t), float(delay_s)),
                               lambda: _recorded(*_delay_plan(t, float(delay_s))))
     delayed = np.where((src >= 0)[None, :, None], cmd[:, np.clip(src, 0, None), :],
                        initial_command[:, None, :])
@@ -208,7 +271,7 @@ def _step_tables(calibs: Sequence[Calibration], grid: np.ndarray, max_substep_s:
     """
     from .discretise import discretise_many
 
-    didx, nsub, h_uniq = _memo(("steps", grid.tobytes(), max_substep_s),
+    didx, nsub, h_uniq = _memo(("steps", _bytes_of(grid), max_substep_s),
                                lambda: _grid_steps(grid, max_substep_s))
     # each distinct coefficient set once (a Jacobian's perturbations share most)
     rows: dict[tuple[float, float, float], int] = {}
@@ -364,18 +427,22 @@ def _robots_and_commands(commands, t: np.ndarray, calibration):
     """Check the commands and calibrations and bring them to one per robot.
 
     Returns the (N, T, 3) commands (a broadcast view when one stream is shared), the N
-    calibrations and whether the commands were one shared stream (a fit's Jacobian).
+    calibrations and the shared stream, shape (T, 3), when the commands were one (a fit's
+    Jacobian), else None.
     """
-    cmd = np.asarray(commands, dtype=float)
-    if cmd.ndim == 2:
-        cmd = cmd[None]
+    given = np.asarray(commands, dtype=float)
+    cmd = given[None] if given.ndim == 2 else given
     if cmd.ndim != 3 or cmd.shape[1:] != (t.size, 3):
         raise ConfigError(f"commands must have shape (N, {t.size}, 3), got {cmd.shape}")
-    if not np.isfinite(np.sum(cmd)):  # one pass; any NaN or inf makes the sum non-finite
-        raise ConfigError("commands contain NaN or infinite values")
+    facts = _array_facts(given)
+    if facts is None or "finite" not in facts:
+        if not np.isfinite(np.sum(cmd)):  # one pass; any NaN or inf makes the sum non-finite
+            raise ConfigError("commands contain NaN or infinite values")
+        if facts is not None:
+            facts["finite"] = True
     calibs = [calibration] if isinstance(calibration, Calibration) else list(calibration)
     n_rob = max(cmd.shape[0], len(calibs))
-    shared = cmd.shape[0] == 1
+    shared = given if given.ndim == 2 else given[0] if cmd.shape[0] == 1 else None
     if cmd.shape[0] == 1 and n_rob > 1:
         cmd = np.broadcast_to(cmd, (n_rob, t.size, 3))
     if len(calibs) == 1:
@@ -407,6 +474,11 @@ def _initial_values(n_rob: int, initial_pose, initial_state, initial_command):
     return pose0, state0, cmd0
 
 
+#: Outputs larger than this [bytes] are touched from one thread before the kernel writes them
+#: (a fit's small ones, thousands of times, need not be).
+_TOUCH_BYTES = 1 << 20
+
+
 def _output_arrays(out: Trajectory | None, n_rob: int, n_t: int):
     """Wheel speeds (N, T, 4), poses (N, T, 3) and final states to write: ``out``'s, or new."""
     from ._kernels import STATE_WIDTH
@@ -417,18 +489,22 @@ def _output_arrays(out: Trajectory | None, n_rob: int, n_t: int):
         return out.wheel_rpm, out.pose, out.final_state
     wheels = np.empty((n_rob, n_t, 4))
     pose = np.empty((n_rob, n_t, 3))
-    # Touch the output pages from one thread first: on these machines, first-touch page
-    # faults taken from several threads at once were several times slower than doing so.
-    wheels.fill(0.0)
-    pose.fill(0.0)
+    if wheels.nbytes + pose.nbytes > _TOUCH_BYTES:
+        # Touch the output pages from one thread first: on these machines, first-touch page
+        # faults taken from several threads at once were several times slower than doing so.
+        # (The kernel writes every element: this is for speed only.)
+        wheels.fill(0.0)
+        pose.fill(0.0)
     return wheels, pose, np.empty((n_rob, STATE_WIDTH))
 
 
 def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: np.ndarray,
-                    whole: bool, shared: bool, delay: float):
+                    whole: bool, shared: np.ndarray | None, delay: float):
     """A group's time grid, its commands on that grid and each grid point's sample (the
-    kernel's ``record``): with a dead time the grid is refined at the delayed command changes."""
-    one = shared and members.size > 1 and bool(np.all(cmd0[members] == cmd0[members[0]]))
+    kernel's ``record``): with a dead time the grid is refined at the delayed command changes.
+    ``shared``: the one command stream of all robots, (T, 3), or None."""
+    one = (shared is not None and members.size > 1
+           and bool(np.all(cmd0[members] == cmd0[members[0]])))
     if one:  # the robots' (delayed) commands are one stream: computed once, not copied
         gcmd = np.broadcast_to(cmd[0], (members.size, t.size, 3))
     else:
@@ -437,7 +513,8 @@ def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: n
         # one stream (a fit's Jacobian, or its lone trial point) through the same dead time
         # again and again: its delayed commands are remembered
         grid, first, record = _memo(
-            ("delayed", t.tobytes(), float(delay), gcmd[0].tobytes(),
+            ("delayed", _bytes_of(t), float(delay),
+             _bytes_of(shared) if shared is not None else gcmd[0].tobytes(),
              cmd0[members[0]].tobytes()),
             lambda: _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]]))
         if one:
