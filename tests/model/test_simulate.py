@@ -324,3 +324,38 @@ def test_a_pose_needs_all_four_wheels():
         simulate(hold(10, 0, 90, t), t, PAPER, wheels=np.array([True, True, False, False]))
     with pytest.raises(ConfigError, match="4 booleans"):
         simulate(hold(10, 0, 90, t), t, PAPER, wheels=[1, 1, 0, 0], pose=False)
+
+
+def test_what_is_remembered_of_an_array_is_what_cannot_change():
+    # the simulator keeps an array's bytes (its plans' key) and checks by identity only where
+    # the elements cannot change: read-only down to the memory's owner, or declared unchanging
+    import importlib
+
+    sim = importlib.import_module("mecanum_hil.model.simulate")
+    t = uniform_time(0.5, 100)
+    frozen = t.copy()
+    frozen.flags.writeable = False
+    assert sim._bytes_of(frozen) is sim._bytes_of(frozen)
+    writable = t.copy()
+    assert sim._bytes_of(writable) is not sim._bytes_of(writable)
+    view = writable[:]  # read-only view of a writable array: its elements may still change
+    view.flags.writeable = False
+    assert sim._array_facts(view) is None
+    declared = sim.unchanging(t.copy())
+    assert sim._bytes_of(declared) is sim._bytes_of(declared)
+    # the same commands and times simulate the same whether remembered or not
+    cmd = hold(60, 20, 45, t)
+    cal = replace(PAPER, effects=Effects(dead_time_s=0.013))
+    fresh = simulate(cmd, t, cal).wheel_rpm
+    kept = sim.unchanging(cmd.copy())
+    for _ in range(2):
+        np.testing.assert_array_equal(simulate(kept, declared, cal).wheel_rpm, fresh)
+    # a bad time grid is still refused when read-only
+    bad = np.array([0.0, 0.2, 0.1])
+    bad.flags.writeable = False
+    with pytest.raises(ConfigError):
+        simulate(hold(1, 0, 90, bad), bad, PAPER)
+    # an entry goes with its array
+    key = id(frozen)
+    del frozen
+    assert key not in sim._FACTS
