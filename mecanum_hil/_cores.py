@@ -48,10 +48,64 @@ def usable_cores() -> int:
 
 def idle_cores() -> float:
     """Cores this process may run on beyond its own one that other jobs leave free: the count
-    less the 1-minute load average of the others (all of them where the load is unknown)."""
+    less the 1-minute load average of the others (all of them where the load is unknown).
+
+    The load average trails by a minute: a job that ended seconds ago (the ``fit`` before a
+    ``diagnose``, the recording before it) still counts. Where it says fewer than
+    :data:`SPARE_CORE` are free, how busy the machine's cores are now is read too (over
+    :data:`NOW_WINDOW_S`, at most every :data:`NOW_EVERY_S`; Linux's ``/proc/stat``), and
+    the larger count of free cores is taken: a job that is still running shows in both.
+    """
     cores = usable_cores()
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):  # Windows
         load = 0.0
-    return cores - 1 - max(0.0, load - own_load())
+    by_load = cores - 1 - max(0.0, load - own_load())
+    if by_load >= SPARE_CORE:
+        return by_load
+    busy = busy_cores_now()
+    return by_load if busy is None else max(by_load, cores - 1 - busy)
+
+
+#: The window over which :func:`busy_cores_now` reads the cores' use [s], and how long a
+#: reading is kept [s].
+NOW_WINDOW_S = 0.2
+NOW_EVERY_S = 5.0
+
+_now: list = [None, -math.inf]  # the last reading of busy_cores_now, and when it was taken
+
+
+def busy_cores_now() -> float | None:
+    """Cores other jobs keep busy now: the machine's CPU time outside idle over
+    :data:`NOW_WINDOW_S` (from ``/proc/stat``), less this process's own, in cores; None where
+    it cannot be read. A reading is kept for :data:`NOW_EVERY_S`."""
+    with _own_lock:
+        if time.monotonic() - _now[1] < NOW_EVERY_S:
+            return _now[0]
+    try:
+        before, cpu0, t0 = _cpu_times(), time.process_time(), time.monotonic()
+        time.sleep(NOW_WINDOW_S)
+        after, cpu1, t1 = _cpu_times(), time.process_time(), time.monotonic()
+    except (OSError, ValueError):
+        busy = None
+    else:
+        total = after[0] - before[0]
+        busy = None
+        if total > 0 and t1 > t0:
+            # jiffies of all cores: the share outside idle, times the machine's cores
+            share = (after[1] - before[1]) / total
+            busy = max(0.0, share * (os.cpu_count() or 1) - (cpu1 - cpu0) / (t1 - t0))
+    with _own_lock:
+        _now[:] = [busy, time.monotonic()]
+    return busy
+
+
+def _cpu_times() -> tuple[int, int]:
+    """All cores' CPU time since boot and the part of it not idle (nor waiting for I/O), in
+    jiffies (``/proc/stat``'s first line)."""
+    with open("/proc/stat", encoding="ascii") as f:
+        fields = [int(v) for v in f.readline().split()[1:]]
+    # user nice system idle iowait irq softirq steal (guest time is inside user already)
+    total = sum(fields[:8])
+    return total, total - fields[3] - fields[4]

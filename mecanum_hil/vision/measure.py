@@ -118,7 +118,7 @@ class MeasureOptions:
     decode_beside : bool or None
         Decode in a helper thread beside the analysis (less wall time with a second core
         free) rather than in turns with it in one thread (the least CPU time); ``None``: beside
-        when the 1-minute load average leaves a second core free (see :func:`scan_video`). The
+        when other jobs leave a second core free (see :func:`scan_video`). The
         results are the same.
     decoders : int or None
         Decoders beside the analysis: 2 decode every other part of the video each (faster
@@ -182,8 +182,9 @@ def scan_video(path: str | Path, detectors_for: Callable[[tuple[int, int]], Sequ
     """Decode every frame once and run the detectors on it.
 
     ``decode_beside``: decode in helper threads while this one analyses (default: when other
-    jobs leave :data:`BESIDE_IDLE_CORES` of a second core free by the 1-minute load average,
-    and four runs of frames fit in :data:`BESIDE_MAX_BYTES`); else decode and analyse in turns
+    jobs leave :data:`BESIDE_IDLE_CORES` of a second core free by
+    :func:`~mecanum_hil._cores.idle_cores`, and four runs of frames fit in
+    :data:`BESIDE_MAX_BYTES`); else decode and analyse in turns
     in this thread. ``decoders`` (beside only): 2 decodes every other part of the video in
     each of two threads (:func:`~mecanum_hil.vision.video.decoded_in_segments`), 1 the whole
     video in one; default: two where :func:`split_part_frames` finds the video long enough

@@ -8,6 +8,7 @@ A helper is a real second process (``python -c``, pickles over its pipes:
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -142,6 +143,39 @@ def test_own_load_follows_this_process_like_the_load_average():
     assert 0.0 < busy < 1.0
     time.sleep(0.5)  # idle: the share decays, as the kernel's average does
     assert _cores.own_load() < busy
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/stat"), reason="reads Linux's /proc/stat")
+def test_a_core_another_job_keeps_busy_now_is_seen_at_once(monkeypatch):
+    # the load average trails by a minute; what the cores do now is read over a short window
+    from mecanum_hil import _cores
+
+    monkeypatch.setattr(_cores, "_now", [None, -math.inf])
+    spin = subprocess.Popen([sys.executable, "-c", "import time\nt = time.monotonic()\n"
+                             "while time.monotonic() - t < 5: pass"])
+    try:
+        time.sleep(0.3)  # started and spinning
+        assert _cores.busy_cores_now() >= 0.5
+    finally:
+        spin.kill()
+        spin.wait()
+
+
+def test_a_job_that_ended_seconds_ago_does_not_keep_the_helper_away(monkeypatch):
+    from mecanum_hil import _cores
+
+    monkeypatch.setattr(_cores, "usable_cores", lambda: 2)
+    monkeypatch.setattr(_cores.os, "getloadavg", lambda: (1.5, 1.0, 0.5))  # the last minute
+    monkeypatch.setattr(_cores, "busy_cores_now", lambda: 0.0)  # idle now
+    assert _cores.idle_cores() == 1.0
+    monkeypatch.setattr(_cores, "busy_cores_now", lambda: 1.0)  # still running
+    assert _cores.idle_cores() < _cores.SPARE_CORE
+    monkeypatch.setattr(_cores, "busy_cores_now", lambda: None)  # unreadable: the load's
+    assert _cores.idle_cores() < _cores.SPARE_CORE
+    # a reading is kept for a few seconds (each diagnosis asks)
+    monkeypatch.undo()
+    monkeypatch.setattr(_cores, "_now", [0.25, time.monotonic()])
+    assert _cores.busy_cores_now() == 0.25
 
 
 def test_a_job_that_fails_in_the_helper_reports_the_error_and_the_helper_goes_on():

@@ -40,8 +40,8 @@ from typing import Any
 from ..._cores import SPARE_CORE, idle_cores, usable_cores
 from ...errors import MecanumHILWarning
 
-#: Idle cores (beyond this process's own, by the 1-minute load average) from which ``diagnose``
-#: starts a helper by default: the package's rule for working beside itself
+#: Idle cores (beyond this process's own: :func:`~mecanum_hil._cores.idle_cores`) from which
+#: ``diagnose`` starts a helper by default: the package's rule for working beside itself
 #: (:data:`mecanum_hil._cores.SPARE_CORE`, half a core, as measure-video decodes beside its
 #: analysis). A helper costs about 1.3 s of CPU to start (imports, numba's kernels loaded), on
 #: the other core.

@@ -331,7 +331,8 @@ def diagnose(
     jobs : int, optional
         Processes that fit a round's candidates, this one included (:mod:`.helper`): 1 fits
         them all here; default: 2 where most of a second core is idle (1-minute load
-        average), else 1. The diagnosis is the same either way.
+        average, or the cores' use now: :func:`mecanum_hil._cores.idle_cores`), else 1. The
+        diagnosis is the same either way.
 
     Returns
     -------
