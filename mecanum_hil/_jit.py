@@ -122,6 +122,25 @@ def is_compiled(module: str) -> bool:
     return module in _compiled_modules
 
 
+def load_compiled(module: str) -> None:
+    """Load the kernels of ``module`` (a dotted name) compiled now, from numba's cache: from
+    then on every job of the process runs compiled (:func:`interpret` says no once numba is
+    loaded), unless ``MECANUM_HIL_JIT=never``.
+
+    For a long computation whose result should not depend on what the process did before:
+    the interpreter's arithmetic equals numba's only to rounding, and a search that starts on
+    one and goes on with the other can end in another local minimum than one run on numba's
+    throughout (``diagnose``: a recording diagnosed after others in one process came out
+    otherwise than alone).
+    """
+    if mode() == "never":
+        return
+    import importlib
+
+    importlib.import_module(module)
+    _compile_module(module)
+
+
 def compiled(kernel) -> Callable:
     """numba's dispatcher for ``kernel`` (a :class:`Kernel`, or a module global that already is
     the dispatcher: compiling a module replaces its kernels by numba's)."""

@@ -273,11 +273,13 @@ def _serve() -> None:
 
 
 def warm_up() -> None:
-    """A helper's first job: a short simulation, which loads numba's compiled kernels."""
+    """A helper's first job: numba's compiled kernels loaded, and a short simulation."""
     import numpy as np
 
+    from ..._jit import load_compiled
     from ...model import Calibration, RobotProfile
     from ...model.simulate import simulate
 
+    load_compiled("mecanum_hil.model._kernels")
     t = np.arange(50) * 0.01
     simulate(np.tile([60.0, 0.0, 90.0], (t.size, 1)), t, Calibration(), RobotProfile())

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from ..._jit import load_compiled
 from ...errors import ConfigError, DiagnoseError, FitError, SessionTerminated
 from ...io.recording import Recording
 from ...model.calibration import EFFECTS, Calibration, exchange_drive_lag
@@ -343,6 +344,10 @@ def diagnose(
     DiagnoseError
         Fewer than two recordings, no measured wheel speeds, or an unknown candidate.
     """
+    # numba's kernels from the start, in this process and the helpers (warm_up): a search
+    # begun in the interpreter (equal to rounding) can end elsewhere, and a recording's
+    # diagnosis must not depend on what this process did before
+    load_compiled("mecanum_hil.model._kernels")
     helpers = helpers_for(jobs, warm_up)
     interrupted = False
     try:
