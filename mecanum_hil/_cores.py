@@ -62,7 +62,7 @@ def idle_cores() -> float:
     except (AttributeError, OSError):  # Windows
         load = 0.0
     by_load = cores - 1 - max(0.0, load - own_load())
-    if by_load >= SPARE_CORE:
+    if by_load >= SPARE_CORE or cores - 1 < SPARE_CORE:  # free, or no second core at all
         return by_load
     busy = busy_cores_now()
     return by_load if busy is None else max(by_load, cores - 1 - busy)
@@ -77,35 +77,54 @@ _now: list = [None, -math.inf]  # the last reading of busy_cores_now, and when i
 
 
 def busy_cores_now() -> float | None:
-    """Cores other jobs keep busy now: the machine's CPU time outside idle over
-    :data:`NOW_WINDOW_S` (from ``/proc/stat``), less this process's own, in cores; None where
-    it cannot be read. A reading is kept for :data:`NOW_EVERY_S`."""
+    """Cores of this process's own (its CPU affinity) that other jobs keep busy now: their CPU
+    time outside idle over :data:`NOW_WINDOW_S` (``/proc/stat``'s lines per core), less this
+    process's own, in cores; None where it cannot be read. A reading is kept for
+    :data:`NOW_EVERY_S`."""
     with _own_lock:
         if time.monotonic() - _now[1] < NOW_EVERY_S:
             return _now[0]
     try:
-        before, cpu0, t0 = _cpu_times(), time.process_time(), time.monotonic()
+        mine = _affinity()
+        before, cpu0, t0 = _cpu_times(mine), time.process_time(), time.monotonic()
         time.sleep(NOW_WINDOW_S)
-        after, cpu1, t1 = _cpu_times(), time.process_time(), time.monotonic()
-    except (OSError, ValueError):
+        after, cpu1, t1 = _cpu_times(mine), time.process_time(), time.monotonic()
+    except (OSError, ValueError, IndexError):
         busy = None
     else:
-        total = after[0] - before[0]
         busy = None
-        if total > 0 and t1 > t0:
-            # jiffies of all cores: the share outside idle, times the machine's cores
-            share = (after[1] - before[1]) / total
-            busy = max(0.0, share * (os.cpu_count() or 1) - (cpu1 - cpu0) / (t1 - t0))
+        shares = [(a[1] - b[1]) / (a[0] - b[0]) for b, a in zip(before, after, strict=True)
+                  if a[0] > b[0]]
+        if shares and t1 > t0:
+            busy = max(0.0, sum(shares) - (cpu1 - cpu0) / (t1 - t0))
     with _own_lock:
         _now[:] = [busy, time.monotonic()]
     return busy
 
 
-def _cpu_times() -> tuple[int, int]:
-    """All cores' CPU time since boot and the part of it not idle (nor waiting for I/O), in
-    jiffies (``/proc/stat``'s first line)."""
+def _affinity() -> set[int] | None:
+    """The cores this process may run on (None: all, where the affinity is unknown)."""
+    try:
+        return set(os.sched_getaffinity(0))
+    except AttributeError:
+        return None
+
+
+def _cpu_times(cores: set[int] | None) -> list[tuple[int, int]]:
+    """Per core of ``cores`` (all where None): CPU time since boot and the part of it not idle
+    (nor waiting for I/O), in jiffies (``/proc/stat``'s ``cpuN`` lines)."""
+    out = []
     with open("/proc/stat", encoding="ascii") as f:
-        fields = [int(v) for v in f.readline().split()[1:]]
-    # user nice system idle iowait irq softirq steal (guest time is inside user already)
-    total = sum(fields[:8])
-    return total, total - fields[3] - fields[4]
+        for line in f:
+            name, *values = line.split()
+            if not (name.startswith("cpu") and name[3:].isdigit()):
+                continue
+            if cores is not None and int(name[3:]) not in cores:
+                continue
+            fields = [int(v) for v in values]
+            # user nice system idle iowait irq softirq steal (guest time is inside user)
+            total = sum(fields[:8])
+            out.append((total, total - fields[3] - fields[4]))
+    if not out:
+        raise ValueError("no per-core lines in /proc/stat")
+    return out

@@ -123,9 +123,10 @@ def is_compiled(module: str) -> bool:
 
 
 def load_compiled(module: str) -> None:
-    """Load the kernels of ``module`` (a dotted name) compiled now, from numba's cache: from
-    then on every job of the process runs compiled (:func:`interpret` says no once numba is
-    loaded), unless ``MECANUM_HIL_JIT=never``.
+    """Make the kernels of ``module`` (a dotted name) numba's now (numba imported; each is
+    compiled, or loaded from numba's cache, on its first call): from then on every job of the
+    process runs compiled (:func:`interpret` says no once a module is), unless
+    ``MECANUM_HIL_JIT=never``.
 
     For a long computation whose result should not depend on what the process did before:
     the interpreter's arithmetic equals numba's only to rounding, and a search that starts on

@@ -81,53 +81,50 @@ def _times(time_s) -> np.ndarray:
     return t
 
 
-#: What was learnt about arrays that cannot change (read-only, and so is every array they view;
-#: or declared :func:`unchanging`), by identity: their bytes (the plans' keys below) and the
-#: checks they passed. A fit passes the same recording thousands of times, and copying and
-#: hashing its bytes cost as much as a short kernel. An entry goes when its array does.
-_FACTS: dict[int, tuple[weakref.ref, dict, bool]] = {}
+#: What was learnt about arrays whose elements nothing changes any more, by identity: their
+#: bytes (the plans' keys below) and the checks they passed. Only arrays declared so
+#: (:func:`unchanging`: a fit's recordings) and the simulator's own plans are kept: numpy's
+#: read-only flag can be set back, and an array it views may be written, so it proves nothing.
+#: A fit passes the same recording thousands of times, and copying and hashing its bytes cost
+#: as much as a short kernel. An entry goes when its array does.
+_FACTS: dict[int, tuple[weakref.ref, dict]] = {}
 
 
-def _frozen(a: np.ndarray) -> bool:
-    """Whether nothing can write ``a``'s elements: it and every array it views are read-only,
-    down to one that owns its memory."""
-    while isinstance(a, np.ndarray):
-        if a.flags.writeable:
-            return False
-        a = a.base
-    return a is None
-
-
-def _array_facts(a: np.ndarray, trusted: bool = False) -> dict | None:
-    """The facts remembered about ``a`` (a dict to fill), or None when ``a`` may change.
-    ``trusted``: nothing changes ``a`` from now on, though it may be writeable
-    (:func:`unchanging`)."""
-    key = id(a)
-    hit = _FACTS.get(key)
-    if hit is not None and hit[0]() is a and (hit[2] or not a.flags.writeable):
-        return hit[1]
-    if not (trusted or _frozen(a)):
-        return None
-    facts: dict = {}
-    _FACTS[key] = (weakref.ref(a, lambda _, key=key: _FACTS.pop(key, None)), facts, trusted)
-    return facts
+def _array_facts(a: np.ndarray) -> dict | None:
+    """The facts remembered about ``a`` (a dict to fill), or None when ``a`` is not declared
+    unchanging."""
+    hit = _FACTS.get(id(a))
+    return hit[1] if hit is not None and hit[0]() is a else None
 
 
 def unchanging(a: np.ndarray) -> np.ndarray:
-    """Declare that nothing will change the elements of ``a`` any more, and return it.
+    """Declare that nothing will change the elements of ``a`` any more.
 
     A caller that simulates the same commands and times again and again (a fit: thousands of
-    times) declares them so, and the simulator keeps what it learnt about them (their bytes,
-    the checks they passed) instead of copying and hashing them on every call. A read-only
-    array needs no declaration; one that is written after it was declared gives wrong results.
+    times) declares them so, and :func:`simulate_batch` keeps what it learnt about them (their
+    bytes, the checks they passed) instead of copying and hashing them on every call. An array
+    written after it was declared gives wrong results: declare a private copy.
+
+    Parameters
+    ----------
+    a : ndarray
+        A float array as passed to :func:`simulate_batch` (``commands`` or ``time_s``; another
+        dtype is converted there on every call, and gains nothing).
+
+    Returns
+    -------
+    ndarray
+        ``a`` itself.
     """
-    _array_facts(a, trusted=True)
+    key = id(a)
+    if _array_facts(a) is None:
+        _FACTS[key] = (weakref.ref(a, lambda _, key=key: _FACTS.pop(key, None)), {})
     return a
 
 
 def _bytes_of(a: np.ndarray) -> bytes:
-    """``a.tobytes()``, the same bytes object each time for an array that cannot change (its
-    hash is then computed once)."""
+    """``a.tobytes()``, the same bytes object each time for an array declared
+    :func:`unchanging` (its hash is then computed once)."""
     facts = _array_facts(a)
     if facts is None:
         return a.tobytes()
@@ -201,7 +198,7 @@ def _memo(key, make):
     for v in value:
         if isinstance(v, np.ndarray):
             v.flags.writeable = False
-            _array_facts(v, trusted=True)
+            unchanging(v)  # the simulator's own: no one else holds it
     with _PLANS_LOCK:
         if key not in _PLANS:
             _PLANS[key] = value
@@ -574,4 +571,5 @@ def simulate(
     cmd = np.asarray(commands, dtype=float)
     if cmd.ndim != 2:
         raise ConfigError(f"commands must have shape (T, 3), got {cmd.shape}")
-    return simulate_batch(cmd[None], time_s, calibration or Calibration(), robot, **kwargs)
+    # one stream, (T, 3), as given: an array declared unchanging stays itself
+    return simulate_batch(cmd, time_s, calibration or Calibration(), robot, **kwargs)

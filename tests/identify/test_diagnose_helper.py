@@ -165,12 +165,17 @@ def test_a_job_that_ended_seconds_ago_does_not_keep_the_helper_away(monkeypatch)
     from mecanum_hil import _cores
 
     monkeypatch.setattr(_cores, "usable_cores", lambda: 2)
+    monkeypatch.setattr(_cores, "own_load", lambda: 0.0)
     monkeypatch.setattr(_cores.os, "getloadavg", lambda: (1.5, 1.0, 0.5))  # the last minute
     monkeypatch.setattr(_cores, "busy_cores_now", lambda: 0.0)  # idle now
     assert _cores.idle_cores() == 1.0
     monkeypatch.setattr(_cores, "busy_cores_now", lambda: 1.0)  # still running
     assert _cores.idle_cores() < _cores.SPARE_CORE
     monkeypatch.setattr(_cores, "busy_cores_now", lambda: None)  # unreadable: the load's
+    assert _cores.idle_cores() < _cores.SPARE_CORE
+    # one core: nothing to read
+    monkeypatch.setattr(_cores, "usable_cores", lambda: 1)
+    monkeypatch.setattr(_cores, "busy_cores_now", lambda: 1 / 0)
     assert _cores.idle_cores() < _cores.SPARE_CORE
     # a reading is kept for a few seconds (each diagnosis asks)
     monkeypatch.undo()

@@ -326,36 +326,43 @@ def test_a_pose_needs_all_four_wheels():
         simulate(hold(10, 0, 90, t), t, PAPER, wheels=[1, 1, 0, 0], pose=False)
 
 
-def test_what_is_remembered_of_an_array_is_what_cannot_change():
-    # the simulator keeps an array's bytes (its plans' key) and checks by identity only where
-    # the elements cannot change: read-only down to the memory's owner, or declared unchanging
+def test_what_is_remembered_of_an_array_is_only_of_one_declared_unchanging():
+    # the simulator keeps an array's bytes (its plans' key) and checks by identity only for
+    # arrays declared unchanging: numpy's read-only flag can be set back, and the array a
+    # read-only view looks at may be written
     import importlib
 
     sim = importlib.import_module("mecanum_hil.model.simulate")
     t = uniform_time(0.5, 100)
-    frozen = t.copy()
-    frozen.flags.writeable = False
-    assert sim._bytes_of(frozen) is sim._bytes_of(frozen)
-    writable = t.copy()
-    assert sim._bytes_of(writable) is not sim._bytes_of(writable)
-    view = writable[:]  # read-only view of a writable array: its elements may still change
-    view.flags.writeable = False
-    assert sim._array_facts(view) is None
-    declared = sim.unchanging(t.copy())
-    assert sim._bytes_of(declared) is sim._bytes_of(declared)
-    # the same commands and times simulate the same whether remembered or not
+    base = t.copy()
+    base.flags.writeable = False
+    view = base[:]
+    assert sim._array_facts(base) is None and sim._array_facts(view) is None
+    assert sim._bytes_of(view) is not sim._bytes_of(view)
     cmd = hold(60, 20, 45, t)
     cal = replace(PAPER, effects=Effects(dead_time_s=0.013))
+    before = simulate(cmd, view, cal).wheel_rpm
+    base.flags.writeable = True
+    base[1:] += 0.002  # the view's times change
+    after = simulate(cmd, view, cal).wheel_rpm
+    np.testing.assert_array_equal(after, simulate(cmd, view.copy(), cal).wheel_rpm)
+    assert not np.array_equal(after, before)
+    # declared: the same bytes object each time, and the same result as undeclared
+    declared = sim.unchanging(t.copy())
+    assert sim._bytes_of(declared) is sim._bytes_of(declared)
     fresh = simulate(cmd, t, cal).wheel_rpm
     kept = sim.unchanging(cmd.copy())
     for _ in range(2):
         np.testing.assert_array_equal(simulate(kept, declared, cal).wheel_rpm, fresh)
-    # a bad time grid is still refused when read-only
-    bad = np.array([0.0, 0.2, 0.1])
-    bad.flags.writeable = False
+    # a bad time grid is still refused, and so are bad commands
+    bad = sim.unchanging(np.array([0.0, 0.2, 0.1]))
     with pytest.raises(ConfigError):
         simulate(hold(1, 0, 90, bad), bad, PAPER)
+    nan = sim.unchanging(hold(1, 0, 90, t))
+    nan[3, 0] = np.nan  # written after it was declared, before any simulation saw it
+    with pytest.raises(ConfigError):
+        simulate(nan, declared, PAPER)
     # an entry goes with its array
-    key = id(frozen)
-    del frozen
+    key = id(declared)
+    del declared
     assert key not in sim._FACTS

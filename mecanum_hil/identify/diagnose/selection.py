@@ -344,11 +344,11 @@ def diagnose(
     DiagnoseError
         Fewer than two recordings, no measured wheel speeds, or an unknown candidate.
     """
+    helpers = helpers_for(jobs, warm_up)  # first: a helper starts while this one goes on
     # numba's kernels from the start, in this process and the helpers (warm_up): a search
     # begun in the interpreter (equal to rounding) can end elsewhere, and a recording's
     # diagnosis must not depend on what this process did before
     load_compiled("mecanum_hil.model._kernels")
-    helpers = helpers_for(jobs, warm_up)
     interrupted = False
     try:
         with one_blas_thread():  # many small products of tall matrices (identify/fit.py)
