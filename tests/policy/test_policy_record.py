@@ -72,8 +72,15 @@ def _run_cli_in_subprocess(sim_path, out, episodes: int):
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, **SINGLE_THREAD_ENV},
         # started with SIGINT ignored, as a background job of a script is (and as a test
         # runner's worker left it in CI): Python then installs no handler, and Ctrl-C did
-        # nothing while the robot drove on; record installs its own
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+        # nothing while the robot drove on; record installs its own. SIGQUIT as a terminal's
+        # Ctrl-\ finds it: a background job inherits it ignored too, and record rightly leaves
+        # an ignored SIGQUIT ignored (a test run started in the background hung here)
+        preexec_fn=_started_as_in_the_test)
+
+
+def _started_as_in_the_test():
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGQUIT, signal.SIG_DFL)
 
 
 def _wait_for_rows(path, rows=30, timeout_s=60.0):
