@@ -129,6 +129,29 @@ def _check_name(name: str) -> None:
         raise FitError(f"unknown parameter {name!r}; choose from {', '.join(PARAMETER_NAMES)}")
 
 
+def _effect_slot(name: str) -> tuple[str, int | None]:
+    """The ``Effects`` field of an effect parameter's name and its index in that field's tuple
+    (None for a scalar): ``gains[2]`` -> ``("gains", 2)``."""
+    _check_name(name)
+    m = _INDEXED.match(name)
+    return (m.group(1), int(m.group(2))) if m else (name, None)
+
+
+def _effects_with(effects: Effects, slots: Sequence[tuple[int, str, int | None]],
+                  values: Sequence[float]) -> Effects:
+    """``effects`` with ``values[i]`` in each slot ``(i, field, index)``
+    (:func:`_effect_slot`), as :func:`with_parameters` substitutes them."""
+    changes: dict[str, Any] = {}
+    for i, field_name, index in slots:
+        if index is None:
+            changes[field_name] = values[i]
+        else:
+            seq = changes.setdefault(field_name, list(getattr(effects, field_name)))
+            seq[index] = values[i]
+    return replace(effects, **{n: tuple(v) if isinstance(v, list) else v
+                               for n, v in changes.items()}) if changes else effects
+
+
 def parameter_value(calibration: Calibration, name: str) -> float:
     """The current value of a named parameter (see :data:`PARAMETER_NAMES`)."""
     _check_name(name)
@@ -625,8 +648,9 @@ class _Problem:
         self._best: tuple[float, np.ndarray] | None = None
         # the effects of recent points by their values: a Jacobian's perturbations of A, B, C
         # share them, and building them (checked dataclasses) costs as much as a short kernel
-        self._coefficients = [n for n in self.free if n in _COEFFICIENTS]
-        self._effect_names = [n for n in self.free if n not in _COEFFICIENTS]
+        self._coefficients = [(n, i) for i, n in enumerate(self.free) if n in _COEFFICIENTS]
+        self._effect_slots = [(i, *_effect_slot(n)) for i, n in enumerate(self.free)
+                              if n not in _COEFFICIENTS]
         self._effects: dict[tuple[float, ...], Effects] = {}
 
     def watch(self, x0: np.ndarray) -> None:
@@ -659,16 +683,17 @@ class _Problem:
 
     def calibration_at(self, x) -> Calibration:
         """The calibration at point ``x``: :func:`with_parameters` of the free parameters."""
-        values = dict(zip(self.free, map(float, x), strict=True))
-        key = tuple(values[n] for n in self._effect_names)
+        values = np.asarray(x, dtype=float).tolist()
+        if len(values) != len(self.free):
+            raise ValueError(f"{len(values)} values for {len(self.free)} free parameters")
+        key = tuple(values[i] for i, _, _ in self._effect_slots)
         effects = self._effects.get(key)
         if effects is None:
-            effects = with_parameters(self.calibration,
-                                      {n: values[n] for n in self._effect_names}).effects
+            effects = _effects_with(self.calibration.effects, self._effect_slots, values)
             if len(self._effects) >= 64:
                 self._effects.clear()
             self._effects[key] = effects
-        return replace(self.calibration, **{n: values[n] for n in self._coefficients},
+        return replace(self.calibration, **{n: values[i] for n, i in self._coefficients},
                        effects=effects, ci95={}, info={})
 
     def steps(self, x: np.ndarray) -> np.ndarray:

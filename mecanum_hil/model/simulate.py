@@ -25,6 +25,7 @@ import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -83,8 +84,8 @@ def _times(time_s) -> np.ndarray:
 
 #: What was learnt about arrays whose elements nothing changes any more, by identity: their
 #: bytes (the plans' keys below) and the checks they passed. Only arrays declared so
-#: (:func:`unchanging`: a fit's recordings) and the simulator's own plans are kept: numpy's
-#: read-only flag can be set back, and an array it views may be written, so it proves nothing.
+#: (:func:`unchanging`: a fit's recordings) are kept: numpy's read-only flag can be set back,
+#: and an array it views may be written, so it proves nothing.
 #: A fit passes the same recording thousands of times, and copying and hashing its bytes cost
 #: as much as a short kernel. An entry goes when its array does.
 _FACTS: dict[int, tuple[weakref.ref, dict]] = {}
@@ -197,8 +198,7 @@ def _memo(key, make):
     value = make()
     for v in value:
         if isinstance(v, np.ndarray):
-            v.flags.writeable = False
-            unchanging(v)  # the simulator's own: no one else holds it
+            v.flags.writeable = False  # shared by later calls (and one type for the kernel)
     with _PLANS_LOCK:
         if key not in _PLANS:
             _PLANS[key] = value
@@ -212,35 +212,84 @@ def _nbytes(value: tuple) -> int:
     return sum(v.nbytes for v in value if isinstance(v, np.ndarray))
 
 
+class _Plan(NamedTuple):
+    """A group's time grid and its steps: what depends on the sample times, the dead time and
+    the sub-step length alone (not on the robots), remembered by :func:`_plan`."""
+
+    grid: np.ndarray | None   # (G,) refined by the dead time [s]; None: the sample times
+    src: np.ndarray | None    # (G,) sample whose command acts at each grid point (-1: before)
+    record: np.ndarray        # (G,) each grid point's sample (-1: none): the kernel's ``record``
+    didx: np.ndarray          # (G,) row of the step each grid point starts (0 for the last)
+    nsub: np.ndarray          # (G,) its sub-step count (0 for the last)
+    h_uniq: np.ndarray        # (K,) the distinct (sub-)step lengths [s]: the tables' rows
+    substeps: int             # sub-steps in all (the kernel's job size per robot)
+
+
+def _plan(t: np.ndarray, delay_s: float, max_substep_s: float | None) -> _Plan:
+    """The time grid of a group with dead time ``delay_s`` [s] and its steps (sub-stepped at
+    ``max_substep_s`` [s], None: the closed-form path), remembered by their inputs: a fit
+    simulates the same recording thousands of times, through a new dead time on many."""
+    return _memo(("plan", _bytes_of(t), float(delay_s), max_substep_s),
+                 lambda: _make_plan(t, float(delay_s), max_substep_s))
+
+
+def _make_plan(t: np.ndarray, delay_s: float, max_substep_s: float | None) -> _Plan:
+    if t.size > 1 and _kernels_compiled():
+        # the same numbers in one compiled pass (a fit plans a grid per trial dead time)
+        from .._jit import compiled
+        from ._grid_kernels import plan_kernel
+
+        grid, src, record, didx, nsub, h, first, ok = compiled(plan_kernel)(
+            t, delay_s, _time_rounding(t), max_substep_s or 0.0, _FEW_LENGTHS)
+        if not ok:  # many distinct lengths (a real clock's): numpy's sort
+            _, first, rows = np.unique(np.round(h * 1e12), return_index=True,
+                                       return_inverse=True)
+            didx = np.append(rows.astype(np.int64).reshape(-1), 0)
+        return _Plan(grid if delay_s > 0 else None, src if delay_s > 0 else None, record,
+                     didx, nsub, h[first], int(nsub.sum()))
+    if delay_s > 0:
+        grid, src, sample_idx = _delay_plan(t, delay_s)
+        record = np.full(grid.size, -1, dtype=np.int64)
+        record[sample_idx] = np.arange(sample_idx.size)
+    else:
+        grid, src, record = None, None, np.arange(t.size, dtype=np.int64)
+    didx, nsub, h_uniq = _grid_steps(t if grid is None else grid, max_substep_s)
+    return _Plan(grid, src, record, didx, nsub, h_uniq, int(nsub.sum()))
+
+
+def _delayed(cmd: np.ndarray, src: np.ndarray, initial_command: np.ndarray) -> np.ndarray:
+    """Commands (N, T, 3) seen through a dead time on its grid (:func:`_delay_plan`'s
+    ``src``): (N, G, 3), C-contiguous and writable; ``initial_command`` (N, 3) before the
+    first (``src`` -1, which are the first grid points: ``src`` never decreases)."""
+    out = np.ascontiguousarray(cmd[:, np.maximum(src, 0), :])
+    before = int(np.searchsorted(src, 0))
+    if before:
+        out[:, :before, :] = initial_command[:, None, :]
+    return out
+
+
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
-    """Refine the time grid so a dead time is exact; return grid, delayed commands and each
-    grid point's sample (-1: none, see :func:`_recorded`)."""
-    grid, src, record = _memo(("delay", _bytes_of(t), float(delay_s)),
-                              lambda: _recorded(*_delay_plan(t, float(delay_s))))
-    delayed = np.where((src >= 0)[None, :, None], cmd[:, np.clip(src, 0, None), :],
-                       initial_command[:, None, :])
-    return grid, delayed, record
+    """Refine the time grid so a dead time is exact; return grid, delayed commands (N, G, 3)
+    and each grid point's sample (-1: none)."""
+    plan = _plan(t, delay_s, None)
+    return plan.grid, _delayed(cmd, plan.src, initial_command), plan.record
 
 
-def _recorded(grid: np.ndarray, src: np.ndarray, sample_idx: np.ndarray):
-    """A delay plan with the samples' places on the grid turned round: each grid point's
-    sample, -1 where it is none (the kernel's ``record``)."""
-    record = np.full(grid.size, -1, dtype=np.int64)
-    record[sample_idx] = np.arange(sample_idx.size)
-    return grid, src, record
+def _time_rounding(t: np.ndarray) -> float:
+    """The rounding of ``t + delay`` [s]: 1 ns, or a few float steps where the times are large
+    (a fraction of the recording's end time merged the 10 ms samples of a recording with a
+    months-long gap: 2e7 s gave 20 ms)."""
+    return max(1e-9, 16.0 * float(np.spacing(max(abs(t[0]), abs(t[-1])))))
 
 
 def _delay_plan(t: np.ndarray, delay_s: float):
     """The refined grid, each grid point's source sample (-1: before the first) and the
     samples' places on the grid."""
-    # rounding of t + delay: 1 ns, or a few float steps where the times are large (a fraction
-    # of the recording's end time merged the 10 ms samples of a recording with a months-long
-    # gap: 2e7 s gave 20 ms)
-    eps = max(1e-9, 16.0 * float(np.spacing(max(abs(t[0]), abs(t[-1])))))
+    eps = _time_rounding(t)
     if _kernels_compiled():
         # the same numbers in one compiled pass (a fit plans a grid per trial dead time)
         from .._jit import compiled
-        from ._kernels import delay_plan_kernel
+        from ._grid_kernels import delay_plan_kernel
 
         return compiled(delay_plan_kernel)(t, float(delay_s), eps)
     shifted = t + delay_s
@@ -257,9 +306,9 @@ def _delay_plan(t: np.ndarray, delay_s: float):
     return grid, src, sample_idx
 
 
-def _step_tables(calibs: Sequence[Calibration], grid: np.ndarray, max_substep_s: float | None):
-    """Discretisation tables for the distinct step lengths of ``grid``, and per grid point the
-    row and sub-step count of the step it starts (0 for the last, which starts none).
+def _step_tables(calibs: Sequence[Calibration], h_uniq: np.ndarray) -> np.ndarray:
+    """Discretisation tables of each calibration for the step lengths ``h_uniq`` [s] (a
+    plan's), shape (N, K, 11).
 
     The tables come from the compiled :func:`~mecanum_hil.model.stepper.discretise_many`
     (equal to :func:`~mecanum_hil.model.motor.discretise` to rounding): recordings timed by a
@@ -268,14 +317,12 @@ def _step_tables(calibs: Sequence[Calibration], grid: np.ndarray, max_substep_s:
     """
     from .discretise import discretise_many
 
-    didx, nsub, h_uniq = _memo(("steps", _bytes_of(grid), max_substep_s),
-                               lambda: _grid_steps(grid, max_substep_s))
     # each distinct coefficient set once (a Jacobian's perturbations share most)
     rows: dict[tuple[float, float, float], int] = {}
     which = np.array([rows.setdefault(tuple(c.coefficients), len(rows)) for c in calibs],
                      dtype=np.int64)
     table = discretise_many(np.array(list(rows), dtype=float), h_uniq)
-    return np.ascontiguousarray(table[which]), didx, nsub
+    return np.ascontiguousarray(table[which])
 
 
 def _grid_steps(grid: np.ndarray, max_substep_s: float | None):
@@ -300,7 +347,7 @@ def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
     key = np.round(h * 1e12)
     if _kernels_compiled():
         from .._jit import compiled
-        from ._kernels import unique_keys_kernel
+        from ._grid_kernels import unique_keys_kernel
 
         first, didx, ok = compiled(unique_keys_kernel)(key, _FEW_LENGTHS)
         if ok:
@@ -316,7 +363,7 @@ _FEW_LENGTHS = 32
 
 def _kernels_compiled() -> bool:
     """Whether the simulator's kernels are numba's by now (then the grid helpers run compiled
-    too: :func:`~mecanum_hil.model._kernels.delay_plan_kernel`); in the interpreter, numpy."""
+    too: :mod:`mecanum_hil.model._grid_kernels`); in the interpreter, numpy."""
     from .._jit import is_compiled, mode
 
     return mode() != "never" and is_compiled("mecanum_hil.model._kernels")
@@ -380,9 +427,12 @@ def simulate_batch(
     cmd, calibs, shared = _robots_and_commands(commands, t, calibration)
     n_rob = len(calibs)
     pose0, state0, cmd0 = _initial_values(n_rob, initial_pose, initial_state, initial_command)
+    # one command before the start for all robots (given once, or none)
+    cmd0_shared = initial_command is None or np.ndim(initial_command) == 1
     wheel_rpm, poses, final_state = _output_arrays(out, n_rob, t.size)
     final_pose = np.empty((n_rob, 3))
     outputs = (wheel_rpm, poses, final_state, final_pose)
+    in_place = all(o.flags.c_contiguous for o in outputs)
 
     # Robots are simulated in groups sharing a time grid: the same dead time (its grid is split at
     # the delayed command changes) and the same path (sub-stepped or closed-form), so a robot's
@@ -392,13 +442,19 @@ def simulate_batch(
         delay, nonlinear = key
         members = np.flatnonzero([k == key for k in keys])
         whole = members.size == n_rob
+        # the group's rows: a slice where they are consecutive (a Jacobian's perturbed dead
+        # time is one robot), whose views the kernel reads and writes in place
+        rows = slice(None) if whole else (
+            slice(members[0], members[-1] + 1)
+            if in_place and members[-1] - members[0] + 1 == members.size else members)
         group = calibs if whole else [calibs[i] for i in members]
-        grid, gcmd, record = _group_commands(t, cmd, cmd0, members, whole, shared, delay)
-        table, didx, nsub = _step_tables(group, grid, max_substep_s if nonlinear else None)
-        args = _kernel_inputs(group, robot, gcmd, table, didx, nsub,
-                              state0 if whole else np.ascontiguousarray(state0[members]),
-                              pose0 if whole else np.ascontiguousarray(pose0[members]))
-        _run_group((*args, active, bool(pose), record), members, whole, t.size, outputs)
+        plan = _plan(t, delay, max_substep_s if nonlinear else None)
+        gcmd = _group_commands(t, cmd, cmd0, members, whole, shared, cmd0_shared, delay, plan)
+        args = _kernel_inputs(group, robot, gcmd, _step_tables(group, plan.h_uniq), plan.didx,
+                              plan.nsub, np.ascontiguousarray(state0[rows]),
+                              np.ascontiguousarray(pose0[rows]))
+        _run_group((*args, active, bool(pose), plan.record), rows, len(group), t.size,
+                   plan.substeps, outputs)
     return Trajectory(t, np.asarray(cmd), wheel_rpm, poses, final_state)
 
 
@@ -496,31 +552,31 @@ def _output_arrays(out: Trajectory | None, n_rob: int, n_t: int):
 
 
 def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: np.ndarray,
-                    whole: bool, shared: np.ndarray | None, delay: float):
-    """A group's time grid, its commands on that grid and each grid point's sample (the
-    kernel's ``record``): with a dead time the grid is refined at the delayed command changes.
-    ``shared``: the one command stream of all robots, (T, 3), or None."""
+                    whole: bool, shared: np.ndarray | None, cmd0_shared: bool, delay: float,
+                    plan: _Plan):
+    """A group's commands on its grid (``plan``'s): with a dead time, as the wheels see them.
+    ``shared``: the one command stream of all robots, (T, 3), or None; ``cmd0_shared``: one
+    command before the start for all."""
     one = (shared is not None and members.size > 1
-           and bool(np.all(cmd0[members] == cmd0[members[0]])))
+           and (cmd0_shared or bool(np.all(cmd0[members] == cmd0[members[0]]))))
     if one:  # the robots' (delayed) commands are one stream: computed once, not copied
         gcmd = np.broadcast_to(cmd[0], (members.size, t.size, 3))
     else:
         gcmd = cmd if whole else cmd[members]
-    if delay > 0 and (one or members.size == 1):
+    if not delay > 0:
+        return gcmd
+    if one or members.size == 1:
         # one stream (a fit's Jacobian, or its lone trial point) through the same dead time
         # again and again: its delayed commands are remembered
-        grid, first, record = _memo(
+        first = _memo(
             ("delayed", _bytes_of(t), float(delay),
              _bytes_of(shared) if shared is not None else gcmd[0].tobytes(),
              cmd0[members[0]].tobytes()),
-            lambda: _delay_grid(t, gcmd[:1], float(delay), cmd0[members[:1]]))
+            lambda: (_delayed(gcmd[:1], plan.src, cmd0[members[:1]]),))[0]
         if one:
-            return grid, np.broadcast_to(first[0], (members.size, grid.size, 3)), record
-        return grid, first.copy(), record  # writable, as np.where gives them: one kernel type
-    if delay > 0:
-        return _delay_grid(t, gcmd, float(delay), cmd0[members])
-    # read-only, as a dead time's (memoised): one type for the compiled kernel
-    return t, gcmd, _memo(("record", t.size), lambda: (np.arange(t.size, dtype=np.int64),))[0]
+            return np.broadcast_to(first[0], (members.size, first.shape[1], 3))
+        return first.copy()  # writable, as a group's own are: one kernel type
+    return _delayed(gcmd, plan.src, cmd0[members])
 
 
 def _kernel_inputs(group: Sequence[Calibration], robot: RobotProfile, gcmd: np.ndarray,
@@ -539,25 +595,24 @@ def _kernel_inputs(group: Sequence[Calibration], robot: RobotProfile, gcmd: np.n
     )
 
 
-def _run_group(args: tuple, members: np.ndarray, whole: bool, n_samples: int,
-               outputs: tuple) -> None:
-    """Run the kernel for a group and write its results into the rows ``members`` of
-    ``outputs`` (wheels, pose, final state, final pose); a group of all robots writes there
-    directly (the kernel writes the samples of its grid, ``record``)."""
+def _run_group(args: tuple, rows: slice | np.ndarray, n_rob: int, n_samples: int,
+               substeps: int, outputs: tuple) -> None:
+    """Run the kernel for a group and write its results into the rows ``rows`` of ``outputs``
+    (wheels, pose, final state, final pose): in place where ``rows`` is a slice (the kernel
+    writes the samples of its grid, ``record``), else through copies."""
     from .._jit import pick
     from ._kernels import STATE_WIDTH, simulate_kernel
 
-    nsub = args[2]
     # a small job runs in the interpreter: numba's start-up costs more than it (_jit.py)
-    kernel = pick(simulate_kernel, members.size * max(int(nsub.sum()), 1))
-    if whole:
-        kernel(*args, *outputs)
+    kernel = pick(simulate_kernel, n_rob * max(substeps, 1))
+    if isinstance(rows, slice):
+        kernel(*args, *(o[rows] for o in outputs))
         return
-    part = (np.empty((members.size, n_samples, 4)), np.empty((members.size, n_samples, 3)),
-            np.empty((members.size, STATE_WIDTH)), np.empty((members.size, 3)))
+    part = (np.empty((n_rob, n_samples, 4)), np.empty((n_rob, n_samples, 3)),
+            np.empty((n_rob, STATE_WIDTH)), np.empty((n_rob, 3)))
     kernel(*args, *part)
     for full, mine in zip(outputs, part, strict=True):
-        full[members] = mine
+        full[rows] = mine
 
 
 def simulate(

@@ -249,14 +249,14 @@ def test_a_robot_with_a_dead_time_is_simulated_alike_whatever_its_batch():
 
 def test_compiled_grid_helpers_equal_numpy(monkeypatch):
     """Once the kernels are compiled, the dead time's grid and the step-length table come from
-    one compiled pass each (``_kernels.delay_plan_kernel``, ``unique_keys_kernel``): the same
-    arrays, bit for bit, as the numpy code the interpreter uses, on uniform, jittered,
-    millisecond-rounded and near-coincident sample times, for delays at, near and between
-    samples and beyond the end."""
+    one compiled pass each (``_grid_kernels.delay_plan_kernel``, ``unique_keys_kernel``), and a
+    group's whole plan from one (``plan_kernel``): the same arrays, bit for bit, as the numpy
+    code the interpreter uses, on uniform, jittered, millisecond-rounded and near-coincident
+    sample times, for delays at, near and between samples and beyond the end."""
     import importlib
 
     from mecanum_hil._jit import compiled
-    from mecanum_hil.model._kernels import delay_plan_kernel, unique_keys_kernel
+    from mecanum_hil.model._grid_kernels import delay_plan_kernel, unique_keys_kernel
 
     sim = importlib.import_module("mecanum_hil.model.simulate")
     compiled(delay_plan_kernel)
@@ -280,6 +280,19 @@ def test_compiled_grid_helpers_equal_numpy(monkeypatch):
         for a, b in zip(got[False], got[True], strict=True):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
+        # the whole plan of a group (grid, samples, sub-steps, step lengths) in one pass
+        for d, most in ((delay, 1e-3), (delay, None), (0.0, 1e-3), (0.0, None)):
+            plans = {}
+            for on in (False, True):
+                monkeypatch.setattr(sim, "_kernels_compiled", (lambda: True) if on else
+                                    (lambda: False))
+                plans[on] = sim._make_plan(np.asarray(t, dtype=float), d, most)
+            for a, b in zip(plans[False], plans[True], strict=True):
+                if isinstance(a, np.ndarray):
+                    assert a.dtype == b.dtype
+                    np.testing.assert_array_equal(a, b)
+                else:
+                    assert a == b
     monkeypatch.setattr(sim, "_kernels_compiled", fast)
     # past _FEW_LENGTHS distinct lengths the scan gives up and numpy's sort is used
     key = np.arange(sim._FEW_LENGTHS + 1, dtype=float)[::-1]
