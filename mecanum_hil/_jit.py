@@ -21,6 +21,7 @@ ones), ``auto`` (default) as above.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import threading
@@ -140,6 +141,24 @@ def load_compiled(module: str) -> None:
 
     importlib.import_module(module)
     _compile_module(module)
+
+
+@contextlib.contextmanager
+def kernel_threads(count: int):
+    """Run numba's parallel kernels on at most ``count`` threads in the calling thread inside
+    (restored after): for a process that shares the cores with others working beside it (a
+    diagnosis and its helper, a core each), where a kernel's second thread would only wait
+    for the core the other process holds. Nothing while numba is not loaded."""
+    numba = sys.modules.get("numba")
+    before = numba.get_num_threads() if numba is not None else None
+    if before is None or before <= count:
+        yield
+        return
+    numba.set_num_threads(count)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
 
 
 def compiled(kernel) -> Callable:

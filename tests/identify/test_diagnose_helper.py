@@ -316,3 +316,12 @@ def test_an_interrupted_diagnosis_ends_its_helper_at_once(step_case):
     h._proc.wait(5)  # killed, not waiting for stdin to close
     (h2,) = _started()  # the next diagnosis starts a new one
     assert h2 is not h and not h2.broken
+
+
+def test_a_helpers_kernels_run_on_one_thread():
+    """The helper has a core of its own beside the diagnosing process: its kernels run on one
+    thread (a second would wait for the diagnosing process's core)."""
+    import numba
+
+    (h,) = _started()
+    assert h.submit(numba.get_num_threads).result(timeout=60) == 1

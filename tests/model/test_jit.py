@@ -42,8 +42,8 @@ exec(CASES, _cases)
 EFFECTS, CMD, T = _cases["EFFECTS"], _cases["cmd"], _cases["t"]
 
 
-def _run(code: str, mode: str) -> dict:
-    env = {**os.environ, "MECANUM_HIL_JIT": mode}
+def _run(code: str, mode: str, env_extra: dict | None = None) -> dict:
+    env = {**os.environ, "MECANUM_HIL_JIT": mode, **(env_extra or {})}
     out = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
                          text=True, env=env, check=True, timeout=600, cwd=ROOT)
     return json.loads(out.stdout)
@@ -121,3 +121,25 @@ def test_the_mode_is_honoured(mode):
     print(json.dumps({"numba_loaded": "numba" in sys.modules}))
     """
     assert _run(code, mode) == {"numba_loaded": mode == "always"}
+
+
+def test_kernel_threads_caps_the_calling_threads_kernels_and_restores_them():
+    """``kernel_threads(1)``: beside a helper process (a core each) a kernel runs on one thread,
+    then the count is as before; with numba not loaded it does nothing (and loads nothing)."""
+    code = """
+    import json, sys
+    from mecanum_hil._jit import kernel_threads, load_compiled
+    with kernel_threads(1):
+        pass
+    before = "numba" in sys.modules
+    load_compiled("mecanum_hil.model._kernels")
+    import numba
+    numba.set_num_threads(2)
+    with kernel_threads(1):
+        inside = numba.get_num_threads()
+    print(json.dumps({"numba_loaded_by_it": before, "inside": inside,
+                      "after": numba.get_num_threads()}))
+    """
+    env_threads = {"NUMBA_NUM_THREADS": "2"}
+    assert _run(code, "auto", env_threads) == {"numba_loaded_by_it": False, "inside": 1,
+                                               "after": 2}

@@ -69,7 +69,8 @@ class Helper:
         # compiled as this process is once a fit has run (unless the user asked for never)
         jit = "never" if os.environ.get("MECANUM_HIL_JIT", "").strip().lower() == "never" \
             else "always"
-        env = dict(os.environ, MECANUM_HIL_JIT=jit, PYTHONPATH=path)
+        # a core of its own beside the diagnosing process: numba's kernels on one thread
+        env = dict(os.environ, MECANUM_HIL_JIT=jit, PYTHONPATH=path, NUMBA_NUM_THREADS="1")
         self._proc = subprocess.Popen(
             [sys.executable, "-c", f"from {__name__} import _serve; _serve()"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -12,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ..._jit import load_compiled
+from ..._jit import kernel_threads, load_compiled
 from ...errors import ConfigError, DiagnoseError, FitError, SessionTerminated
 from ...io.recording import Recording
 from ...model.calibration import EFFECTS, Calibration, exchange_drive_lag
@@ -351,7 +352,10 @@ def diagnose(
     load_compiled("mecanum_hil.model._kernels")
     interrupted = False
     try:
-        with one_blas_thread():  # many small products of tall matrices (identify/fit.py)
+        # many small products of tall matrices (identify/fit.py); beside a helper, a process
+        # per core: a kernel's second thread would wait for the helper's core (the results
+        # are the same: the robots of a batch are independent)
+        with one_blas_thread(), (kernel_threads(1) if helpers else contextlib.nullcontext()):
             return _diagnose(recordings, calibration, robot, names, candidates, max_rounds,
                              echo, tuple(helpers))
     except (KeyboardInterrupt, SessionTerminated):
