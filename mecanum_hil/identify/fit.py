@@ -392,6 +392,9 @@ def few_threads(work: float):
         yield
         return
     before = numba.get_num_threads()
+    if before == 1:  # already (beside a helper: mecanum_hil._jit.kernel_threads)
+        yield
+        return
     numba.set_num_threads(1)
     try:
         yield
