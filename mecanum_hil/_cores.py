@@ -84,15 +84,15 @@ def busy_cores_now() -> float | None:
     with _own_lock:
         if time.monotonic() - _now[1] < NOW_EVERY_S:
             return _now[0]
+    busy = None
     try:
         mine = _affinity()
         before, cpu0, t0 = _cpu_times(mine), time.process_time(), time.monotonic()
         time.sleep(NOW_WINDOW_S)
         after, cpu1, t1 = _cpu_times(mine), time.process_time(), time.monotonic()
     except (OSError, ValueError, IndexError):
-        busy = None
+        pass
     else:
-        busy = None
         shares = [(a[1] - b[1]) / (a[0] - b[0]) for b, a in zip(before, after, strict=True)
                   if a[0] > b[0]]
         if shares and t1 > t0:

@@ -475,7 +475,6 @@ def _active_wheels(wheels, pose: bool) -> np.ndarray:
     return active
 
 
-
 def _robots_and_commands(commands, t: np.ndarray, calibration):
     """Check the commands and calibrations and bring them to one per robot.
 
