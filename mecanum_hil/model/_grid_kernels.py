@@ -151,6 +151,9 @@ def plan_kernel(t, delay_s, eps, max_substep_s, most):
 
     Returns
     -------
+    planned : bool
+        False where the dead time's grid merged samples (closer than ``eps``): nothing else is
+        set, and the caller plans with numpy.
     grid : (G,) float64;  src : (G,) int64 (empty without a dead time);  record : (G,) int64
         The grid, each point's source sample through the dead time and each point's sample
         (-1: none).
@@ -162,8 +165,13 @@ def plan_kernel(t, delay_s, eps, max_substep_s, most):
         False when there are more than ``most`` (then ``didx`` is unset: the caller sorts).
     """
     n = t.size
+    none = np.zeros(0, np.int64)
     if delay_s > 0:
         grid, src, sample_idx = delay_plan_kernel(t, delay_s, eps)
+        if grid.size < 2 or sample_idx[n - 1] >= grid.size:
+            # samples closer than ``eps`` merged (times under a nanosecond apart): the numpy
+            # code decides (it refuses them)
+            return False, grid, src, none, none, none, np.empty(0), none, False
         record = np.full(grid.size, -1, np.int64)
         for i in range(n):
             record[sample_idx[i]] = i
@@ -185,4 +193,4 @@ def plan_kernel(t, delay_s, eps, max_substep_s, most):
     didx = np.zeros(g, np.int64)
     if ok:
         didx[:g - 1] = rows
-    return grid, src, record, didx, nsub, h, first, ok
+    return True, grid, src, record, didx, nsub, h, first, ok

@@ -239,16 +239,20 @@ def _make_plan(t: np.ndarray, delay_s: float, max_substep_s: float | None) -> _P
         from .._jit import compiled
         from ._grid_kernels import plan_kernel
 
-        grid, src, record, didx, nsub, h, first, ok = compiled(plan_kernel)(
+        planned, grid, src, record, didx, nsub, h, first, ok = compiled(plan_kernel)(
             t, delay_s, _time_rounding(t), max_substep_s or 0.0, _FEW_LENGTHS)
-        if not ok:  # many distinct lengths (a real clock's): numpy's sort
-            _, first, rows = np.unique(np.round(h * 1e12), return_index=True,
-                                       return_inverse=True)
-            didx = np.append(rows.astype(np.int64).reshape(-1), 0)
-        return _Plan(grid if delay_s > 0 else None, src if delay_s > 0 else None, record,
-                     didx, nsub, h[first], int(nsub.sum()))
+        if planned:
+            if not ok:  # many distinct lengths (a real clock's): numpy's sort
+                _, first, rows = np.unique(np.round(h * 1e12), return_index=True,
+                                           return_inverse=True)
+                didx = np.append(rows.astype(np.int64).reshape(-1), 0)
+            return _Plan(grid if delay_s > 0 else None, src if delay_s > 0 else None, record,
+                         didx, nsub, h[first], int(nsub.sum()))
     if delay_s > 0:
         grid, src, sample_idx = _delay_plan(t, delay_s)
+        if sample_idx[-1] >= grid.size:
+            raise ConfigError(f"sample times closer than {_time_rounding(t):.3g} s cannot be "
+                              "simulated through a dead time")
         record = np.full(grid.size, -1, dtype=np.int64)
         record[sample_idx] = np.arange(sample_idx.size)
     else:
@@ -269,8 +273,8 @@ def _delayed(cmd: np.ndarray, src: np.ndarray, initial_command: np.ndarray) -> n
 
 
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
-    """Refine the time grid so a dead time is exact; return grid, delayed commands (N, G, 3)
-    and each grid point's sample (-1: none)."""
+    """Refine the time grid so a dead time ``delay_s`` > 0 [s] is exact; return grid, delayed
+    commands (N, G, 3) and each grid point's sample (-1: none)."""
     plan = _plan(t, delay_s, None)
     return plan.grid, _delayed(cmd, plan.src, initial_command), plan.record
 
@@ -310,7 +314,7 @@ def _step_tables(calibs: Sequence[Calibration], h_uniq: np.ndarray) -> np.ndarra
     """Discretisation tables of each calibration for the step lengths ``h_uniq`` [s] (a
     plan's), shape (N, K, 11).
 
-    The tables come from the compiled :func:`~mecanum_hil.model.stepper.discretise_many`
+    The tables come from the compiled :func:`~mecanum_hil.model.discretise.discretise_many`
     (equal to :func:`~mecanum_hil.model.motor.discretise` to rounding): recordings timed by a
     real clock have thousands of distinct step lengths, and SciPy's ``expm`` costs ~20 us
     per matrix against ~1 us compiled.
@@ -422,6 +426,8 @@ def simulate_batch(
     Trajectory
     """
     robot = robot or RobotProfile()
+    if not max_substep_s > 0:
+        raise ConfigError(f"max_substep_s must be > 0 seconds, got {max_substep_s!r}")
     active = _active_wheels(wheels, pose)
     t = _times(time_s)
     cmd, calibs, shared = _robots_and_commands(commands, t, calibration)
@@ -432,7 +438,8 @@ def simulate_batch(
     wheel_rpm, poses, final_state = _output_arrays(out, n_rob, t.size)
     final_pose = np.empty((n_rob, 3))
     outputs = (wheel_rpm, poses, final_state, final_pose)
-    in_place = all(o.flags.c_contiguous for o in outputs)
+    in_place = all(o.flags.c_contiguous and o.flags.writeable and o.dtype == np.float64
+                   for o in outputs)
 
     # Robots are simulated in groups sharing a time grid: the same dead time (its grid is split at
     # the delayed command changes) and the same path (sub-stepped or closed-form), so a robot's

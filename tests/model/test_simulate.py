@@ -293,6 +293,21 @@ def test_compiled_grid_helpers_equal_numpy(monkeypatch):
                     np.testing.assert_array_equal(a, b)
                 else:
                     assert a == b
+    # samples closer than the rounding, through a dead time: the grid merges them; the
+    # compiled pass hands them to the numpy code, which plans a one-point grid the same way
+    # and refuses samples merged away with a clear error
+    for t, ok in ((np.array([0.0, 1e-12]), True), (np.arange(40) * 1e-10, False)):
+        got = []
+        for on in (False, True):
+            monkeypatch.setattr(sim, "_kernels_compiled", (lambda: True) if on else
+                                (lambda: False))
+            if ok:
+                got.append(sim._make_plan(t, 0.003, 1e-3))
+            else:
+                with pytest.raises(ConfigError, match="closer than"):
+                    sim._make_plan(t, 0.003, 1e-3)
+        for a, b in zip(*got, strict=True):
+            np.testing.assert_array_equal(a, b)
     monkeypatch.setattr(sim, "_kernels_compiled", fast)
     # past _FEW_LENGTHS distinct lengths the scan gives up and numpy's sort is used
     key = np.arange(sim._FEW_LENGTHS + 1, dtype=float)[::-1]
@@ -379,3 +394,11 @@ def test_what_is_remembered_of_an_array_is_only_of_one_declared_unchanging():
     key = id(declared)
     del declared
     assert key not in sim._FACTS
+
+
+@pytest.mark.parametrize("bad", [0.0, -1e-3, float("nan")])
+def test_a_sub_step_that_is_no_length_is_refused(bad):
+    t = uniform_time(0.1, 100)
+    with pytest.raises(ConfigError, match="max_substep_s"):
+        simulate(np.tile([60.0, 0.0, 90.0], (t.size, 1)), t,
+                 Calibration(effects=Effects(top_speed_rpm=50.0)), max_substep_s=bad)
