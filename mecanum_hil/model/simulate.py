@@ -243,9 +243,8 @@ def _make_plan(t: np.ndarray, delay_s: float, max_substep_s: float | None) -> _P
             t, delay_s, _time_rounding(t), max_substep_s or 0.0, _FEW_LENGTHS)
         if planned:
             if not ok:  # many distinct lengths (a real clock's): numpy's sort
-                _, first, rows = np.unique(np.round(h * 1e12), return_index=True,
-                                           return_inverse=True)
-                didx = np.append(rows.astype(np.int64).reshape(-1), 0)
+                first, rows = _sorted_lengths(_length_keys(h))
+                didx = np.append(rows, 0)
             return _Plan(grid if delay_s > 0 else None, src if delay_s > 0 else None, record,
                          didx, nsub, h[first], int(nsub.sum()))
     if delay_s > 0:
@@ -346,9 +345,7 @@ def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
 
     nsub = substeps(dt, max_substep_s)
     h = dt / nsub
-    # step lengths equal to rounding share one table row
-    # as floats: an int64 overflows for a gap over 9.2e6 s (106 days between two samples)
-    key = np.round(h * 1e12)
+    key = _length_keys(h)
     if _kernels_compiled():
         from .._jit import compiled
         from ._grid_kernels import unique_keys_kernel
@@ -356,8 +353,21 @@ def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
         first, didx, ok = compiled(unique_keys_kernel)(key, _FEW_LENGTHS)
         if ok:
             return didx, nsub, h[first]
-    _, first, didx = np.unique(key, return_index=True, return_inverse=True)
-    return didx.astype(np.int64).reshape(-1), nsub, h[first]
+    first, didx = _sorted_lengths(key)
+    return didx, nsub, h[first]
+
+
+def _length_keys(h: np.ndarray) -> np.ndarray:
+    """Step lengths [s] as keys: lengths equal to rounding (a picosecond) share one table row.
+    Floats: an int64 overflows for a gap over 9.2e6 s (106 days between two samples)."""
+    return np.round(h * 1e12)
+
+
+def _sorted_lengths(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first step of each distinct key (sorted) and each step's row among them, by
+    numpy's sort (:func:`~mecanum_hil.model._grid_kernels.unique_keys_kernel` scans a few)."""
+    _, first, rows = np.unique(key, return_index=True, return_inverse=True)
+    return first, rows.astype(np.int64).reshape(-1)
 
 
 #: Distinct step lengths up to which the compiled scan replaces ``np.unique``'s sort (a
