@@ -69,11 +69,7 @@ def _diagnosed(rec, cal, jobs, echo=None):
             echo(line)
 
     d = diagnose([rec], cal, ROBOT, candidates=POOL, jobs=jobs, echo=say)
-    out = d.to_json()
-    # the generic reference model's search is not part of the selection (and its last digits
-    # vary between runs in one process): compared apart, loosely
-    ref = out.pop("rmse_reference"), out.pop("explained_share")
-    return out, ref, lines
+    return d.to_json(), lines
 
 
 @pytest.fixture(scope="module")
@@ -84,29 +80,28 @@ def step_case():
 
 def test_a_helper_gives_the_same_diagnosis(step_case):
     rec, cal = step_case
-    alone, ref1, lines1 = _diagnosed(rec, cal, jobs=1)
+    alone, lines1 = _diagnosed(rec, cal, jobs=1)
     (h,) = _started()
     before = h.answered
-    beside, ref2, lines2 = _diagnosed(rec, cal, jobs=2)
+    beside, lines2 = _diagnosed(rec, cal, jobs=2)
     # a job it was late with (numba compiling on a fresh checkout) also ran here
     _wait(h, "idle", 300.0)
     assert h.answered > before, "the helper fitted no candidate"
     assert json.dumps(beside, sort_keys=True) == json.dumps(alone, sort_keys=True)
     assert lines2 == lines1  # the same lines, in the pool's order
-    np.testing.assert_allclose(ref2, ref1, rtol=1e-3)
     assert [e["effect"] for e in alone["effects"]] == ["wheel_gain", "breakaway"]
 
 
 def test_a_helper_that_dies_mid_diagnosis_costs_nothing(step_case):
     rec, cal = step_case
-    alone, _, _ = _diagnosed(rec, cal, jobs=1)
+    alone, _ = _diagnosed(rec, cal, jobs=1)
     (h,) = _started()
 
     def kill_in_round_one(line: str) -> None:
         if line.startswith("round 1"):
             h._proc.kill()  # the helper gets its first job now and never answers it
 
-    beside, _, _ = _diagnosed(rec, cal, jobs=2, echo=kill_in_round_one)
+    beside, _ = _diagnosed(rec, cal, jobs=2, echo=kill_in_round_one)
     assert json.dumps(beside, sort_keys=True) == json.dumps(alone, sort_keys=True)
     assert h.broken
     # the next diagnosis starts a new helper, and the broken one is gone
@@ -117,7 +112,7 @@ def test_a_helper_that_dies_mid_diagnosis_costs_nothing(step_case):
 
 def test_a_helper_that_stalls_costs_a_bounded_wait_not_a_hang(step_case):
     rec, cal = step_case
-    alone, _, _ = _diagnosed(rec, cal, jobs=1)
+    alone, _ = _diagnosed(rec, cal, jobs=1)
     (h,) = _started()
 
     def stall_in_round_one(line: str) -> None:
@@ -125,7 +120,7 @@ def test_a_helper_that_stalls_costs_a_bounded_wait_not_a_hang(step_case):
             os.kill(h._proc.pid, signal.SIGSTOP)  # alive, holding its job, never answering
 
     try:
-        beside, _, _ = _diagnosed(rec, cal, jobs=2, echo=stall_in_round_one)
+        beside, _ = _diagnosed(rec, cal, jobs=2, echo=stall_in_round_one)
     finally:
         os.kill(h._proc.pid, signal.SIGCONT)
         h.stop("test over")

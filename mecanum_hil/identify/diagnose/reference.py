@@ -52,6 +52,10 @@ MAX_MAX_DELAY = 60
 REFINED_DELAYS = 3
 REFINED_DELAYS_LARGE = 1
 SMALL_DATA = 8000
+#: Bound on a residual [rpm] where the simulation diverges (inf, NaN): far beyond any wheel, and
+#: finite, which MINPACK needs (on NaN residuals SciPy's ``lm`` wanders by rounding that depends
+#: on what the process did before: the same data gave 8.862 or 8.872 rpm).
+DIVERGED_RPM = 1e8
 
 
 @dataclass(frozen=True)
@@ -168,6 +172,13 @@ def _simulate_flat(theta: np.ndarray, d: int, flat: _Flat) -> np.ndarray:
     return out
 
 
+def _residual(theta: np.ndarray, d: int, flat: _Flat) -> np.ndarray:
+    """Measured minus simulated speed [rpm], bounded by :data:`DIVERGED_RPM` where the
+    simulation diverges (finite always)."""
+    r = flat.y - _simulate_flat(theta, d, flat)
+    return np.nan_to_num(np.clip(r, -DIVERGED_RPM, DIVERGED_RPM), nan=DIVERGED_RPM)
+
+
 def _arx(series, d: int, n_wheels: int) -> np.ndarray | None:
     rows, rhs = [], []
     m = max(NA, NB)
@@ -234,7 +245,7 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
     flat = _flat(series, wheel_of)
 
     def resid(theta, d):
-        return flat.y - _simulate_flat(theta, d, flat)
+        return _residual(theta, d, flat)
 
     # the delay by the ARX estimates' simulation error (cheap), then output-error refinement
     # from the best few
