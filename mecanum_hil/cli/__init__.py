@@ -260,6 +260,36 @@ def _internal_error(err: Exception, debug: bool) -> int:
     return 70
 
 
+#: Commands that only read inputs, compute and write their outputs through closed files: they
+#: end without the interpreter's teardown (:func:`run`).
+_QUICK_EXIT = frozenset({"diagnose", "fit", "simulate"})
+
+
 def run() -> None:
-    """Console-script entry point."""
-    sys.exit(main())
+    """Console-script entry point.
+
+    ``diagnose``, ``fit`` and ``simulate`` (:data:`_QUICK_EXIT`) end with ``os._exit`` once
+    their output is flushed and the exit handlers have run (a diagnosis's helper process
+    closed): the interpreter's own teardown of numba's compiled code took 0.3 s after the last
+    line of every such command (docs/benchmarks/diagnose.md). Each writes its files through
+    ``with`` blocks closed before it returns, so nothing is left for the teardown to flush.
+    Other commands (``record``, ``shadow`` ...) end the ordinary way.
+    """
+    code = main()
+    if _command_name(fill_optional_values(sys.argv[1:])) in _QUICK_EXIT:
+        _quick_exit(code)
+    sys.exit(code)
+
+
+def _quick_exit(code: int) -> None:
+    """Flush stdout and stderr, run the exit handlers, end the process with ``code``."""
+    import atexit
+    import os
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe (``| head -1``): nothing left to say
+            pass
+    atexit._run_exitfuncs()
+    os._exit(code)

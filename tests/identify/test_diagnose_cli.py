@@ -171,3 +171,42 @@ def test_demo_story_finds_the_hidden_ceiling(tmp_path):
     assert cal.effects.top_speed_rpm == pytest.approx(STORY_EFFECTS.top_speed_rpm, abs=1.5)
     assert "## Step 1: saturation" in files["report"].read_text()
     assert lines[-1].startswith("named: saturation")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_the_quick_exit_still_ends_the_helper_process(tmp_path, campaign):
+    """``diagnose`` ends with ``os._exit`` after its exit handlers (mecanum_hil/cli: the
+    interpreter's teardown cost 0.3 s): the handler that ends the helper process still runs,
+    so nothing of the command outlives it, and its output and exit code are whole."""
+    import os
+    import time
+
+    p = write_recording(campaign[0], tmp_path / "one.csv")
+    proc = subprocess.Popen([sys.executable, "-m", "mecanum_hil", "diagnose", p, "--calibration",
+                             "paper", "--candidates", "dead_time,wheel_gain", "--jobs", "2",
+                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert list(json.loads(out)) == JSON_KEYS
+
+    def left() -> list[int]:
+        pids = []
+        for entry in os.listdir("/proc"):
+            if not entry.isdigit():
+                continue
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    stat = f.read()
+            except OSError:
+                continue
+            # fields after the command's closing parenthesis: state, ppid, pgrp, session
+            fields = stat.rsplit(")", 1)[1].split()
+            if int(fields[3]) == proc.pid and fields[0] != "Z":
+                pids.append(int(entry))
+        return pids
+
+    deadline = time.monotonic() + 5.0
+    while left() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert left() == [], "a process of the diagnosis outlived it"
