@@ -582,7 +582,8 @@ def simulate_kernel(
     deadband, gains, top_speed, rate_limit, efficiency, dyn,
     state, pose0, active, with_pose, record, wheels_out, pose_out, state_out, pose_final,
 ):
-    """Simulate N robots over T samples.
+    """Simulate N robots over T grid points: the S samples, refined at a dead time's delayed
+    command changes (``T == S`` without one).
 
     Parameters
     ----------

@@ -287,14 +287,9 @@ def _time_rounding(t: np.ndarray) -> float:
 
 def _delay_plan(t: np.ndarray, delay_s: float):
     """The refined grid, each grid point's source sample (-1: before the first) and the
-    samples' places on the grid."""
+    samples' places on the grid (numpy: the reference of the compiled
+    :func:`~mecanum_hil.model._grid_kernels.plan_kernel`, which hands degenerate grids here)."""
     eps = _time_rounding(t)
-    if _kernels_compiled():
-        # the same numbers in one compiled pass (a fit plans a grid per trial dead time)
-        from .._jit import compiled
-        from ._grid_kernels import delay_plan_kernel
-
-        return compiled(delay_plan_kernel)(t, float(delay_s), eps)
     shifted = t + delay_s
     shifted = shifted[shifted < t[-1]]
     # A delayed command change within rounding of a sample time is taken at that sample time, so
@@ -340,20 +335,13 @@ def _grid_steps(grid: np.ndarray, max_substep_s: float | None):
 
 def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
     """Per step: its row among the distinct (sub-)step lengths and its sub-step count; and
-    those lengths."""
+    those lengths (numpy: the reference of the compiled
+    :func:`~mecanum_hil.model._grid_kernels.plan_kernel`)."""
     from .stepper import substeps
 
     nsub = substeps(dt, max_substep_s)
     h = dt / nsub
-    key = _length_keys(h)
-    if _kernels_compiled():
-        from .._jit import compiled
-        from ._grid_kernels import unique_keys_kernel
-
-        first, didx, ok = compiled(unique_keys_kernel)(key, _FEW_LENGTHS)
-        if ok:
-            return didx, nsub, h[first]
-    first, didx = _sorted_lengths(key)
+    first, didx = _sorted_lengths(_length_keys(h))
     return didx, nsub, h[first]
 
 

@@ -1,7 +1,8 @@
-"""The generic reference model (identify/diagnose/reference.py): a diverging trial never hands
-MINPACK a non-finite residual. (On NaN residuals SciPy's ``lm`` ended in places that depended on
-the heap: 8.862 or 8.872 rpm on testPid8 in one process. ``test_diagnose_helper`` compares the
-reference's RMSE between processes exactly.)"""
+"""The generic reference model (identify/diagnose/reference.py): a diverging trial gives
+bounded, finite residuals; the fit is the same whatever the process did before (SciPy's ``lm``
+was not: 8.862 or 8.872 rpm on testPid8 in one process); its forward-difference Jacobian
+matches the residuals' change. ``test_diagnose_helper`` compares the reference's RMSE between
+processes exactly."""
 
 from __future__ import annotations
 
@@ -43,3 +44,24 @@ def test_a_diverging_trial_gives_bounded_finite_residuals():
         r = ref._residual(theta, 0, flat)
     assert not np.isfinite(raw).all()  # the case is one that diverges
     assert np.isfinite(r).all() and np.abs(r).max() <= ref.DIVERGED_RPM
+
+
+def test_the_jacobian_is_the_residuals_change():
+    flat, n_wheels = _flat(_ringing_step())
+    series = ref._series([_ringing_step()], ROBOT, 0.002)
+    theta = ref._arx(series, 3, n_wheels)
+    J = ref._jacobian(theta, 3, flat)
+    rng = np.random.default_rng(0)
+    step = 1e-6 * rng.normal(size=theta.size) * np.maximum(np.abs(theta), 1e-3)
+    change = ref._residual(theta + step, 3, flat) - ref._residual(theta, 3, flat)
+    np.testing.assert_allclose(J @ step, change, rtol=1e-3, atol=1e-6 * np.abs(change).max())
+
+
+def test_the_reference_fit_does_not_depend_on_what_ran_before():
+    rec = _ringing_step()
+    first = ref.fit_reference([rec], ROBOT)
+    assert first is not None and first.rmse_rpm < 3.5  # the noise is 3 rpm
+    rng = np.random.default_rng(2)
+    junk = [np.ones(int(n)) for n in rng.integers(1, 5000, size=40)]
+    assert ref.fit_reference([rec], ROBOT) == first
+    del junk

@@ -248,19 +248,19 @@ def test_a_robot_with_a_dead_time_is_simulated_alike_whatever_its_batch():
 
 
 def test_compiled_grid_helpers_equal_numpy(monkeypatch):
-    """Once the kernels are compiled, the dead time's grid and the step-length table come from
-    one compiled pass each (``_grid_kernels.delay_plan_kernel``, ``unique_keys_kernel``), and a
-    group's whole plan from one (``plan_kernel``): the same arrays, bit for bit, as the numpy
-    code the interpreter uses, on uniform, jittered, millisecond-rounded and near-coincident
-    sample times, for delays at, near and between samples and beyond the end."""
+    """Once the kernels are compiled, a group's whole plan (the dead time's grid, its samples,
+    sub-steps and step-length table) comes from one compiled pass (``plan_kernel``, built on
+    ``_grid_kernels.delay_plan_kernel`` and ``unique_keys_kernel``): the same arrays, bit for
+    bit, as the numpy code the interpreter uses (``simulate._delay_plan``, ``_step_lengths``),
+    on uniform, jittered, millisecond-rounded and near-coincident sample times, for delays at,
+    near and between samples and beyond the end."""
     import importlib
 
     from mecanum_hil._jit import compiled
     from mecanum_hil.model._grid_kernels import delay_plan_kernel, unique_keys_kernel
+    from mecanum_hil.model.stepper import substeps
 
     sim = importlib.import_module("mecanum_hil.model.simulate")
-    compiled(delay_plan_kernel)
-    compiled(unique_keys_kernel)
     rng = np.random.default_rng(7)
     fast = sim._kernels_compiled
     for trial in range(400):
@@ -271,15 +271,20 @@ def test_compiled_grid_helpers_equal_numpy(monkeypatch):
              np.cumsum(rng.uniform(1e-9, 0.004, n))][trial % 4]
         delay = float(rng.choice([0.01, 0.02, 0.0351, 1e-10, 2e-9, 0.002 + 5e-10, 10.0,
                                   rng.uniform(0.0, 0.1)]))
-        got = {}
-        for on in (False, True):
-            monkeypatch.setattr(sim, "_kernels_compiled", (lambda: True) if on else
-                                (lambda: False))
-            grid = sim._delay_plan(t, delay)
-            got[on] = (*grid, *sim._step_lengths(np.diff(grid[0]), 1e-3))
-        for a, b in zip(got[False], got[True], strict=True):
+        # the two compiled helpers against their numpy references
+        grid = sim._delay_plan(t, delay)
+        for a, b in zip(grid, compiled(delay_plan_kernel)(t, delay, sim._time_rounding(t)),
+                        strict=True):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
+        dt = np.diff(grid[0])
+        if dt.size:
+            didx, _, h_uniq = sim._step_lengths(dt, 1e-3)
+            key = sim._length_keys(dt / substeps(dt, 1e-3))
+            first, rows, ok = compiled(unique_keys_kernel)(key, sim._FEW_LENGTHS)
+            if ok:  # (past _FEW_LENGTHS distinct lengths the plan uses numpy's sort)
+                np.testing.assert_array_equal(rows, didx)
+                np.testing.assert_array_equal(key[first], sim._length_keys(h_uniq))
         # the whole plan of a group (grid, samples, sub-steps, step lengths) in one pass
         for d, most in ((delay, 1e-3), (delay, None), (0.0, 1e-3), (0.0, None)):
             plans = {}

@@ -12,9 +12,12 @@ with ``u`` the wheel target, ``d`` a delay in samples, a gain ``g_w`` per wheel 
 simulated from the measured initial speed (output error, not one-step prediction, so its RMSE
 compares with the model's), on a uniform grid at the median sample period (the data are
 interpolated onto it and the simulation back onto the sample times). Started from the
-least-squares ARX estimate, refined by :func:`scipy.optimize.least_squares` on the simulation
-error, for the delays (up to twice the measured latency) whose ARX estimates simulate best;
-the best is kept.
+least-squares ARX estimate, refined by Levenberg-Marquardt (:func:`..lsq.levenberg_marquardt`,
+forward-difference Jacobian) on the simulation error, for the delays (up to twice the measured
+latency) whose ARX estimates simulate best; the best is kept. (Not SciPy's ``lm``: its MINPACK
+ended in different places on the same data depending on what the process had done before,
+testPid8 8.862 or 8.872 rpm, and controllerDelayImpact1ms in its 7th digit even on finite
+residuals. This one is numpy, the same in every process.)
 
 Its RMSE (``rmse_reference``) is what a linear model with ``na + nb`` coefficients reaches;
 ``explained_share = (MS_fit - MS_named) / (MS_fit - MS_reference)`` (mean squares) is the
@@ -52,10 +55,14 @@ MAX_MAX_DELAY = 60
 REFINED_DELAYS = 3
 REFINED_DELAYS_LARGE = 1
 SMALL_DATA = 8000
-#: Bound on a residual [rpm] where the simulation diverges (inf, NaN): far beyond any wheel, and
-#: finite, which MINPACK needs (on NaN residuals SciPy's ``lm`` wanders by rounding that depends
-#: on what the process did before: the same data gave 8.862 or 8.872 rpm).
+#: Bound on a residual [rpm] where the simulation diverges (inf, NaN): far beyond any wheel,
+#: and finite, so a diverging trial is a large cost the search refuses, and an ARX start that
+#: diverges is seen as such.
 DIVERGED_RPM = 1e8
+#: The refinement's budget: residual evaluations per coefficient (Jacobians apart).
+MAX_EVALUATIONS_PER_COEFFICIENT = 25
+#: Relative step of the forward differences (the square root of the float spacing).
+FD_STEP = float(np.sqrt(np.finfo(float).eps))
 
 
 @dataclass(frozen=True)
@@ -179,6 +186,19 @@ def _residual(theta: np.ndarray, d: int, flat: _Flat) -> np.ndarray:
     return np.nan_to_num(np.clip(r, -DIVERGED_RPM, DIVERGED_RPM), nan=DIVERGED_RPM)
 
 
+def _jacobian(theta: np.ndarray, d: int, flat: _Flat) -> np.ndarray:
+    """d(residual)/d(theta) by forward differences (steps of ``sqrt(eps) |theta_j|``, as
+    MINPACK's): the model's recursion once per coefficient."""
+    r0 = _residual(theta, d, flat)
+    out = np.empty((r0.size, theta.size))
+    for j in range(theta.size):
+        h = FD_STEP * max(abs(float(theta[j])), 1e-8)
+        th = theta.copy()
+        th[j] += h
+        out[:, j] = (_residual(th, d, flat) - r0) / (th[j] - theta[j])
+    return out
+
+
 def _arx(series, d: int, n_wheels: int) -> np.ndarray | None:
     rows, rhs = [], []
     m = max(NA, NB)
@@ -240,7 +260,7 @@ def _ties(cost: float, best: float) -> bool:
 
 
 def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
-    from scipy.optimize import least_squares
+    from ..lsq import levenberg_marquardt
 
     flat = _flat(series, wheel_of)
 
@@ -272,8 +292,10 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
     refined = []
     for _, d, theta0 in starts[:keep]:
         try:
-            sol = least_squares(resid, theta0, args=(d,), method="lm",
-                                max_nfev=25 * theta0.size)
+            sol = levenberg_marquardt(
+                lambda th, d=d: resid(th, d), lambda th, d=d: _jacobian(th, d, flat),
+                theta0, np.full(theta0.size, -np.inf), np.full(theta0.size, np.inf),
+                max_nfev=MAX_EVALUATIONS_PER_COEFFICIENT * theta0.size)
         except (ValueError, np.linalg.LinAlgError):
             continue
         if np.isfinite(sol.cost):
