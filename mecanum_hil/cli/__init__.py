@@ -269,11 +269,11 @@ def run() -> None:
     """Console-script entry point.
 
     ``diagnose``, ``fit`` and ``simulate`` (:data:`_QUICK_EXIT`) end with ``os._exit`` once
-    their output is flushed and the exit handlers have run (a diagnosis's helper process
-    closed): the interpreter's own teardown of numba's compiled code took 0.3 s after the last
-    line of every such command (docs/benchmarks/diagnose.md). Each writes its files through
-    ``with`` blocks closed before it returns, so nothing is left for the teardown to flush.
-    Other commands (``record``, ``shadow`` ...) end the ordinary way.
+    the exit handlers have run (a diagnosis's helper process closed) and the output is
+    flushed: the interpreter's own teardown of numba's compiled code took 0.3 s after the
+    last line of every such command (docs/benchmarks/diagnose.md, session 23). Each writes
+    its files through ``with`` blocks closed before it returns, so nothing is left for the
+    teardown to flush. Other commands (``record``, ``shadow`` ...) end the ordinary way.
     """
     code = main()
     if _command_name(fill_optional_values(sys.argv[1:])) in _QUICK_EXIT:
@@ -282,14 +282,16 @@ def run() -> None:
 
 
 def _quick_exit(code: int) -> None:
-    """Flush stdout and stderr, run the exit handlers, end the process with ``code``."""
+    """Run the exit handlers, flush stdout and stderr (what the handlers wrote too), end the
+    process with ``code``."""
     import atexit
     import os
 
+    atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:
-            stream.flush()
+            if stream is not None:  # None: started with the descriptor closed (``>&-``)
+                stream.flush()
         except (OSError, ValueError):  # a closed pipe (``| head -1``): nothing left to say
             pass
-    atexit._run_exitfuncs()
     os._exit(code)

@@ -6,8 +6,10 @@ more than a whole fit of the paper's three coefficients on a short recording tak
 :func:`levenberg_marquardt` for exactly that problem (the paper's model, no effect, a few
 parameters, a smooth cost) and SciPy's trust-region reflective method for everything else
 (effects make the cost non-smooth where a limit switches on, and ``diagnose`` relies on its
-behaviour there). Both stop at the same minimum of a smooth cost to within their tolerances
-(tests/identify/test_lsq.py).
+behaviour there). ``diagnose``'s generic reference model (a linear output-error model, a
+smooth cost) is refined with it too: SciPy's ``lm`` gave results that depended on what the
+process had done before (identify/diagnose/reference.py). Both stop at the same minimum of a
+smooth cost to within their tolerances (tests/identify/test_lsq.py).
 
 The method: Moré's Levenberg-Marquardt with the damping scaled by the Jacobian's column norms
 (SciPy's ``x_scale="jac"``), steps projected onto the bounds, a gain ratio that decides whether a

@@ -216,3 +216,47 @@ def test_a_demo_whose_recording_was_interrupted_ends_as_the_signal_says(tmp_path
                         lambda *a, **k: SimpleNamespace(reason=reason, exit_code=code))
     assert main(["demo", "--quick", "--out", str(tmp_path / "d")]) == code
     assert not (tmp_path / "d" / "REPORT.md").exists()
+
+
+_QUICK_EXIT = """
+import atexit, sys
+marker = sys.argv[1]
+
+def handler():
+    print("handler ran")  # after the command's own output: flushed before the process ends
+    with open(marker, "w") as f:
+        f.write("ran")
+
+atexit.register(handler)
+sys.argv = ["mecanum-hil", *sys.argv[2:]]
+from mecanum_hil.cli import run
+run()
+"""
+
+
+def test_the_quick_exit_runs_the_exit_handlers_and_keeps_output_and_code(tmp_path):
+    """``simulate``, ``fit`` and ``diagnose`` end with ``os._exit`` (the interpreter's
+    teardown cost 0.3 s): the exit handlers still run, what they print is not lost (stdout
+    block-buffered, as in a pipe), the output file is whole and the exit code is the
+    command's; with stdout closed (``>&-``) it still ends cleanly."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    out, marker = tmp_path / "sim.csv", tmp_path / "marker"
+    r = subprocess.run([sys.executable, "-c", _QUICK_EXIT, marker, "simulate", "--profile",
+                        "paper-step-60", "--out", out], capture_output=True, text=True,
+                       env=env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.rstrip().endswith("handler ran") and marker.read_text() == "ran"
+    assert len(read_recording(out)) > 100
+    # an error keeps its code (1) and its one line
+    marker.unlink()
+    r = subprocess.run([sys.executable, "-c", _QUICK_EXIT, marker, "fit",
+                        tmp_path / "missing.csv", "-o", tmp_path / "cal.toml"],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 1 and r.stderr.startswith("error: ") and marker.exists()
+    assert r.stderr.count("\n") == 1 and "file not found" in r.stderr
+    # stdout closed from the start: sys.stdout is None
+    r = subprocess.run(["sh", "-c", f'"{sys.executable}" -m mecanum_hil simulate --help >&-'],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr

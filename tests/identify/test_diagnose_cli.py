@@ -176,8 +176,9 @@ def test_demo_story_finds_the_hidden_ceiling(tmp_path):
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_the_quick_exit_still_ends_the_helper_process(tmp_path, campaign):
     """``diagnose`` ends with ``os._exit`` after its exit handlers (mecanum_hil/cli: the
-    interpreter's teardown cost 0.3 s): the handler that ends the helper process still runs,
-    so nothing of the command outlives it, and its output and exit code are whole."""
+    interpreter's teardown cost 0.3 s): nothing of the command outlives it (its helper
+    process ended, by the handler that closes it or, at the latest, by its stdin's end), and
+    its output and exit code are whole. The handlers themselves: tests/cli/test_cli_simulate.py."""
     import os
     import time
 

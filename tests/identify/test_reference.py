@@ -1,8 +1,8 @@
 """The generic reference model (identify/diagnose/reference.py): a diverging trial gives
-bounded, finite residuals; the fit is the same whatever the process did before (SciPy's ``lm``
-was not: 8.862 or 8.872 rpm on testPid8 in one process); its forward-difference Jacobian
-matches the residuals' change. ``test_diagnose_helper`` compares the reference's RMSE between
-processes exactly."""
+bounded, finite residuals, and its forward-difference Jacobian is the residuals' change.
+(SciPy's ``lm``, used before, ended in different places on the same data depending on the
+process's history: ``test_diagnose_helper`` compares the reference's RMSE between processes
+exactly, which it did not pass then.)"""
 
 from __future__ import annotations
 
@@ -47,21 +47,20 @@ def test_a_diverging_trial_gives_bounded_finite_residuals():
 
 
 def test_the_jacobian_is_the_residuals_change():
+    """At the ARX estimate and at the first-order start (most coefficients exactly 0: a step
+    relative to |theta| alone, 1e-16, was lost in the residuals' rounding, 27 % off, and
+    the refinement of testPid7 stopped on its budget), against central differences."""
     flat, n_wheels = _flat(_ringing_step())
     series = ref._series([_ringing_step()], ROBOT, 0.002)
-    theta = ref._arx(series, 3, n_wheels)
-    J = ref._jacobian(theta, 3, flat)
-    rng = np.random.default_rng(0)
-    step = 1e-6 * rng.normal(size=theta.size) * np.maximum(np.abs(theta), 1e-3)
-    change = ref._residual(theta + step, 3, flat) - ref._residual(theta, 3, flat)
-    np.testing.assert_allclose(J @ step, change, rtol=1e-3, atol=1e-6 * np.abs(change).max())
-
-
-def test_the_reference_fit_does_not_depend_on_what_ran_before():
-    rec = _ringing_step()
-    first = ref.fit_reference([rec], ROBOT)
-    assert first is not None and first.rmse_rpm < 3.5  # the noise is 3 rpm
-    rng = np.random.default_rng(2)
-    junk = [np.ones(int(n)) for n in rng.integers(1, 5000, size=40)]
-    assert ref.fit_reference([rec], ROBOT) == first
-    del junk
+    first_order = np.zeros(ref.NA + ref.NB + n_wheels)
+    first_order[0], first_order[ref.NA], first_order[ref.NA + ref.NB:] = 0.9, 0.1, 1.0
+    for theta in (ref._arx(series, 3, n_wheels), first_order):
+        J = ref._jacobian(theta, 3, flat)
+        for j in range(theta.size):
+            h = 1e-5 * max(abs(theta[j]), 1.0)
+            up, down = theta.copy(), theta.copy()
+            up[j] += h
+            down[j] -= h
+            central = (ref._residual(up, 3, flat) - ref._residual(down, 3, flat)) / (2 * h)
+            np.testing.assert_allclose(J[:, j], central, rtol=1e-4,
+                                       atol=1e-4 * np.abs(central).max() + 1e-9)

@@ -59,7 +59,9 @@ SMALL_DATA = 8000
 #: and finite, so a diverging trial is a large cost the search refuses, and an ARX start that
 #: diverges is seen as such.
 DIVERGED_RPM = 1e8
-#: The refinement's budget: residual evaluations per coefficient (Jacobians apart).
+#: The refinement's budget: residual evaluations per coefficient, the Jacobians' apart (each
+#: one more run per coefficient; SciPy's ``lm`` counted those in its budget, and stopped the
+#: refinement of testPid7 short of its minimum).
 MAX_EVALUATIONS_PER_COEFFICIENT = 25
 #: Relative step of the forward differences (the square root of the float spacing).
 FD_STEP = float(np.sqrt(np.finfo(float).eps))
@@ -186,13 +188,17 @@ def _residual(theta: np.ndarray, d: int, flat: _Flat) -> np.ndarray:
     return np.nan_to_num(np.clip(r, -DIVERGED_RPM, DIVERGED_RPM), nan=DIVERGED_RPM)
 
 
-def _jacobian(theta: np.ndarray, d: int, flat: _Flat) -> np.ndarray:
-    """d(residual)/d(theta) by forward differences (steps of ``sqrt(eps) |theta_j|``, as
-    MINPACK's): the model's recursion once per coefficient."""
-    r0 = _residual(theta, d, flat)
+def _jacobian(theta: np.ndarray, d: int, flat: _Flat, r0: np.ndarray | None = None
+              ) -> np.ndarray:
+    """d(residual)/d(theta) by forward differences, steps of ``sqrt(eps) max(|theta_j|, 1)``
+    (SciPy's rule: a coefficient at 0, as the first-order start's, gets a step the residuals
+    resolve): the model's recursion once per coefficient. ``r0``: the residuals at ``theta``
+    when known."""
+    if r0 is None:
+        r0 = _residual(theta, d, flat)
     out = np.empty((r0.size, theta.size))
     for j in range(theta.size):
-        h = FD_STEP * max(abs(float(theta[j])), 1e-8)
+        h = FD_STEP * max(abs(float(theta[j])), 1.0)
         th = theta.copy()
         th[j] += h
         out[:, j] = (_residual(th, d, flat) - r0) / (th[j] - theta[j])
@@ -264,8 +270,16 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
 
     flat = _flat(series, wheel_of)
 
+    last: list = [None, None]  # the last point's residuals: its Jacobian starts from them
+
     def resid(theta, d):
-        return _residual(theta, d, flat)
+        r = _residual(theta, d, flat)
+        last[:] = [(d, theta.copy()), r]
+        return r
+
+    def jac(theta, d):
+        known = last[0] is not None and last[0][0] == d and np.array_equal(last[0][1], theta)
+        return _jacobian(theta, d, flat, last[1] if known else None)
 
     # the delay by the ARX estimates' simulation error (cheap), then output-error refinement
     # from the best few
@@ -293,7 +307,7 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
     for _, d, theta0 in starts[:keep]:
         try:
             sol = levenberg_marquardt(
-                lambda th, d=d: resid(th, d), lambda th, d=d: _jacobian(th, d, flat),
+                lambda th, d=d: resid(th, d), lambda th, d=d: jac(th, d),
                 theta0, np.full(theta0.size, -np.inf), np.full(theta0.size, np.inf),
                 max_nfev=MAX_EVALUATIONS_PER_COEFFICIENT * theta0.size)
         except (ValueError, np.linalg.LinAlgError):
