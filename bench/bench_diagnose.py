@@ -20,11 +20,6 @@ side by side with the load average (the machine is shared), and the real recordi
 diagnosed as a user runs them, one fresh ``mecanum-hil diagnose`` process each (imports and
 loading the compiled kernels included).
 
-Each diagnosis of ``--issue12`` is timed between two probes of the machine's speed
-(``bench/machine_probe.py``: this machine's speed changes by up to 2x within minutes), and
-printed also as ``at usual speed``: its wall time scaled by the usual probe over the probe
-around it (the targets are read there; the raw figure is printed beside it).
-
 Run: ``python bench/bench_diagnose.py [--quick] [--issue12] [--jobs N]`` (``--quick``: fewer
 recordings; ``--jobs``: processes for diagnose's candidates, default its own choice).
 CPU time is this process's: a helper process's (``--jobs 2``) is not in it.
@@ -33,9 +28,7 @@ CPU time is this process's: a helper process's (``--jobs 2``) is not in it.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -44,10 +37,6 @@ from mecanum_hil.identify.diagnose import _Evaluator, diagnose, heldout_score
 from mecanum_hil.identify.fit import fit, fit_parameters, parameter_value, with_parameters
 from mecanum_hil.link.effects_file import sim_effects_for
 from mecanum_hil.model import Effects, RobotProfile
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine_probe import USUAL_PROBE_S, probe_s  # (beside this script)
-from machine_probe import load as _load
 
 
 def exact_loo(recs, cal, robot, free) -> float:
@@ -78,6 +67,14 @@ def _timed_cpu(f):
     return out, time.perf_counter() - t0, time.process_time() - c0
 
 
+def _load() -> str:
+    try:
+        with open("/proc/loadavg") as f:
+            return " ".join(f.read().split()[:3])
+    except OSError:
+        return "n/a"
+
+
 def _cli_diagnose(csv, robot_toml, jobs: int | None = None) -> tuple[float, float]:
     """Wall and CPU time [s] of ``mecanum-hil fit`` + ``diagnose`` as a user runs them (a fresh
     process each: imports and loading the compiled kernels included); the diagnose alone."""
@@ -102,21 +99,6 @@ def _cli_diagnose(csv, robot_toml, jobs: int | None = None) -> tuple[float, floa
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return wall, cpu
-
-
-def _probed(f):
-    """``f()``, its wall time [s], and the machine's probe around it [s] (the mean of one
-    before and one after: ``bench/machine_probe.py``)."""
-    before = probe_s()
-    t0 = time.perf_counter()
-    out = f()
-    wall = time.perf_counter() - t0
-    return out, wall, 0.5 * (before + probe_s())
-
-
-def _usual(wall: float, probe: float) -> float:
-    """``wall`` [s] at the machine's usual speed (``machine_probe.USUAL_PROBE_S``)."""
-    return wall * USUAL_PROBE_S / probe
 
 
 def issue12(jobs: int | None = None) -> None:
@@ -150,31 +132,25 @@ def issue12(jobs: int | None = None) -> None:
     print(f"load average before: {_load()}; jobs: {jobs or 'default (by the load)'}")
     for label, recs, rob in cases:
         fitted, t_fit, c_fit = _timed_cpu(lambda recs=recs, rob=rob: fit(recs, rob))
-        (d, t_diag, c_diag), _, probe = _probed(lambda recs=recs, rob=rob, c=fitted.calibration:
-                                                _timed_cpu(lambda: diagnose(recs, c, rob,
-                                                                            jobs=jobs)))
+        d, t_diag, c_diag = _timed_cpu(
+            lambda recs=recs, rob=rob, c=fitted.calibration: diagnose(recs, c, rob, jobs=jobs))
         rows.append((label, sum(len(r) for r in recs), t_fit, c_fit, t_diag, c_diag, d,
-                     _load(), probe))
+                     _load()))
     print("In process (the first case also loads the compiled kernels):")
-    print("| data | samples | fit wall / CPU [s] | diagnose wall / CPU [s] | probe [s] | "
-          "diagnose at usual speed [s] | ratio (wall, CPU) | named | wheel RMSE [rpm] | "
-          "load after |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for label, n, tf, cf, td, cd, d, load, probe in rows:
-        print(f"| {label} | {n} | {tf:.2f} / {cf:.2f} | {td:.1f} / {cd:.1f} | {probe:.3f} | "
-              f"{_usual(td, probe):.1f} | {td / tf:.0f} x, {cd / max(cf, 1e-9):.0f} x | "
-              f"{', '.join(d.effects) or 'none'} | {d.rmse_initial:.4g} -> {d.rmse_final:.4g} | "
-              f"{load} |")
+    print("| data | samples | fit wall / CPU [s] | diagnose wall / CPU [s] | ratio (wall, CPU) | "
+          "named | wheel RMSE [rpm] | load after |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, n, tf, cf, td, cd, d, load in rows:
+        print(f"| {label} | {n} | {tf:.2f} / {cf:.2f} | {td:.1f} / {cd:.1f} | "
+              f"{td / tf:.0f} x, {cd / max(cf, 1e-9):.0f} x | {', '.join(d.effects) or 'none'} | "
+              f"{d.rmse_initial:.4g} -> {d.rmse_final:.4g} | {load} |")
     if real.is_dir():
         print("As a user runs it (a fresh `mecanum-hil diagnose` process per recording):")
-        print("| recording | diagnose wall / CPU [s] | probe [s] | at usual speed [s] | "
-              "load after |")
-        print("|---|---|---|---|---|")
+        print("| recording | diagnose wall / CPU [s] | load after |")
+        print("|---|---|---|")
         for p in sorted(real.glob("*.csv")):
-            (wall, cpu), _, probe = _probed(lambda p=p: _cli_diagnose(p, real / "robot.toml",
-                                                                      jobs))
-            print(f"| {p.stem} | {wall:.1f} / {cpu:.1f} | {probe:.3f} | "
-                  f"{_usual(wall, probe):.1f} | {_load()} |")
+            wall, cpu = _cli_diagnose(p, real / "robot.toml", jobs)
+            print(f"| {p.stem} | {wall:.1f} / {cpu:.1f} | {_load()} |")
 
 
 def main() -> None:
