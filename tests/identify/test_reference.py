@@ -64,3 +64,11 @@ def test_the_jacobian_is_the_residuals_change():
             central = (ref._residual(up, 3, flat) - ref._residual(down, 3, flat)) / (2 * h)
             np.testing.assert_allclose(J[:, j], central, rtol=1e-4,
                                        atol=1e-4 * np.abs(central).max() + 1e-9)
+
+
+def test_a_search_that_never_leaves_diverging_models_is_no_fit(monkeypatch):
+    """Every trial diverging (every residual at the bound): no reference model, not the
+    search's last point with a cost of 1e16 rpm^2 per sample."""
+    monkeypatch.setattr(ref, "_residual", lambda theta, d, flat: np.full(flat.y.size,
+                                                                         ref.DIVERGED_RPM))
+    assert ref.fit_reference([_ringing_step()], ROBOT) is None

@@ -312,7 +312,8 @@ def _fit(series, wheels, wheel_of, dt) -> ReferenceFit | None:
                 max_nfev=MAX_EVALUATIONS_PER_COEFFICIENT * theta0.size)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        if np.isfinite(sol.cost):
+        # a search that never left diverging models ends at the bounded residuals: no fit
+        if np.isfinite(sol.cost) and np.max(np.abs(resid(sol.x, d))) < DIVERGED_RPM:
             refined.append((sol.cost, d, sol.x))
     if not refined:
         return None
