@@ -218,7 +218,7 @@ def test_a_demo_whose_recording_was_interrupted_ends_as_the_signal_says(tmp_path
     assert not (tmp_path / "d" / "REPORT.md").exists()
 
 
-_QUICK_EXIT = """
+_WITH_EXIT_HANDLER = """
 import atexit, sys
 marker = sys.argv[1]
 
@@ -243,7 +243,7 @@ def test_the_quick_exit_runs_the_exit_handlers_and_keeps_output_and_code(tmp_pat
 
     env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
     out, marker = tmp_path / "sim.csv", tmp_path / "marker"
-    r = subprocess.run([sys.executable, "-c", _QUICK_EXIT, marker, "simulate", "--profile",
+    r = subprocess.run([sys.executable, "-c", _WITH_EXIT_HANDLER, marker, "simulate", "--profile",
                         "paper-step-60", "--out", out], capture_output=True, text=True,
                        env=env, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -251,7 +251,7 @@ def test_the_quick_exit_runs_the_exit_handlers_and_keeps_output_and_code(tmp_pat
     assert len(read_recording(out)) > 100
     # an error keeps its code (1) and its one line
     marker.unlink()
-    r = subprocess.run([sys.executable, "-c", _QUICK_EXIT, marker, "fit",
+    r = subprocess.run([sys.executable, "-c", _WITH_EXIT_HANDLER, marker, "fit",
                         tmp_path / "missing.csv", "-o", tmp_path / "cal.toml"],
                        capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 1 and r.stderr.startswith("error: ") and marker.exists()

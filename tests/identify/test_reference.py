@@ -28,13 +28,15 @@ def _ringing_step() -> Recording:
 
 
 def _flat(rec: Recording):
+    """The reference's series of ``rec``, end to end; the series; the wheels measured."""
     series = ref._series([rec], ROBOT, 0.002)
     wheels = sorted({w for _, w, *_ in series})
-    return ref._flat(series, {k: wheels.index(s[1]) for k, s in enumerate(series)}), len(wheels)
+    flat = ref._flat(series, {k: wheels.index(s[1]) for k, s in enumerate(series)})
+    return flat, series, len(wheels)
 
 
 def test_a_diverging_trial_gives_bounded_finite_residuals():
-    flat, n_wheels = _flat(_ringing_step())
+    flat, _, n_wheels = _flat(_ringing_step())
     theta = np.zeros(ref.NA + ref.NB + n_wheels)
     theta[0] = 3.0  # |pole| > 1: the recursion overflows to inf, then NaN
     theta[ref.NA] = 1.0
@@ -50,8 +52,7 @@ def test_the_jacobian_is_the_residuals_change():
     """At the ARX estimate and at the first-order start (most coefficients exactly 0: a step
     relative to |theta| alone, 1e-16, was lost in the residuals' rounding, 27 % off, and
     the refinement of testPid7 stopped on its budget), against central differences."""
-    flat, n_wheels = _flat(_ringing_step())
-    series = ref._series([_ringing_step()], ROBOT, 0.002)
+    flat, series, n_wheels = _flat(_ringing_step())
     first_order = np.zeros(ref.NA + ref.NB + n_wheels)
     first_order[0], first_order[ref.NA], first_order[ref.NA + ref.NB:] = 0.9, 0.1, 1.0
     for theta in (ref._arx(series, 3, n_wheels), first_order):
