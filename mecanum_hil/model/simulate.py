@@ -68,8 +68,21 @@ class Trajectory:
                           self.final_state[sl])
 
 
+def _float_array(a) -> np.ndarray:
+    """``np.asarray(a, dtype=float)``, and ``a`` itself for any native float64 array: numpy
+    makes a new view of one whose dtype is an equal copy of its own (an unpickled array, such
+    as a diagnosis helper's recordings), and what :func:`unchanging` remembers goes by
+    identity."""
+    if type(a) is np.ndarray and a.dtype == _FLOAT64:
+        return a
+    return np.asarray(a, dtype=float)
+
+
+_FLOAT64 = np.dtype(float)
+
+
 def _times(time_s) -> np.ndarray:
-    t = np.asarray(time_s, dtype=float)
+    t = _float_array(time_s)
     facts = _array_facts(t)
     if facts is not None and "times" in facts:
         return t
@@ -487,7 +500,7 @@ def _robots_and_commands(commands, t: np.ndarray, calibration):
     calibrations and the shared stream, shape (T, 3), when the commands were one (a fit's
     Jacobian), else None.
     """
-    given = np.asarray(commands, dtype=float)
+    given = _float_array(commands)
     cmd = given[None] if given.ndim == 2 else given
     if cmd.ndim != 3 or cmd.shape[1:] != (t.size, 3):
         raise ConfigError(f"commands must have shape (N, {t.size}, 3), got {cmd.shape}")
@@ -627,7 +640,7 @@ def simulate(
     **kwargs,
 ) -> Trajectory:
     """Simulate one robot; ``commands`` has shape (T, 3). See :func:`simulate_batch`."""
-    cmd = np.asarray(commands, dtype=float)
+    cmd = _float_array(commands)
     if cmd.ndim != 2:
         raise ConfigError(f"commands must have shape (T, 3), got {cmd.shape}")
     # one stream, (T, 3), as given: an array declared unchanging stays itself

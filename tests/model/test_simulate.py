@@ -401,6 +401,26 @@ def test_what_is_remembered_of_an_array_is_only_of_one_declared_unchanging():
     assert key not in sim._FACTS
 
 
+
+
+def test_an_unpickled_array_declared_unchanging_is_remembered():
+    # a diagnosis helper's recordings arrive pickled: their dtype is an equal copy of numpy's
+    # float64, for which np.asarray(a, dtype=float) is a new view each time, and what is
+    # remembered of an array goes by identity (every trial point checked and copied again)
+    import importlib
+    import pickle
+
+    sim = importlib.import_module("mecanum_hil.model.simulate")
+    t = pickle.loads(pickle.dumps(uniform_time(0.5, 100)))
+    cmd = pickle.loads(pickle.dumps(hold(60, 20, 45, uniform_time(0.5, 100))))
+    assert t.dtype is not np.dtype(float) and t.dtype == np.dtype(float)
+    declared_t, declared_cmd = sim.unchanging(t), sim.unchanging(cmd)
+    cal = replace(PAPER, effects=Effects(dead_time_s=0.013))
+    fresh = simulate(cmd.copy(), t.copy(), cal).wheel_rpm
+    np.testing.assert_array_equal(simulate(declared_cmd, declared_t, cal).wheel_rpm, fresh)
+    assert sim._array_facts(declared_t).get("times") is True
+    assert sim._array_facts(declared_cmd).get("finite") is True
+    assert sim._bytes_of(declared_t) is sim._bytes_of(declared_t)
 @pytest.mark.parametrize("bad", [0.0, -1e-3, float("nan")])
 def test_a_sub_step_that_is_no_length_is_refused(bad):
     t = uniform_time(0.1, 100)

@@ -345,11 +345,11 @@ def diagnose(
     DiagnoseError
         Fewer than two recordings, no measured wheel speeds, or an unknown candidate.
     """
-    helpers = helpers_for(jobs, warm_up)  # first: a helper starts while this one goes on
     # numba's kernels from the start, in this process and the helpers (warm_up): a search
     # begun in the interpreter (equal to rounding) can end elsewhere, and a recording's
-    # diagnosis must not depend on what this process did before
-    load_compiled("mecanum_hil.model._kernels")
+    # diagnosis must not depend on what this process did before; meanwhile the helpers are
+    # chosen (and started, to go on beside this one)
+    helpers = _helpers_beside(jobs, lambda: load_compiled("mecanum_hil.model._kernels"))
     interrupted = False
     try:
         # many small products of tall matrices (identify/fit.py); beside a helper, a process
@@ -363,6 +363,37 @@ def diagnose(
         raise
     finally:
         release(helpers, interrupted)
+
+
+def _helpers_beside(jobs: int | None, work: Callable[[], None]) -> list[Helper]:
+    """:func:`.helper.helpers_for` ``(jobs, warm_up)`` on a thread of its own while this one
+    does ``work``: choosing may read how busy the cores are now, over a fifth of a second of
+    waiting (:func:`mecanum_hil._cores.busy_cores_now`), which ``work`` (loading numba's
+    kernels) fills. Returns the helpers; when ``work`` raises, those started are ended."""
+    if jobs == 1:
+        work()
+        return []
+    chosen: list = []
+
+    def choose() -> None:
+        try:
+            chosen.append(helpers_for(jobs, warm_up))
+        except BaseException as err:  # handed to the caller's thread
+            chosen.append(err)
+
+    thread = threading.Thread(target=choose, name="diagnose-helpers", daemon=True)
+    thread.start()
+    try:
+        work()
+    except BaseException:
+        thread.join()
+        if chosen and isinstance(chosen[0], list):
+            release(chosen[0], interrupted=True)
+        raise
+    thread.join()
+    if isinstance(chosen[0], BaseException):
+        raise chosen[0]
+    return chosen[0]
 
 
 @dataclass(frozen=True)
