@@ -320,3 +320,50 @@ def test_a_helpers_kernels_run_on_one_thread():
 
     (h,) = _started()
     assert h.submit(numba.get_num_threads).result(timeout=60) == 1
+
+
+def test_the_helpers_are_chosen_while_the_kernels_load_and_ended_when_that_fails(monkeypatch):
+    # choosing may wait a fifth of a second for a reading of the cores' use: the diagnosing
+    # process loads numba's kernels meanwhile, and a failure there (Ctrl-C) ends what was started
+    from mecanum_hil.identify.diagnose import selection
+
+    class Fake:
+        def __init__(self):
+            self.stopped = None
+
+        def stop(self, err):
+            self.stopped = err
+
+    fake = Fake()
+
+    import threading
+
+    loading = threading.Event()
+    seen: list[bool] = []
+
+    def choose(jobs, warm):
+        # still choosing while the kernels load (one after the other, this would wait)
+        seen.append(loading.wait(30.0))
+        return [fake]
+
+    def load():
+        loading.set()
+        order.append("loaded")
+
+    monkeypatch.setattr(selection, "helpers_for", choose)
+    order: list[str] = []
+    assert selection._helpers_beside(None, load) == [fake]
+    assert seen == [True] and order == ["loaded"]
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        selection._helpers_beside(None, interrupted)
+    assert fake.stopped == "interrupted"
+    monkeypatch.setattr(selection, "helpers_for", lambda jobs, warm: 1 / 0)
+    with pytest.raises(ZeroDivisionError):  # the choice's own failure reaches the caller
+        selection._helpers_beside(None, lambda: None)
+    # one process: nothing chosen, nothing started
+    assert selection._helpers_beside(1, lambda: order.append("alone")) == []
+    assert order[-1] == "alone"
