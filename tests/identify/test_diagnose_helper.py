@@ -325,19 +325,21 @@ def test_a_helpers_kernels_run_on_one_thread():
 def test_the_helpers_are_chosen_while_the_kernels_load_and_ended_when_that_fails(monkeypatch):
     # choosing may wait a fifth of a second for a reading of the cores' use: the diagnosing
     # process loads numba's kernels meanwhile, and a failure there (Ctrl-C) ends what was started
+    import threading
+
     from mecanum_hil.identify.diagnose import selection
 
     class Fake:
         def __init__(self):
-            self.stopped = None
+            self.stopped = self.closed = None
 
         def stop(self, err):
             self.stopped = err
 
+        def close(self):
+            self.closed = True
+
     fake = Fake()
-
-    import threading
-
     loading = threading.Event()
     seen: list[bool] = []
 
@@ -361,6 +363,33 @@ def test_the_helpers_are_chosen_while_the_kernels_load_and_ended_when_that_fails
     with pytest.raises(KeyboardInterrupt):
         selection._helpers_beside(None, interrupted)
     assert fake.stopped == "interrupted"
+    # Ctrl-C while waiting for the choice (the kernels loaded first): the same
+    fake.stopped = None
+
+    class Interrupted(threading.Thread):
+        waits = 0
+
+        def join(self, timeout=None):
+            super().join(timeout)
+            Interrupted.waits += 1
+            if Interrupted.waits == 1:
+                raise KeyboardInterrupt
+
+    monkeypatch.setattr(selection.threading, "Thread", Interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        selection._helpers_beside(None, lambda: None)
+    assert fake.stopped == "interrupted"
+    monkeypatch.undo()
+    monkeypatch.setattr(selection, "helpers_for", choose)
+    # an ordinary failure releases them as a diagnosis that fails does (the shared one kept)
+    fake.stopped = None
+
+    def broken():
+        raise RuntimeError("no kernels")
+
+    with pytest.raises(RuntimeError, match="no kernels"):
+        selection._helpers_beside(None, broken)
+    assert fake.stopped is None and fake.closed is True
     monkeypatch.setattr(selection, "helpers_for", lambda jobs, warm: 1 / 0)
     with pytest.raises(ZeroDivisionError):  # the choice's own failure reaches the caller
         selection._helpers_beside(None, lambda: None)

@@ -401,8 +401,6 @@ def test_what_is_remembered_of_an_array_is_only_of_one_declared_unchanging():
     assert key not in sim._FACTS
 
 
-
-
 def test_an_unpickled_array_declared_unchanging_is_remembered():
     # a diagnosis helper's recordings arrive pickled: their dtype is an equal copy of numpy's
     # float64, for which np.asarray(a, dtype=float) is a new view each time, and what is
@@ -420,7 +418,8 @@ def test_an_unpickled_array_declared_unchanging_is_remembered():
     np.testing.assert_array_equal(simulate(declared_cmd, declared_t, cal).wheel_rpm, fresh)
     assert sim._array_facts(declared_t).get("times") is True
     assert sim._array_facts(declared_cmd).get("finite") is True
-    assert sim._bytes_of(declared_t) is sim._bytes_of(declared_t)
+
+
 @pytest.mark.parametrize("bad", [0.0, -1e-3, float("nan")])
 def test_a_sub_step_that_is_no_length_is_refused(bad):
     t = uniform_time(0.1, 100)

@@ -369,7 +369,9 @@ def _helpers_beside(jobs: int | None, work: Callable[[], None]) -> list[Helper]:
     """:func:`.helper.helpers_for` ``(jobs, warm_up)`` on a thread of its own while this one
     does ``work``: choosing may read how busy the cores are now, over a fifth of a second of
     waiting (:func:`mecanum_hil._cores.busy_cores_now`), which ``work`` (loading numba's
-    kernels) fills. Returns the helpers; when ``work`` raises, those started are ended."""
+    kernels) fills. Returns the helpers; when ``work`` or the wait for the choice raises, those
+    started are released (:func:`.helper.release`: all killed after Ctrl-C or SIGTERM, as
+    after an interrupted diagnosis)."""
     if jobs == 1:
         work()
         return []
@@ -385,12 +387,13 @@ def _helpers_beside(jobs: int | None, work: Callable[[], None]) -> list[Helper]:
     thread.start()
     try:
         work()
-    except BaseException:
+        thread.join()
+    except BaseException as err:
+        # the choice goes on (a helper may be starting): wait for it, then end what it started
         thread.join()
         if chosen and isinstance(chosen[0], list):
-            release(chosen[0], interrupted=True)
+            release(chosen[0], isinstance(err, (KeyboardInterrupt, SessionTerminated)))
         raise
-    thread.join()
     if isinstance(chosen[0], BaseException):
         raise chosen[0]
     return chosen[0]
