@@ -68,6 +68,10 @@ class Trajectory:
                           self.final_state[sl])
 
 
+#: numpy's own float64 dtype object (:func:`_float_array`).
+_FLOAT64 = np.dtype(float)
+
+
 def _float_array(a) -> np.ndarray:
     """``np.asarray(a, dtype=float)``, and ``a`` itself for any native float64 array: numpy
     makes a new view of one whose dtype is an equal copy of its own (an unpickled array, such
@@ -76,9 +80,6 @@ def _float_array(a) -> np.ndarray:
     if type(a) is np.ndarray and a.dtype == _FLOAT64:
         return a
     return np.asarray(a, dtype=float)
-
-
-_FLOAT64 = np.dtype(float)
 
 
 def _times(time_s) -> np.ndarray:
