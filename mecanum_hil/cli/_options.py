@@ -40,7 +40,7 @@ def fill_optional_values(args: list[str]) -> list[str]:
 
 # The robot link's options, shared by the commands that open a link (record, conformance).
 TransportOpt = Annotated[str, typer.Option(
-    "--transport", "-t", help="serial, can, or a plug-in's name.")]
+    "--transport", "-t", help="serial, can, ros2, or a plug-in's name.")]
 PortOpt = Annotated[str | None, typer.Option(
     "--port", help="Serial port: a device, loop://, socket://HOST:PORT ...")]
 InterfaceOpt = Annotated[str | None, typer.Option(
@@ -49,6 +49,43 @@ ChannelOpt = Annotated[str | None, typer.Option(
     "--channel", help="python-can channel (can0, /dev/ttyACM0, ...).")]
 BitrateOpt = Annotated[int | None, typer.Option(
     "--bitrate", help="Bit rate [bit/s]: CAN bus rate, or serial baud rate.")]
+# The ROS 2 link's options (record, shadow --transport ros2; docs/ros2.md).
+CmdTopicOpt = Annotated[str, typer.Option(
+    "--cmd-topic", help="ROS 2: command topic (geometry_msgs Twist or TwistStamped).")]
+CmdTypeOpt = Annotated[str, typer.Option(
+    "--cmd-type", help="ROS 2: twist or twist-stamped (stamped now, frame base_link).")]
+JointTopicOpt = Annotated[str, typer.Option(
+    "--joint-topic", help="ROS 2: sensor_msgs/JointState topic (velocities in rad/s).")]
+OdomTopicOpt = Annotated[str, typer.Option(
+    "--odom-topic", help="ROS 2: nav_msgs/Odometry topic for the pose ('' for none).")]
+JointsOpt = Annotated[str | None, typer.Option(
+    "--joints", metavar="FL,FR,RL,RR", help="ROS 2: joint names of wheels 1..4 (default: "
+    "detected by name, as import does).")]
+WheelSignsOpt = Annotated[str | None, typer.Option(
+    "--wheel-signs", metavar="S1,S2,S3,S4", help="ROS 2: -1 for a joint whose positive axis "
+    "turns the wheel backwards (default +1,+1,+1,+1).")]
+
+
+def ros2_options(transport: str, *, cmd_topic: str, cmd_type: str, joint_topic: str,
+                 odom_topic: str, joints: str | None, wheel_signs: str | None,
+                 robot: str | None = None, discovery_timeout_s: float | None = None) -> dict:
+    """The ``ros2`` transport's options from the command line ({} for another transport)."""
+    if transport != "ros2":
+        return {}
+    options = dict(cmd_topic=cmd_topic, cmd_type=cmd_type, joint_topic=joint_topic,
+                   odom_topic=odom_topic or None, joints=joints, wheel_signs=wheel_signs,
+                   robot=robot, discovery_timeout_s=discovery_timeout_s)
+    return {k: v for k, v in options.items() if v is not None}
+
+
+def link_name(transport: str, port: str | None, interface: str | None, channel: str | None,
+              cmd_topic: str = "/cmd_vel") -> str:
+    """How a run names its link in progress lines and dry runs."""
+    if transport == "ros2":
+        return f"ROS 2 {cmd_topic}"
+    return port or f"{interface}:{channel}"
+
+
 LinkOptionOpt = Annotated[list[str] | None, typer.Option(
     "--link-option", metavar="KEY=VALUE",
     help="Extra transport option, repeatable (e.g. sleep_after_open=0 for slcan).")]

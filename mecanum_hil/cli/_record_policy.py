@@ -10,14 +10,14 @@ from pathlib import Path
 
 import typer
 
-from ._options import echo_safely
+from ._options import echo_safely, link_name
 
 
 def record_policy(*, out: Path, transport: str, port, interface, channel, bitrate, link_option,
                   robot: str, policy: str, task: str | None, episodes: int, seed: int,
                   connect_timeout_s: float, link_timeout_s: float, progress: bool,
                   shadow: str | None, on_divergence: str, json_out: bool, profile, commands,
-                  dry_run: bool, foxglove=None, before_run=None) -> None:
+                  dry_run: bool, foxglove=None, before_run=None, ros2=None) -> None:
     """Run ``episodes`` episodes of ``policy`` on the robot (see ``record --help``)."""
     import json
 
@@ -46,7 +46,8 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
 
     options = transport_options(transport, port=port, interface=interface, channel=channel,
                                 bitrate=bitrate, link_options=link_option)
-    where = port or f"{interface}:{channel}"
+    options.update(ros2 or {})
+    where = link_name(transport, port, interface, channel, (ros2 or {}).get("cmd_topic", ""))
 
     make_observers = close_observers = None
     if shadow is not None:

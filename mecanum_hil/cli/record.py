@@ -16,16 +16,24 @@ import typer
 from ._options import (
     BitrateOpt,
     ChannelOpt,
+    CmdTopicOpt,
+    CmdTypeOpt,
     FoxgloveOpt,
     InterfaceOpt,
+    JointsOpt,
+    JointTopicOpt,
     LinkOptionOpt,
+    OdomTopicOpt,
     OutOpt,
     PortOpt,
     RobotOpt,
     TransportOpt,
+    WheelSignsOpt,
     echo_safely,
+    link_name,
     refuse_overwriting,
     require_positive,
+    ros2_options,
     shipped_or_file,
 )
 
@@ -78,6 +86,12 @@ def command(
     channel: ChannelOpt = None,
     bitrate: BitrateOpt = None,
     link_option: LinkOptionOpt = None,
+    cmd_topic: CmdTopicOpt = "/cmd_vel",
+    cmd_type: CmdTypeOpt = "twist",
+    joint_topic: JointTopicOpt = "/joint_states",
+    odom_topic: OdomTopicOpt = "/odom",
+    joints: JointsOpt = None,
+    wheel_signs: WheelSignsOpt = None,
     profile: Annotated[str | None, typer.Option(
         "--profile", help="Built-in profile (paper-step-60, ...) or profile TOML file.")] = None,
     commands: Annotated[Path | None, typer.Option(
@@ -86,9 +100,9 @@ def command(
     robot: RobotOpt = "tdam-stm",
     dry_run: Annotated[bool, typer.Option(
         "--dry-run", help="Check and show what would be sent; open nothing.")] = False,
-    connect_timeout_s: Annotated[float, typer.Option(
-        "--connect-timeout", help="How long to wait for the controller's HELLO_ACK [s].")
-    ] = 2.0,
+    connect_timeout_s: Annotated[float | None, typer.Option(
+        "--connect-timeout", help="How long to wait for the controller's HELLO_ACK, or on "
+        "ROS 2 for the robot's topics [s] (default 2; ROS 2: 5).")] = None,
     link_timeout_s: Annotated[float, typer.Option(
         "--link-timeout", help="Telemetry silence that counts as a lost link, whatever "
                                "else arrives [s]; at least 3 of the controller's telemetry "
@@ -126,8 +140,14 @@ def command(
     from ..link.transport import open_transport, transport_options
     from ..model import load_robot_profile
 
+    if connect_timeout_s is None:
+        connect_timeout_s = 5.0 if transport == "ros2" else 2.0
     require_positive(connect_timeout_s, "--connect-timeout")
     require_positive(link_timeout_s, "--link-timeout")
+    ros2 = ros2_options(transport, cmd_topic=cmd_topic, cmd_type=cmd_type,
+                        joint_topic=joint_topic, odom_topic=odom_topic, joints=joints,
+                        wheel_signs=wheel_signs, robot=robot,
+                        discovery_timeout_s=connect_timeout_s)
     if policy is not None:
         from ._record_policy import record_policy
 
@@ -140,7 +160,7 @@ def command(
             episodes=episodes, seed=seed, connect_timeout_s=connect_timeout_s,
             link_timeout_s=link_timeout_s, progress=progress, shadow=shadow,
             on_divergence=on_divergence, json_out=json_out, profile=profile, commands=commands,
-            dry_run=dry_run, foxglove=foxglove,
+            dry_run=dry_run, foxglove=foxglove, ros2=ros2,
             before_run=(lambda: clear_former_run(out, folder=True)) if force else None)
     if (commands is None) == (profile is None):
         raise ConfigError("give exactly one of --profile NAME_OR_FILE and --commands REC.csv")
@@ -157,7 +177,8 @@ def command(
     rob.check_commands(cmd, source)  # before anything is opened or sent
     options = transport_options(transport, port=port, interface=interface, channel=channel,
                                 bitrate=bitrate, link_options=link_option)
-    where = port or f"{interface}:{channel}"
+    options.update(ros2)
+    where = link_name(transport, port, interface, channel, cmd_topic)
     if dry_run:
         echo_safely(dry_run_report(t, cmd, rob, transport, where))
         return

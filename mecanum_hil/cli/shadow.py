@@ -13,9 +13,14 @@ import typer
 
 from ._options import (
     CalibrationOpt,
+    CmdTopicOpt,
+    CmdTypeOpt,
     FoxgloveOpt,
+    JointsOpt,
+    JointTopicOpt,
     JsonOpt,
     RobotOpt,
+    WheelSignsOpt,
     refuse_overwriting,
     require_positive,
 )
@@ -72,7 +77,7 @@ def command(
     threshold: ThresholdOpt = 10.0,
     warmup: WarmupOpt = 2.0,
     transport: Annotated[str | None, typer.Option(
-        "--transport", help="Live: listen on a link passively (can).")] = None,
+        "--transport", help="Live: listen on a link passively (can, ros2).")] = None,
     interface: Annotated[str, typer.Option(
         "--interface", help="Live CAN: python-can interface (socketcan, slcan, virtual...).")
     ] = "socketcan",
@@ -90,12 +95,20 @@ def command(
         "--on-divergence", help="Live: 'none' (only report) or 'stop' (send STOP on the bus at "
         "the first alarm).")] = "none",
     foxglove: FoxgloveOpt = None,
+    cmd_topic: CmdTopicOpt = "/cmd_vel",
+    cmd_type: CmdTypeOpt = "twist",
+    joint_topic: JointTopicOpt = "/joint_states",
+    joints: JointsOpt = None,
+    wheel_signs: WheelSignsOpt = None,
+    diagnostics_topic: Annotated[str, typer.Option(
+        "--diagnostics-topic", help="Live ROS 2: where the verdict is published "
+        "(diagnostic_msgs/DiagnosticArray).")] = "/diagnostics",
 ) -> None:
     """Run the model beside the robot and flag persistent divergence (exit 3 on alarms)."""
     from ..errors import ConfigError
 
     if (replay_path is None) == (transport is None):
-        raise ConfigError("give exactly one of --replay REC.csv and --transport can")
+        raise ConfigError("give exactly one of --replay REC.csv and --transport can|ros2")
     if on_divergence not in ("none", "stop"):
         raise ConfigError(f"--on-divergence must be 'none' or 'stop', got '{on_divergence}'")
     config = build_config(noise_rpm, drift, threshold, warmup)
@@ -107,12 +120,17 @@ def command(
                            [(None if no_events else events, "--events"), (plot, "--plot")])
         n_alarms = _replay(replay_path, calibration, robot, config, json_out,
                            None if no_events else events, no_events, plot)
+    elif transport == "ros2":
+        ros2 = dict(cmd_topic=cmd_topic, cmd_type=cmd_type, joint_topic=joint_topic,
+                    joints=joints, wheel_signs=wheel_signs, diagnostics_topic=diagnostics_topic)
+        n_alarms = _listen_ros2(ros2, calibration, robot, config, out, events, no_events,
+                                duration, on_divergence, json_out, foxglove)
     else:
         from ..monitor.live import listen_can
 
         if transport != "can":
-            raise ConfigError(f"passive listening needs --transport can, got '{transport}' "
-                              "(on a serial link, use record --shadow)")
+            raise ConfigError(f"passive listening needs --transport can or ros2, got "
+                              f"'{transport}' (on a serial link, use record --shadow)")
         n_alarms = listen_can(interface, channel, bitrate, calibration, robot, config,
                               out=out, events=None if no_events else events,
                               duration_s=duration, stop_on_divergence=on_divergence == "stop",
@@ -191,3 +209,45 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
         if not json_out:
             typer.echo(f"wrote {plot}")
     return len(result.alarms)
+
+
+def _listen_ros2(ros2: dict, calibration: str, robot: str, config, out: Path | None,
+                 events: Path | None, no_events: bool, duration: float | None,
+                 on_divergence: str, json_out: bool, foxglove) -> int:
+    """``shadow --transport ros2``: the monitor beside a robot someone else drives; its
+    verdict on /diagnostics. The event log goes next to ``--out``, else to ``--events``,
+    else to ``shadow-ros2-<UTC time>.jsonl`` here."""
+    import datetime as dt
+    import json
+    import sys
+
+    from ..errors import ConfigError
+    from ..model import load_robot_profile
+    from ..monitor.live import listen
+
+    if on_divergence != "none":
+        raise ConfigError("shadow --transport ros2 never commands the robot: "
+                          "--on-divergence stop is not available (its verdict is on "
+                          f"{ros2['diagnostics_topic']})")
+    if not no_events and events is None and out is None:
+        events = Path(f"shadow-ros2-{dt.datetime.now(dt.UTC):%Y%m%dT%H%M%SZ}.jsonl")
+    refuse_overwriting([], [(out, "--out", True), (None if no_events else events, "--events")])
+    rob = load_robot_profile(robot)
+
+    def open_source():
+        from ..monitor.ros2_listen import Ros2Source
+
+        return Ros2Source(rob, **ros2)
+
+    def echo(line: str) -> None:
+        typer.echo(line, err=json_out)
+
+    alarms = listen(open_source, calibration, robot, config, out=out,
+                    events=None if no_events else events, duration_s=duration, echo=echo,
+                    foxglove=foxglove, name=f"ROS 2 {ros2['joint_topic']}",
+                    mode="listen-ros2")
+    if json_out:
+        print(json.dumps({"alarms": [a.summary() for a in alarms],
+                          "first_alarm_t_s": alarms[0].t_s if alarms else None}),
+              file=sys.stdout, flush=True)
+    return len(alarms)

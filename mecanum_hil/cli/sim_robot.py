@@ -6,7 +6,15 @@ from typing import Annotated
 
 import typer
 
-from ._options import CalibrationOpt, RobotOpt, require_positive
+from ._options import (
+    CalibrationOpt,
+    CmdTopicOpt,
+    CmdTypeOpt,
+    JointTopicOpt,
+    OdomTopicOpt,
+    RobotOpt,
+    require_positive,
+)
 
 
 def command(
@@ -20,6 +28,26 @@ def command(
     slcan: Annotated[bool, typer.Option(
         "--slcan", help="Play an SLCAN (Lawicel) USB-CAN adapter on a new pseudo-terminal; "
                         "its path is the first line of output.")] = False,
+    transport: Annotated[str | None, typer.Option(
+        "--transport", help="ros2: a simulated ROS 2 robot (cmd_vel in, joint_states and odom "
+                            "out, in ROS_DOMAIN_ID); the first line of output is "
+                            "'ros2:domain N'.")] = None,
+    cmd_topic: CmdTopicOpt = "/cmd_vel",
+    cmd_type: CmdTypeOpt = "twist",
+    joint_topic: JointTopicOpt = "/joint_states",
+    odom_topic: OdomTopicOpt = "/odom",
+    joints: Annotated[str | None, typer.Option(
+        "--joints", help="ROS 2: joint names of wheels FL,FR,RL,RR.")] = None,
+    wheel_signs: Annotated[str | None, typer.Option(
+        "--wheel-signs", help="ROS 2: +1 or -1 per wheel joint (S1,S2,S3,S4).")] = None,
+    joint_rate_hz: Annotated[float, typer.Option(
+        "--joint-rate", help="ROS 2: joint state and odometry rate [Hz].")] = 50.0,
+    best_effort: Annotated[bool, typer.Option(
+        "--best-effort", help="ROS 2: publish joint states and odometry best effort "
+                              "(sensor-data QoS).")] = False,
+    clock_offset_s: Annotated[float, typer.Option(
+        "--clock-offset", help="ROS 2: the robot's clock minus the host's [s] (a robot "
+                               "without NTP).")] = 0.0,
     calibration: CalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",
     effects: Annotated[Path | None, typer.Option(
@@ -44,8 +72,12 @@ def command(
 
     from ..errors import ConfigError
 
-    if serial + slcan + (can is not None) != 1:
-        raise ConfigError("give exactly one of --serial, --slcan and --can INTERFACE:CHANNEL")
+    if transport not in (None, "ros2"):
+        raise ConfigError(f"--transport takes ros2 (--serial, --slcan and --can serve the "
+                          f"wire protocol), got {transport!r}")
+    if serial + slcan + (can is not None) + (transport is not None) != 1:
+        raise ConfigError("give exactly one of --serial, --slcan, --can INTERFACE:CHANNEL and "
+                          "--transport ros2")
     from ..link.protocol import PROTOCOL_VERSION
 
     _check_telemetry_rate(telemetry_rate_hz, internal_rate_hz)
@@ -70,6 +102,12 @@ def command(
         if not quiet:
             print(f"sim-robot: {line}", file=sys.stderr, flush=True)
 
+    if transport == "ros2":
+        ros2 = dict(cmd_topic=cmd_topic, cmd_type=cmd_type, joint_topic=joint_topic,
+                    odom_topic=odom_topic, joints=joints, wheel_signs=wheel_signs,
+                    joint_rate_hz=joint_rate_hz, best_effort=best_effort,
+                    clock_offset_s=clock_offset_s)
+        return _serve_ros2(model, ros2, duration_s, log)
     kind = "serial" if serial else "slcan" if slcan else "can"
     transport, where, keep = open_controller_end(kind, can)
     ctrl = SimulatedController(transport, model, telemetry_rate_hz,
@@ -102,3 +140,39 @@ def _check_telemetry_rate(telemetry_rate_hz: float, internal_rate_hz: float) -> 
         raise ConfigError(f"--telemetry-rate {telemetry_rate_hz:g} Hz is not a whole divisor "
                           f"of the {internal_rate_hz:g} Hz internal tick; the nearest it gives "
                           f"is {internal_rate_hz / ticks:.6g} Hz")
+
+
+def _serve_ros2(model, options: dict, duration_s: float | None, log) -> None:
+    """Serve the simulated ROS 2 robot until SIGTERM, Ctrl-C or ``duration_s``."""
+    import signal
+
+    from ..errors import ConfigError
+    from ..importers.rosbag import parse_joints, parse_wheel_signs
+    from ..link.ros2.node import Ros2Node
+    from ..link.ros2.sim_robot import DEFAULT_JOINTS, SimulatedRos2Robot
+    from ..link.ros2.transport import CMD_TYPES
+
+    if options["cmd_type"] not in CMD_TYPES:
+        raise ConfigError(f"--cmd-type must be one of {', '.join(CMD_TYPES)}, "
+                          f"got {options['cmd_type']!r}")
+    require_positive(options["joint_rate_hz"], "--joint-rate", "Hz")
+    joints = parse_joints(options.pop("joints")) if options["joints"] else DEFAULT_JOINTS
+    signs = parse_wheel_signs(options.pop("wheel_signs") or "1,1,1,1")
+    options.pop("joints", None)
+    options.pop("wheel_signs", None)
+    node = Ros2Node()
+    try:
+        robot = SimulatedRos2Robot(model, node, joints=joints, wheel_signs=signs, log=log,
+                                   **options)
+        signal.signal(signal.SIGTERM, lambda signum, frame: robot.stop_event.set())
+        print(f"ros2:domain {node.domain}", flush=True)
+        log(f"serving ROS 2 in domain {node.domain}: {options['cmd_topic']} in, "
+            f"{options['joint_topic']} and {options['odom_topic'] or 'no odometry'} out")
+        try:
+            robot.serve(duration_s)
+        except KeyboardInterrupt:
+            pass  # Ctrl-C is how it is stopped (as SIGTERM): a normal end, exit 0
+        log(f"stopped; {robot.commands_received} commands, {robot.timeouts} reference "
+            f"timeouts, last command {robot.last_twist}")
+    finally:
+        node.close()

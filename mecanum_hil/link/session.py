@@ -68,7 +68,7 @@ from .protocol import (
     Stop,
     Telemetry,
 )
-from .transport import Transport
+from .transport import PoseReading, Transport
 
 #: Exit code of each way a session can end.
 EXIT_CODES = {"completed": 0, "error": 1, "observer_stop": 3, "link_lost": 4,
@@ -328,6 +328,8 @@ class _Session:
         self.watchdog_ms = 0
         self.wheel_limit_rpm = math.nan
         self.last_tlm = time.perf_counter()
+        #: Telemetry silence that counts as a lost link [s] (a link may ask for more).
+        self.link_timeout_s = config.link_timeout_s
         self._other_frames = 0
         self.send_failures = 0
         self.controller = ""
@@ -462,7 +464,8 @@ class _Session:
             ctrl_t = self._controller_time_s(msg.time_us)
             self._check_rate(now, ctrl_t)
             self._note_status(now, msg.status)
-            self._take_acks(msg.ack_seq, now)
+            if self.tr.acknowledges:
+                self._take_acks(msg.ack_seq, now)
             if self.t0 is None:
                 return  # before the first command: nothing is in force yet
             self.telemetry += 1
@@ -471,6 +474,14 @@ class _Session:
             self.writer.write(t, self.cmd_in_force, wheels,
                               extra=("tlm", msg.seq, f"{ctrl_t:.6f}", msg.status))
             self.pump.push(t, self.cmd_in_force.copy(), wheels, ctrl_t)
+        elif isinstance(msg, PoseReading):
+            if self.t0 is None:
+                return
+            # a row of its own, at its receive time: the robot's odometry and joint states
+            # may share a stamp, which the controller-clock column must not repeat
+            self.writer.write(self._row_time(now), self.cmd_in_force,
+                              pose=(msg.x_m, msg.y_m, msg.phi_deg),
+                              extra=("odom", msg.seq, "", ""))
         elif isinstance(msg, Pong):
             sent = self._pings.pop(msg.token, None)
             if sent is not None:
@@ -515,7 +526,7 @@ class _Session:
                 if not isinstance(msg, Telemetry):
                     self._other_frames += 1
             # a lost link is telemetry that stopped, whatever else keeps arriving
-            if self.telemetry_rate_hz > 0 and now - self.last_tlm > self.config.link_timeout_s \
+            if self.telemetry_rate_hz > 0 and now - self.last_tlm > self.link_timeout_s \
                     and (msg is None or self._other_frames >= _OTHER_FRAMES_BEFORE_CHECK):
                 raise LinkLostError(
                     f"{self.tr.port}: link lost: no telemetry from the controller for "
@@ -554,6 +565,9 @@ class _Session:
                 f"{self.tr.port}: the controller speaks protocol version {msg.version}, this "
                 f"host speaks {PROTOCOL_VERSION} (update the firmware or mecanum-hil)")
         self.telemetry_rate_hz = msg.telemetry_rate_hz
+        if msg.telemetry_rate_hz > 0:
+            self.link_timeout_s = max(self.config.link_timeout_s,
+                                      self.tr.min_link_timeout_s(msg.telemetry_rate_hz))
         self.watchdog_ms = msg.watchdog_ms
         self.wheel_limit_rpm = msg.wheel_limit_rpm
         self.controller = msg.name
@@ -574,7 +588,7 @@ class _Session:
                 f"{self.tr.port}: the controller's watchdog is {self.watchdog_ms} ms but "
                 f"commands are up to {widest * 1000:.0f} ms apart")
         rate = self.telemetry_rate_hz
-        if rate > 0 and LINK_TIMEOUT_PERIODS / rate > self.config.link_timeout_s:
+        if rate > 0 and LINK_TIMEOUT_PERIODS / rate > self.link_timeout_s:
             # a slower stream cannot show a live link within the timeout: refused here, not
             # found out as a lost link half a second into the run
             raise ProtocolError(
@@ -633,7 +647,8 @@ class _Session:
 
     def run(self) -> None:
         self.handshake()
-        ping_period = 1.0 / self.config.ping_rate_hz if self.config.ping_rate_hz > 0 else math.inf
+        ping_period = (1.0 / self.config.ping_rate_hz
+                       if self.config.ping_rate_hz > 0 and self.tr.acknowledges else math.inf)
         self.t0 = time.perf_counter()
         next_ping = self.t0
         for i in range(len(self.t_s)):
@@ -1079,6 +1094,7 @@ def _end_metadata(sess: _Session, transport: Transport, reason: str, message: st
     result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
                    "link_stats": transport.stats.as_dict(), "latency_ms": latency,
                    "link_events": sess.events,
+                   **transport.link_metadata(),
                    "invalid_readings": sess.invalid_readings,
                    "controller": sess.controller,
                    "controller_wheel_limit_rpm": (sess.wheel_limit_rpm

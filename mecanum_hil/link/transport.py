@@ -35,7 +35,28 @@ ENTRY_POINT_GROUP = "mecanum_hil.transports"
 TRANSPORTS: dict[str, str] = {
     "serial": "mecanum_hil.link.serial_link:SerialTransport",
     "can": "mecanum_hil.link.can_link:CanTransport",
+    "ros2": "mecanum_hil.link.ros2.transport:Ros2Transport",
 }
+
+
+@dataclass(frozen=True)
+class PoseReading:
+    """A pose the robot measured itself (its odometry), from transports that carry one.
+
+    Attributes
+    ----------
+    x_m, y_m : float
+        Position in the odometry frame [m].
+    phi_deg : float
+        Heading [deg].
+    seq : int
+        Counts the readings from 0.
+    """
+
+    x_m: float
+    y_m: float
+    phi_deg: float
+    seq: int = 0
 
 
 @dataclass
@@ -77,6 +98,9 @@ class Transport(ABC):
     name: ClassVar[str] = "abstract"
     #: Sequence numbers run modulo this (2**16 on serial, 2**8 on CAN).
     seq_modulus: ClassVar[int] = 1 << 16
+    #: Whether the peer acknowledges commands (telemetry's ``ack_seq``) and answers PING;
+    #: a link without (ROS 2) has no command-to-acknowledgement latency to measure.
+    acknowledges: ClassVar[bool] = True
 
     def __init__(self) -> None:
         self.stats = LinkStats()
@@ -154,6 +178,15 @@ class Transport(ABC):
         if role not in ("host", "controller"):
             raise ValueError(f"role must be 'host' or 'controller', got {role!r}")
         self.receives = CONTROLLER_MESSAGES if role == "host" else HOST_MESSAGES
+
+    def min_link_timeout_s(self, telemetry_rate_hz: float) -> float:
+        """The shortest telemetry silence this link may count as lost at ``telemetry_rate_hz``
+        [s] (0: the configured timeout holds)."""
+        return 0.0
+
+    def link_metadata(self) -> dict[str, Any]:
+        """What the recording's sidecar says of this link at the end of a run (none here)."""
+        return {}
 
     def send_raw(self, data: Any) -> None:
         """Put ``data`` on the wire as it is, bypassing framing and numbering (conformance

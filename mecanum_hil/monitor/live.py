@@ -1,8 +1,9 @@
-"""Shadow mode on a live link: beside ``record`` (an observer) and listening on a CAN bus.
+"""Shadow mode on a live link: beside ``record`` (an observer) and listening passively.
 
 The stateful edge around :class:`~mecanum_hil.monitor.core.ShadowMonitor`: the JSON-lines
 event log next to the recording, alarm lines on the terminal, the status line, and (passive
-CAN listening) the bus itself.
+listening) the link itself through one seam, :class:`HeardSource`, with a CAN bus
+(:class:`CanSource`) and a ROS 2 graph (:mod:`.ros2_listen`) behind it.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -170,13 +172,97 @@ def record_shadow(calibration: str | Path, robot: RobotProfile, t_s, commands,
     return live
 
 
-def _send_stop(link, live: LiveShadow, t_s: float, cmd: np.ndarray, heard: dict) -> None:
+class HeardSource(ABC):
+    """A link heard passively: the commands someone else sends and the wheel speeds the robot
+    reports, each as a protocol message (:class:`~mecanum_hil.link.protocol.Command`,
+    ``Stop``, ``HelloAck``, ``Telemetry``) stamped on the source's clock.
+
+    The one seam of a passive ``shadow``: a CAN bus and a ROS 2 graph are heard through it.
+    """
+
+    #: Where it listens, for messages (``virtual:x``, ``ROS 2 domain 0``).
+    name: str = ""
+    #: What to check when nothing was heard.
+    hint: str = "is the robot there?"
+
+    @abstractmethod
+    def receive(self, timeout_s: float) -> list[tuple[Any, float]]:
+        """The messages heard within ``timeout_s`` [s], each with its stamp [s, epoch];
+        raise :class:`~mecanum_hil.errors.LinkLostError` when the link is gone."""
+
+    def send_stop(self) -> None:
+        """Command the robot to stop (only sources that may send; see ``can_stop``)."""
+        raise NotImplementedError(f"{self.name}: this listener sends nothing")
+
+    #: Whether :meth:`send_stop` works (``--on-divergence stop``).
+    can_stop: bool = False
+
+    def on_status(self, live: LiveShadow, now_s: float) -> None:
+        """Called at least every 0.1 s while listening (a health report to publish)."""
+        return None
+
+    def counts(self) -> dict[str, int]:
+        """Counters of the source itself (bad frames ...), for the summary."""
+        return {}
+
+    def close(self) -> None:
+        """Release the bus or the participant."""
+        return None
+
+
+class CanSource(HeardSource):
+    """A CAN bus heard through the protocol's CAN mapping (``link/can_link.py``)."""
+
+    can_stop = True
+    hint = "is the controller on this bus, at this bitrate?"
+
+    def __init__(self, interface: str, channel: str | None, bitrate: int | None,
+                 bus=None) -> None:
+        from ..link.can_link import CanCodec, CanTransport
+
+        self.link = CanTransport(interface, channel, bitrate, bus=bus)
+        self.name = self.link.port
+        self.codec = CanCodec()
+        self.bad_frames = 0
+
+    def receive(self, timeout_s: float) -> list[tuple[Any, float]]:
+        import can
+
+        from ..errors import LinkLostError
+        from ..link.protocol import FrameError
+
+        try:
+            frame = self.link.bus.recv(timeout=timeout_s)
+        except (can.CanError, OSError, ValueError) as err:
+            raise LinkLostError(f"CAN {self.link.port}: link lost: {err}") from err
+        if frame is None or frame.is_error_frame or frame.is_remote_frame:
+            return []
+        try:
+            msg = self.codec.decode(frame.arbitration_id, bytes(frame.data))
+        except FrameError:
+            self.bad_frames += 1
+            return []
+        return [] if msg is None else [(msg, frame.timestamp or time.time())]
+
+    def send_stop(self) -> None:
+        from ..link.protocol import Stop
+
+        self.link.send(Stop())
+
+    def counts(self) -> dict[str, int]:
+        return {"bad_frames": self.bad_frames}
+
+    def close(self) -> None:
+        self.link.close()
+
+
+def _send_stop(source: HeardSource, live: LiveShadow, t_s: float, cmd: np.ndarray,
+               heard: dict) -> None:
     """Send STOP (best effort) and tell the model: a bus does not echo one's own frames."""
     from ..errors import LinkError
-    from ..link.protocol import Stop
 
     try:
-        link.send(Stop())
+        source.send_stop()
     except LinkError as err:
         if live.log is not None:
             live.log.write({"event": "stop_failed", "t_s": t_s, "error": str(err)})
@@ -198,12 +284,47 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
     (``MC_STATUS`` + ``MC_WHEELS``) is timed by the controller's clock mapped onto the bus
     clock (:class:`ControllerClock`), then compared with the model. Nothing is sent, except
     with ``stop_on_divergence``: then STOP goes out at the first alarm and again after every
-    command heard from then on, until listening ends.
+    command heard from then on, until listening ends. See :func:`listen` for the rest of
+    the parameters.
 
     Parameters
     ----------
     interface, channel, bitrate
         The python-can bus (or ``bus``, an open one, for tests).
+
+    Returns
+    -------
+    int
+        Number of alarms.
+    """
+    import can  # noqa: F401  (python-can missing fails here, before the bus is opened)
+
+    from ..errors import ConfigError
+
+    if bus is None and not channel:
+        raise ConfigError("passive CAN listening needs --channel (and --interface)")
+    return len(listen(lambda: CanSource(interface, channel, bitrate, bus=bus), calibration,
+                      robot, config, out=out, events=events, duration_s=duration_s,
+                      stop_on_divergence=stop_on_divergence, echo=echo,
+                      status_every_s=status_every_s, foxglove=foxglove,
+                      name=f"{interface}:{channel}"))
+
+
+def listen(open_source: Callable[[], HeardSource], calibration: str | Path,
+           robot: str | Path, config: ShadowConfig, *, out: str | Path | None = None,
+           events: str | Path | None = None, duration_s: float | None = None,
+           stop_on_divergence: bool = False, echo: Callable[[str], None] = print,
+           status_every_s: float = 0.5, foxglove: str | None = None, name: str = "",
+           mode: str = "listen-can") -> int:
+    """Listen passively to a source where someone else commands the robot.
+
+    Commands act from their stamps; telemetry is timed by the robot's clock mapped onto the
+    source's (:class:`ControllerClock`), then compared with the model.
+
+    Parameters
+    ----------
+    open_source : callable
+        Opens the :class:`HeardSource` (after the monitor and its log exist).
     calibration, robot
         Names or files.
     config : ShadowConfig
@@ -214,32 +335,30 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
     duration_s : float, optional
         Stop listening after this long [s]; default until Ctrl-C.
     stop_on_divergence : bool
+        Send STOP at the first alarm (sources that may send).
     echo : callable
         Terminal output (alarm lines, the status line, the summary).
     status_every_s : float
         Period of the status line [s].
     foxglove : str, optional
         Also serve the live view for Foxglove at ``HOST:PORT`` ("": localhost:8765).
+    name, mode : str
+        The source's name and the event log's mode, for its header.
 
     Returns
     -------
-    int
-        Number of alarms.
+    tuple of Alarm
+        The alarms raised.
     """
-    import can  # noqa: F401  (python-can missing fails here, before the bus is opened)
-
     from ..errors import ConfigError, MecanumHILError
-    from ..link.can_link import CanTransport
     from ..model import load_calibration
 
-    if bus is None and not channel:
-        raise ConfigError("passive CAN listening needs --channel (and --interface)")
     if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
         raise ConfigError(f"--duration must be a finite number of seconds > 0, got {duration_s}")
     cal = load_calibration(calibration)
     live = _listening_shadow(cal, robot, config, out, events, stop_on_divergence, echo,
-                             f"{interface}:{channel}")
-    link = None
+                             name, mode)
+    source = None
     writer = None
     view = None
     heard = {"commands": 0, "stops": 0, "telemetry": 0, "stops_sent": 0, "bad_frames": 0}
@@ -248,22 +367,27 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
             from .foxglove import start_live_view
 
             view = start_live_view(foxglove, live, echo=echo)
-        link = CanTransport(interface, channel, bitrate, bus=bus)
+        source = open_source()
+        if stop_on_divergence and not source.can_stop:
+            raise ConfigError(f"{source.name}: this listener never commands the robot; "
+                              "--on-divergence stop is not available here")
         if out is not None:
-            writer = _open_heard_recording(out, link.port, cal)
-        echo(f"shadow: listening on {link.port} (sending nothing"
+            writer = _open_heard_recording(out, source.name, cal)
+        echo(f"shadow: listening on {source.name} (sending nothing"
              + (", STOP on divergence)" if stop_on_divergence else ")"))
-        _listen(link, _Listening(live, link, view, writer, heard), duration_s,
+        _listen(source, _Listening(live, source, view, writer, heard), duration_s,
                 status_every_s)
     except KeyboardInterrupt:
         pass  # Ctrl-C is how an open-ended listen ends
     finally:
         if sys.stderr.isatty():
             print("", file=sys.stderr)  # end the status line
+        if source is not None:
+            heard.update(source.counts())
         if writer is not None:
             writer.close({"heard": heard})
-        if link is not None:
-            link.close()
+        if source is not None:
+            source.close()
         if view is not None:
             view.live.close()
         summary = live.close(**heard)
@@ -274,51 +398,43 @@ def listen_can(interface: str, channel: str | None, bitrate: int | None,
     if not heard["telemetry"]:
         # no alarm because nothing was compared: not a robot that matched its model
         raise MecanumHILError(
-            f"heard no telemetry on {interface}:{channel}: nothing was compared with the model "
-            "(is the controller on this bus, at this bitrate?)")
-    return len(live.monitor.alarms)
+            f"heard no telemetry on {name or source.name}: nothing was compared with the "
+            f"model ({source.hint if source is not None else 'is the robot there?'})")
+    return tuple(live.monitor.alarms)
 
 
 def _listening_shadow(cal: Calibration, robot: str | Path, config: ShadowConfig,
                       out: str | Path | None, events: str | Path | None,
                       stop_on_divergence: bool, echo: Callable[[str], None],
-                      bus_name: str) -> LiveShadow:
+                      bus_name: str, mode: str = "listen-can") -> LiveShadow:
     """The shadow monitor of a passive listen, its event log next to ``out`` by default."""
     from ..model import load_robot_profile
 
     rob = load_robot_profile(robot)
     log_path = events if events is not None else (event_log_path(out) if out else None)
     return LiveShadow(cal, rob, config, log_path, stop_on_divergence=stop_on_divergence,
-                      echo=echo, header={"mode": "listen-can", "bus": bus_name,
+                      echo=echo, header={"mode": mode, "bus": bus_name,
                                          "recording": str(out) if out else None})
 
 
-def _listen(link, listening: _Listening, duration_s: float | None,
+def _listen(source: HeardSource, listening: _Listening, duration_s: float | None,
             status_every_s: float) -> None:
-    """Receive frames until ``duration_s`` has passed (or forever), refreshing the status line."""
-    import can
-
-    from ..errors import LinkLostError
-    from ..link.can_link import CanCodec
-
-    live, heard = listening.live, listening.heard
-    codec = CanCodec()
+    """Receive until ``duration_s`` has passed (or forever), refreshing the status line."""
+    live = listening.live
     tty = sys.stderr.isatty()
     start = time.perf_counter()
     end = math.inf if duration_s is None else start + duration_s
     next_status = start + status_every_s
     while (now := time.perf_counter()) < end:
-        try:
-            frame = link.bus.recv(timeout=min(0.1, end - now))
-        except (can.CanError, OSError, ValueError) as err:
-            raise LinkLostError(f"CAN {link.port}: link lost: {err}") from err
-        if time.perf_counter() >= next_status:
-            next_status = time.perf_counter() + status_every_s
+        items = source.receive(min(0.1, end - now))
+        now = time.perf_counter()
+        if now >= next_status:
+            next_status = now + status_every_s
             if tty:
                 print("\r" + live.status_line()[:150], end="", file=sys.stderr, flush=True)
-        msg = _decode_frame(codec, frame, heard)
-        if msg is not None:
-            listening.on_message(msg, frame.timestamp or time.time())
+        for msg, stamp in items:
+            listening.on_message(msg, stamp)
+        source.on_status(live, now)
 
 
 def _open_heard_recording(out: str | Path, port: str, cal: Calibration):
@@ -333,20 +449,6 @@ def _open_heard_recording(out: str | Path, port: str, cal: Calibration):
                            "time mapped onto it)"}})
 
 
-def _decode_frame(codec, frame, heard: dict):
-    """The message a received CAN frame completes, or ``None`` (none, an error or remote
-    frame, a corrupt one, counted in ``heard``, or the first half of a telemetry sample)."""
-    from ..link.protocol import FrameError
-
-    if frame is None or frame.is_error_frame or frame.is_remote_frame:
-        return None
-    try:
-        return codec.decode(frame.arbitration_id, bytes(frame.data))
-    except FrameError:
-        heard["bad_frames"] += 1
-        return None
-
-
 class _Listening:
     """What a passive listen has heard so far: the bus time origin, the command in force.
 
@@ -355,8 +457,9 @@ class _Listening:
     and after every command heard from then on.
     """
 
-    def __init__(self, live: LiveShadow, link, view, writer, heard: dict) -> None:
-        self.live, self.link, self.view, self.writer = live, link, view, writer
+    def __init__(self, live: LiveShadow, source: HeardSource, view, writer,
+                 heard: dict) -> None:
+        self.live, self.source, self.view, self.writer = live, source, view, writer
         self.heard = heard
         self.clock = ControllerClock()
         self.t0: float | None = None
@@ -394,7 +497,7 @@ class _Listening:
         self.last_t = t
         if live.stop_requested and is_command:
             # python-can stamps frames on the epoch clock: our STOP goes out now
-            _send_stop(self.link, live, max(time.time() - self.t0, t), self.cmd, heard)
+            _send_stop(self.source, live, max(time.time() - self.t0, t), self.cmd, heard)
 
     def _on_telemetry(self, msg, stamp: float) -> None:
         live, cmd = self.live, self.cmd
@@ -412,4 +515,4 @@ class _Listening:
         if self.view is not None:
             self.view.on_telemetry(t, cmd, wheels)
         if live.stop_requested and not was:
-            _send_stop(self.link, live, max(time.time() - self.t0, t), cmd, self.heard)
+            _send_stop(self.source, live, max(time.time() - self.t0, t), cmd, self.heard)
