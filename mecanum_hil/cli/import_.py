@@ -51,7 +51,7 @@ def command(
         "(resampled to its times, never across an occlusion).")] = None,
     start_s: Annotated[str | None, typer.Option(
         "--start-s", metavar="S|auto", help="mocap: recording time of the capture's first "
-        "sample \\[s], or auto (motion onset against the commands; the default with "
+        "sample [s], or auto (motion onset against the commands; the default with "
         "--recording).")] = None,
 ) -> None:
     """Import a log into a recording (CSV + JSON sidecar)."""

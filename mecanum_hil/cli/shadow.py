@@ -43,13 +43,13 @@ def build_config(noise_rpm: float | None, drift: float, threshold: float, warmup
 
 
 NoiseOpt = Annotated[float | None, typer.Option(
-    "--noise-rpm", help="Wheel speed noise (1 sigma) \\[rpm]; default: estimated in the warm-up.")]
+    "--noise-rpm", help="Wheel speed noise (1 sigma) [rpm]; default: estimated in the warm-up.")]
 DriftOpt = Annotated[float, typer.Option(
-    "--drift", help="CUSUM allowance k \\[noise sigmas].")]
+    "--drift", help="CUSUM allowance k [noise sigmas].")]
 ThresholdOpt = Annotated[float, typer.Option(
-    "--threshold", help="CUSUM decision threshold h \\[noise sigmas].")]
+    "--threshold", help="CUSUM decision threshold h [noise sigmas].")]
 WarmupOpt = Annotated[float, typer.Option(
-    "--warmup", help="Initial window for the noise estimate \\[s].")]
+    "--warmup", help="Initial window for the noise estimate [s].")]
 
 
 def command(
@@ -79,12 +79,12 @@ def command(
     channel: Annotated[str | None, typer.Option(
         "--channel", help="Live CAN: channel (can0, /dev/ttyACM0...).")] = None,
     bitrate: Annotated[int | None, typer.Option(
-        "--bitrate", help="Live CAN: bitrate \\[bit/s].")] = None,
+        "--bitrate", help="Live CAN: bitrate [bit/s].")] = None,
     out: Annotated[Path | None, typer.Option(
         "--out", "-o", help="Live: also record what was heard (CSV); the event log goes next "
         "to it.")] = None,
     duration: Annotated[float | None, typer.Option(
-        "--duration", help="Live: stop listening after this long \\[s] (default: until Ctrl-C).")
+        "--duration", help="Live: stop listening after this long [s] (default: until Ctrl-C).")
     ] = None,
     on_divergence: Annotated[str, typer.Option(
         "--on-divergence", help="Live: 'none' (only report) or 'stop' (send STOP on the bus at "
