@@ -57,13 +57,13 @@ def command(
     """Import a log into a recording (CSV + JSON sidecar)."""
     import sys
 
-    from ..errors import ConfigError
+    from ..errors import UsageError
     from ..importers import import_source, with_notes
     from ..io.recording import format_rows, write_recording
     from ._options import refuse_overwriting
 
     if out is None and not dry_run:
-        raise ConfigError("give --out REC.csv (or --dry-run)")
+        raise UsageError("give --out REC.csv (or --dry-run)")
     if not dry_run:
         refuse_overwriting([(source, "the log"), (map_path, "the map"), (dbc_path, "the DBC"),
                             (recording, "the --recording", True)], [(out, "--out", True)])

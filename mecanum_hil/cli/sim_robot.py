@@ -42,10 +42,6 @@ def command(
     import signal
     import sys
 
-    from ..errors import ConfigError
-
-    if serial + slcan + (can is not None) != 1:
-        raise ConfigError("give exactly one of --serial, --slcan and --can INTERFACE:CHANNEL")
     from ..link.protocol import PROTOCOL_VERSION
 
     _check_telemetry_rate(telemetry_rate_hz, internal_rate_hz)

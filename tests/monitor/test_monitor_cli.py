@@ -161,7 +161,6 @@ def test_a_recording_shorter_than_the_warm_up_is_refused_not_passed(runs, tmp_pa
 
 @pytest.mark.parametrize("args, message", [
     (["--replay", "missing.csv"], "file not found"),
-    ([], "exactly one of --replay"),
     (["--replay", "x.csv", "--on-divergence", "explode"], "--on-divergence"),
 ])
 def test_bad_input_is_one_error_line(args, message, tmp_path):
