@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -76,11 +77,26 @@ def test_cli_json_out_and_report(tmp_path, campaign):
     assert cal.info["effects_added"] == names
     text = (tmp_path / "rep" / "report.md").read_text()
     assert "## Step 1: saturation" in text and "step1-saturation.png" in text
+    _header_counts_agree_with_the_regime_table(text)
     assert (tmp_path / "rep" / "step1-saturation.png").stat().st_size > 10_000
     # the extended calibration is accepted by simulate
     r = cli("simulate", "--commands", paths[1], "--calibration", out, "--out", tmp_path / "s.csv")
     assert r.returncode == 0, r.stderr
     assert read_recording(tmp_path / "s.csv").wheel_rpm.max() < 111.0
+
+
+def _header_counts_agree_with_the_regime_table(text: str) -> None:
+    """The report's header counts the wheel samples that each regime grouping shares out."""
+    n = int(re.search(r"(\d+) measured wheel samples", text).group(1))
+    table = text.split("## Where the model as given fails", 1)[1].split("```")[1]
+    groups: dict[str, int] = {}
+    for line in table.splitlines():
+        if line.startswith(" by "):
+            group = line.strip()
+            groups[group] = 0
+        elif groups and line.startswith("  ") and "%" in line:
+            groups[group] += int(line[14:].split()[0])
+    assert len(groups) == 3 and set(groups.values()) == {n}, (n, groups)
 
 
 def test_one_recording_is_enough(tmp_path, campaign):
