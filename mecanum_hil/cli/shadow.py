@@ -61,7 +61,7 @@ def command(
     json_out: JsonOpt = False,
     events: Annotated[Path | None, typer.Option(
         "--events", help="Event log (JSON lines); default: next to the recording, "
-        "REC.shadow.jsonl.")] = None,
+        "REC.shadow.jsonl (none beside a recording shipped with mecanum-hil).")] = None,
     no_events: Annotated[bool, typer.Option(
         "--no-events", help="Write no event log.")] = False,
     plot: Annotated[Path | None, typer.Option(
@@ -126,6 +126,7 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
     import json
 
     from ..errors import MecanumHILError
+    from ..io.resources import is_shipped
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile
     from ..monitor import replay
@@ -140,6 +141,8 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
         listeners.append(lambda e: typer.echo(alarm_line(e)) if e["event"] in (
             "alarm", "recovered") else None)
     log = None
+    # mecanum-hil's own folders (its sample recordings) get an event log only when asked
+    no_events = no_events or (events is None and is_shipped(path))
     if not no_events:
         target = events or event_log_path(path)
         mode = written_by(target)
