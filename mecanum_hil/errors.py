@@ -25,6 +25,14 @@ class ConfigError(MecanumHILError):
     """A robot profile, calibration, profile or effects file is missing or has a bad value."""
 
 
+class UsageError(ConfigError):
+    """The command line names what does not exist (an unknown profile name) or leaves out a
+    choice it needs (none of the options of which a command takes one). The CLI ends with 2,
+    as for click's own usage errors, and names the command's help."""
+
+    exit_code = 2
+
+
 class RecordingError(MecanumHILError):
     """A recording (CSV + optional JSON sidecar) is malformed or cannot be read or written."""
 

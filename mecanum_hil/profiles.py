@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
+from .errors import ConfigError, UsageError
 from .io.toml_config import TableReader, load_toml
 
 #: The most samples a profile is sampled into (an hour at 10 kHz is 3.6e7) [-].
@@ -219,5 +219,5 @@ def resolve_profile(name_or_path: str | Path) -> CommandProfile:
     p = Path(key)
     if p.suffix.lower() == ".toml" or p.exists():
         return load_profile(p)
-    raise ConfigError(
+    raise UsageError(
         f"unknown profile '{key}': not a file, and not one of {', '.join(PAPER_EXPERIMENTS)}")

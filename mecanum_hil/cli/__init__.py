@@ -12,7 +12,7 @@ import warnings
 
 import typer
 
-from ..errors import MecanumHILError, MecanumHILWarning, SessionTerminated
+from ..errors import MecanumHILError, MecanumHILWarning, SessionTerminated, UsageError
 from . import batch as batch_cmd
 from . import calibrate_camera as calibrate_camera_cmd
 from . import campaign, demo, measure_video, record, render_video, shadow, sim_robot, simulate
@@ -25,7 +25,7 @@ from . import fleet_report as fleet_report_cmd
 from . import import_ as import_cmd
 from . import measure_pose as measure_pose_cmd
 from . import train as train_cmd
-from ._options import fill_optional_values, point_at_devnull
+from ._options import check_one_of, fill_optional_values, point_at_devnull
 
 _COMMANDS = {
     "simulate": simulate.command,
@@ -81,7 +81,7 @@ def build_app(names=None, *, listing: bool = False) -> typer.Typer:
         if listing:
             application.command(name, help=inspect.getdoc(_COMMANDS[name]))(_listed)
         else:
-            application.command(name)(_interrupt_passes_typer(_COMMANDS[name]))
+            application.command(name)(_interrupt_passes_typer(_COMMANDS[name], name))
     return application
 
 
@@ -90,12 +90,14 @@ class _Interrupted(BaseException):
     exit 130) to :func:`main`, which says so in one line."""
 
 
-def _interrupt_passes_typer(fn):
+def _interrupt_passes_typer(fn, name: str):
     """``fn`` with a Ctrl-C it did not handle raised as :class:`_Interrupted` (its ``finally``
     clauses have run by then); a command that handles Ctrl-C itself and says how the run
-    ended (``record``) exits 130 through ``typer.Exit`` as before."""
+    ended (``record``) exits 130 through ``typer.Exit`` as before. Before ``fn`` runs, the
+    options of which command ``name`` takes exactly one are checked (:func:`check_one_of`)."""
     @functools.wraps(fn)
     def command(*args, **kwargs):
+        check_one_of(name, kwargs)
         try:
             return fn(*args, **kwargs)
         except KeyboardInterrupt as err:
@@ -146,22 +148,23 @@ def main(argv: list[str] | None = None) -> int:
     """Run the CLI and return its exit code.
 
     The package's own errors become ``error: ...`` on stderr and their ``exit_code``; usage
-    errors (an option's value, an unknown option, a missing argument) too, with exit 2 and
-    where to find the command's help; an unexpected exception is one line too (exit 70), with
-    the traceback behind ``--debug``. Commands end with other codes through ``typer.Exit``.
+    errors (an option's value, an unknown option, a missing argument, click's or the
+    package's :class:`UsageError`) too, with exit 2 and where to find the command's help; an
+    unexpected exception is one line too (exit 70), with the traceback behind ``--debug``.
+    Commands end with other codes through ``typer.Exit``.
     """
     import errno
 
     click_error, no_args_error = _click_exceptions()
     args = fill_optional_values(sys.argv[1:] if argv is None else list(argv))
     debug = "--debug" in args
+    name = _command_name(args)
     previous = _terminate_as_exception()
     try:
         with warnings.catch_warnings():
             # what was done to the data (time repaired on reading ...): one line each, always
             warnings.simplefilter("always", MecanumHILWarning)
             warnings.showwarning = _warning_printer(warnings.showwarning)
-            name = _command_name(args)
             app_ = build_app([name]) if name else build_app(listing=True)
             # not standalone: click's usage errors come here as exceptions (standalone, they
             # were a four-line usage block), typer.Exit(code) as the return value
@@ -183,7 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     except MecanumHILError as err:
         if debug:
             raise
-        _say(f"error: {err}")
+        where = f" (see 'mecanum-hil {name} --help')" if isinstance(err, UsageError) else ""
+        _say(f"error: {err}{where}")
         return err.exit_code
     except (KeyboardInterrupt, _Interrupted):
         _say("error: interrupted")

@@ -91,6 +91,30 @@ LinkOptionOpt = Annotated[list[str] | None, typer.Option(
     help="Extra transport option, repeatable (e.g. sleep_after_open=0 for slcan).")]
 
 
+#: Options of which a command takes exactly one, by parameter name, as the message names them:
+#: none or several is a usage error (exit 2), found before the command runs.
+ONE_OF = {
+    "record": {"profile": "--profile NAME_OR_FILE", "commands": "--commands REC.csv",
+               "policy": "--policy POLICY"},
+    "shadow": {"replay_path": "--replay REC.csv", "transport": "--transport can|ros2"},
+    "simulate": {"commands": "--commands REC.csv", "profile": "--profile NAME_OR_FILE"},
+    "sim-robot": {"serial": "--serial", "slcan": "--slcan", "can": "--can INTERFACE:CHANNEL",
+                  "transport": "--transport ros2"},
+}
+
+
+def check_one_of(command: str, values: dict) -> None:
+    """:class:`~mecanum_hil.errors.UsageError` unless exactly one of ``command``'s
+    :data:`ONE_OF` options is among ``values`` (given: neither ``None`` nor ``False``)."""
+    from ..errors import UsageError
+
+    options = ONE_OF.get(command, {})
+    given = [name for name in options if values.get(name) not in (None, False)]
+    if options and len(given) != 1:
+        *first, last = options.values()
+        raise UsageError(f"give exactly one of {', '.join(first)} and {last}")
+
+
 def refuse_overwriting(inputs, outputs) -> None:
     """One-line error when an output names an input: writing it would destroy data already
     recorded (``fit -o run.csv run.csv``, ``import log.csv -o log.csv``); or when an output

@@ -48,23 +48,23 @@ def command(
     candidates: Annotated[str | None, typer.Option(
         "--candidates", help="diagnose: comma-separated effects to consider.")] = None,
     noise_rpm: Annotated[float | None, typer.Option(
-        "--noise-rpm", help="shadow: wheel noise (1 sigma) \\[rpm]; default: estimated.")
+        "--noise-rpm", help="shadow: wheel noise (1 sigma) [rpm]; default: estimated.")
     ] = None,
     drift: Annotated[float, typer.Option(
-        "--drift", help="shadow: CUSUM allowance k \\[noise sigmas].")] = 1.0,
+        "--drift", help="shadow: CUSUM allowance k [noise sigmas].")] = 1.0,
     threshold: Annotated[float, typer.Option(
-        "--threshold", help="shadow: CUSUM decision threshold h \\[noise sigmas].")] = 10.0,
+        "--threshold", help="shadow: CUSUM decision threshold h [noise sigmas].")] = 10.0,
     warmup: Annotated[float, typer.Option(
-        "--warmup", help="shadow: noise estimation window \\[s].")] = 2.0,
+        "--warmup", help="shadow: noise estimation window [s].")] = 2.0,
     wheel: Annotated[int, typer.Option(
         "--wheel", min=1, max=4, help="measure-video: wheel column to fill.")] = 1,
     roi: Annotated[list[str] | None, typer.Option(
-        "--roi", help="measure-video: search region [N:]x,y,w,h \\[px].",
+        "--roi", help="measure-video: search region [N:]x,y,w,h [px].",
         metavar="[N:]X,Y,W,H")] = None,
     marker: Annotated[str, typer.Option(
         "--marker", help="measure-video: auto or aruco.")] = "auto",
     fps: Annotated[float | None, typer.Option(
-        "--fps", help="measure-video: frame rate overriding the timestamps \\[1/s].")] = None,
+        "--fps", help="measure-video: frame rate overriding the timestamps [1/s].")] = None,
     min_found: Annotated[float, typer.Option(
         "--min-found", help="measure-video: smallest share of frames with the marker.")
     ] = 0.5,
@@ -77,7 +77,7 @@ def command(
     ] = False,
     drift_threshold: Annotated[float, typer.Option(
         "--drift-threshold", help="Smallest coefficient change flagged as drift (also outside "
-        "the 95 % intervals) \\[%].")] = 5.0,
+        "the 95 % intervals) [%].")] = 5.0,
     json_out: JsonOpt = False,
 ) -> None:
     """Run a stage over a fleet's archive on Dask: one task per robot (and period).

@@ -58,7 +58,7 @@ def command(
     """
     import json
 
-    from ..errors import ConfigError
+    from ..errors import ConfigError, UsageError
     from ..identify.campaign import SHORT_CAMPAIGN, campaign_profiles, paper_campaign
     from ..io.paths import staged_folder
     from ..io.recording import write_recording
@@ -67,7 +67,7 @@ def command(
     from ..profiles import resolve_profile
 
     if profile and short:
-        raise ConfigError("give --profile or --short, not both")
+        raise UsageError("give --profile or --short, not both")
     if not (math.isfinite(telemetry_rate_hz) and telemetry_rate_hz > 0):
         raise ConfigError(f"--telemetry-rate must be a positive number of Hz, got "
                           f"{telemetry_rate_hz:g}")

@@ -31,7 +31,7 @@ def command(
     """Write a recording (and the model's prediction, and shadow events) as MCAP."""
     import numpy as np
 
-    from ..errors import ConfigError
+    from ..errors import ConfigError, UsageError
     from ..io.mcap_export import export_mcap
     from ..io.recording import read_recording
     from ..monitor.eventlog import event_log_path
@@ -39,7 +39,7 @@ def command(
     from ._options import refuse_overwriting
 
     if events is not None and no_events:
-        raise ConfigError("give --events or --no-events, not both")
+        raise UsageError("give --events or --no-events, not both")
     log_path = None if no_events else (events or event_log_path(recording))
     if log_path is not None and events is None and not log_path.exists():
         log_path = None  # the default log is optional

@@ -15,7 +15,7 @@ def command(
         "--out", "-o", help="Folder for summary.md and the PNG plots.", metavar="DIR")],
     drift_threshold: Annotated[float | None, typer.Option(
         "--drift-threshold", help="Recompute the drift with this smallest coefficient change "
-        "\\[%] (default: as the batch wrote it; 5 when joining tables).")] = None,
+        "[%] (default: as the batch wrote it; 5 when joining tables).")] = None,
 ) -> None:
     """Write drift plots (PNG) and a Markdown summary of a fleet's batch results."""
     import math

@@ -51,19 +51,19 @@ def command(
         "(resampled to its times, never across an occlusion).")] = None,
     start_s: Annotated[str | None, typer.Option(
         "--start-s", metavar="S|auto", help="mocap: recording time of the capture's first "
-        "sample \\[s], or auto (motion onset against the commands; the default with "
+        "sample [s], or auto (motion onset against the commands; the default with "
         "--recording).")] = None,
 ) -> None:
     """Import a log into a recording (CSV + JSON sidecar)."""
     import sys
 
-    from ..errors import ConfigError
+    from ..errors import UsageError
     from ..importers import import_source, with_notes
     from ..io.recording import format_rows, write_recording
     from ._options import refuse_overwriting
 
     if out is None and not dry_run:
-        raise ConfigError("give --out REC.csv (or --dry-run)")
+        raise UsageError("give --out REC.csv (or --dry-run)")
     if not dry_run:
         refuse_overwriting([(source, "the log"), (map_path, "the map"), (dbc_path, "the DBC"),
                             (recording, "the --recording", True)], [(out, "--out", True)])

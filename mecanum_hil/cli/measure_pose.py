@@ -24,15 +24,15 @@ def command(
         "--recording", help="Fill this recording's pose columns from the video.",
         metavar="REC.csv")] = None,
     video_start: Annotated[str | None, typer.Option(
-        "--video-start-s", help="Recording time of the first frame \\[s], or auto (the "
+        "--video-start-s", help="Recording time of the first frame [s], or auto (the "
         "robot's motion onset against the model for the commands; needs --recording). "
         "Default: 0, with --recording auto.", metavar="S|auto")] = None,
     calibration: CalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",
     window_s: Annotated[float, typer.Option(
-        "--window", help="Smoothing window \\[s] (0: per-frame poses).")] = 0.2,
+        "--window", help="Smoothing window [s] (0: per-frame poses).")] = 0.2,
     fps: Annotated[float | None, typer.Option(
-        "--fps", help="Frame rate overriding the video's timestamps \\[1/s].")] = None,
+        "--fps", help="Frame rate overriding the video's timestamps [1/s].")] = None,
     min_found: Annotated[float, typer.Option(
         "--min-found", help="Refuse when the robot's marker is in fewer frames (0..1).")] = 0.2,
     as_json: JsonOpt = False,

@@ -16,7 +16,7 @@ def command(
     wheel: Annotated[int, typer.Option(
         "--wheel", min=1, max=4, help="Wheel column to fill (1 FL, 2 FR, 3 RL, 4 RR).")] = 1,
     roi: Annotated[list[str] | None, typer.Option(
-        "--roi", help="Search region [N:]x,y,w,h \\[px]; one per wheel for several wheels.",
+        "--roi", help="Search region [N:]x,y,w,h [px]; one per wheel for several wheels.",
         metavar="[N:]X,Y,W,H")] = None,
     marker: Annotated[str, typer.Option(
         "--marker", help="auto (any saturated dot) or aruco (DICT_4X4_50, orientation).")
@@ -27,13 +27,13 @@ def command(
     invert: Annotated[bool, typer.Option(
         "--invert", help="Count clockwise in the image as positive.")] = False,
     fps: Annotated[float | None, typer.Option(
-        "--fps", help="Frame rate to use instead of the video's timestamps \\[1/s].")] = None,
+        "--fps", help="Frame rate to use instead of the video's timestamps [1/s].")] = None,
     window_s: Annotated[float, typer.Option(
-        "--window", help="Speed regression window \\[s].")] = 0.1,
+        "--window", help="Speed regression window [s].")] = 0.1,
     min_found: Annotated[float, typer.Option(
         "--min-found", help="Smallest share of frames with the marker (0..1).")] = 0.3,
     speed_range: Annotated[str | None, typer.Option(
-        "--speed-range", metavar="LO,HI", help="Expected speed range \\[rpm] (after --invert); "
+        "--speed-range", metavar="LO,HI", help="Expected speed range [rpm] (after --invert); "
         "one side may be empty: '0,' forwards only, ',0' backwards only. Resolves speeds beyond "
         "half a turn per frame (aliasing), refused without it.")] = None,
     fixed_camera: Annotated[bool, typer.Option(

@@ -17,26 +17,26 @@ def command(
     out: Annotated[Path, typer.Option("--out", "-o", help="Video to write (.mp4 or .avi).")],
     wheels: Annotated[str, typer.Option(
         "--wheels", help="Wheels to show side by side, e.g. 1 or 1,2.")] = "1",
-    fps: Annotated[float, typer.Option("--fps", help="Frame rate \\[1/s], 0.1..1000.")] = 30.0,
+    fps: Annotated[float, typer.Option("--fps", help="Frame rate [1/s], 0.1..1000.")] = 30.0,
     size: Annotated[str, typer.Option(
-        "--size", help="Frame size WxH \\[px], at most 4096 a side and 4096x2160 in all.")
+        "--size", help="Frame size WxH [px], at most 4096 a side and 4096x2160 in all.")
     ] = "320x240",
     start_s: Annotated[float, typer.Option(
-        "--start", help="Recording time of the first frame after the recording's start \\[s], "
+        "--start", help="Recording time of the first frame after the recording's start [s], "
         ">= 0.")] = 0.0,
     duration_s: Annotated[float | None, typer.Option(
-        "--duration", help="Video length \\[s] (default and most: to the recording's end).")
+        "--duration", help="Video length [s] (default and most: to the recording's end).")
     ] = None,
     noise: Annotated[float, typer.Option(
-        "--noise", help="Sensor noise, standard deviation \\[grey levels], 0..255.")] = 0.0,
+        "--noise", help="Sensor noise, standard deviation [grey levels], 0..255.")] = 0.0,
     blur: Annotated[float, typer.Option(
         "--blur", help="Motion blur: shutter open for this share of a frame (0..1).")] = 0.0,
     lighting: Annotated[float, typer.Option(
         "--lighting-drift", help="Relative amplitude of slow brightness change (0..1).")] = 0.0,
     tilt: Annotated[float, typer.Option(
-        "--tilt", help="Oblique view: angle off the wheel axis \\[deg].")] = 0.0,
+        "--tilt", help="Oblique view: angle off the wheel axis [deg].")] = 0.0,
     tilt_axis: Annotated[float, typer.Option(
-        "--tilt-axis", help="Direction of the tilt axis in the image \\[deg].")] = 0.0,
+        "--tilt-axis", help="Direction of the tilt axis in the image [deg].")] = 0.0,
     jpeg: Annotated[int | None, typer.Option(
         "--jpeg", help="Extra JPEG compression of each frame, quality 1..100.")] = None,
     distractors: Annotated[int, typer.Option(
@@ -52,20 +52,20 @@ def command(
     fender: Annotated[float, typer.Option(
         "--fender", help="Share of each wheel's height hidden by a fender from the top.")] = 0.0,
     hide: Annotated[list[str] | None, typer.Option(
-        "--hide", help="A card hides the wheels from A to B \\[s] (video clock), e.g. 2-2.5.",
+        "--hide", help="A card hides the wheels from A to B [s] (video clock), e.g. 2-2.5.",
         metavar="A-B")] = None,
     shake: Annotated[float, typer.Option(
-        "--shake", help="Camera shake: random offset of each frame, SD per axis \\[px] (at most "
+        "--shake", help="Camera shake: random offset of each frame, SD per axis [px] (at most "
         "the frame's smaller side).")] = 0.0,
     drift: Annotated[float, typer.Option(
-        "--drift", help="Camera drift: amplitude of a slow wandering \\[px] (at most the "
+        "--drift", help="Camera drift: amplitude of a slow wandering [px] (at most the "
         "frame's smaller side).")] = 0.0,
     flicker: Annotated[float, typer.Option(
         "--flicker", help="Mains-light flicker, relative amplitude (0..1).")] = 0.0,
     flicker_hz: Annotated[float, typer.Option(
-        "--flicker-hz", help="Flicker frequency \\[Hz] (100 or 120).")] = 100.0,
+        "--flicker-hz", help="Flicker frequency [Hz] (100 or 120).")] = 100.0,
     hue_shift: Annotated[float, typer.Option(
-        "--hue-shift", help="Marker colour drifting under the light, amplitude \\[deg], 0..180.")
+        "--hue-shift", help="Marker colour drifting under the light, amplitude [deg], 0..180.")
     ] = 0.0,
     truth: Annotated[Path | None, typer.Option(
         "--truth", help="Also write the true wheel speeds at the frame times (video clock), "

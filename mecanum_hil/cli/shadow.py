@@ -48,13 +48,13 @@ def build_config(noise_rpm: float | None, drift: float, threshold: float, warmup
 
 
 NoiseOpt = Annotated[float | None, typer.Option(
-    "--noise-rpm", help="Wheel speed noise (1 sigma) \\[rpm]; default: estimated in the warm-up.")]
+    "--noise-rpm", help="Wheel speed noise (1 sigma) [rpm]; default: estimated in the warm-up.")]
 DriftOpt = Annotated[float, typer.Option(
-    "--drift", help="CUSUM allowance k \\[noise sigmas].")]
+    "--drift", help="CUSUM allowance k [noise sigmas].")]
 ThresholdOpt = Annotated[float, typer.Option(
-    "--threshold", help="CUSUM decision threshold h \\[noise sigmas].")]
+    "--threshold", help="CUSUM decision threshold h [noise sigmas].")]
 WarmupOpt = Annotated[float, typer.Option(
-    "--warmup", help="Initial window for the noise estimate \\[s].")]
+    "--warmup", help="Initial window for the noise estimate [s].")]
 
 
 def command(
@@ -66,7 +66,7 @@ def command(
     json_out: JsonOpt = False,
     events: Annotated[Path | None, typer.Option(
         "--events", help="Event log (JSON lines); default: next to the recording, "
-        "REC.shadow.jsonl.")] = None,
+        "REC.shadow.jsonl (none beside a recording shipped with mecanum-hil).")] = None,
     no_events: Annotated[bool, typer.Option(
         "--no-events", help="Write no event log.")] = False,
     plot: Annotated[Path | None, typer.Option(
@@ -84,12 +84,12 @@ def command(
     channel: Annotated[str | None, typer.Option(
         "--channel", help="Live CAN: channel (can0, /dev/ttyACM0...).")] = None,
     bitrate: Annotated[int | None, typer.Option(
-        "--bitrate", help="Live CAN: bitrate \\[bit/s].")] = None,
+        "--bitrate", help="Live CAN: bitrate [bit/s].")] = None,
     out: Annotated[Path | None, typer.Option(
         "--out", "-o", help="Live: also record what was heard (CSV); the event log goes next "
         "to it.")] = None,
     duration: Annotated[float | None, typer.Option(
-        "--duration", help="Live: stop listening after this long \\[s] (default: until Ctrl-C).")
+        "--duration", help="Live: stop listening after this long [s] (default: until Ctrl-C).")
     ] = None,
     on_divergence: Annotated[str, typer.Option(
         "--on-divergence", help="Live: 'none' (only report) or 'stop' (send STOP on the bus at "
@@ -107,8 +107,6 @@ def command(
     """Run the model beside the robot and flag persistent divergence (exit 3 on alarms)."""
     from ..errors import ConfigError
 
-    if (replay_path is None) == (transport is None):
-        raise ConfigError("give exactly one of --replay REC.csv and --transport can|ros2")
     if on_divergence not in ("none", "stop"):
         raise ConfigError(f"--on-divergence must be 'none' or 'stop', got '{on_divergence}'")
     config = build_config(noise_rpm, drift, threshold, warmup)
@@ -144,6 +142,7 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
     import json
 
     from ..errors import MecanumHILError
+    from ..io.resources import is_shipped
     from ..io.timing import read_for_analysis
     from ..model import load_calibration, load_robot_profile
     from ..monitor import replay
@@ -158,6 +157,8 @@ def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
         listeners.append(lambda e: typer.echo(alarm_line(e)) if e["event"] in (
             "alarm", "recovered") else None)
     log = None
+    # mecanum-hil's own folders (its sample recordings) get an event log only when asked
+    no_events = no_events or (events is None and is_shipped(path))
     if not no_events:
         target = events or event_log_path(path)
         mode = written_by(target)

@@ -75,9 +75,6 @@ def command(
     if transport not in (None, "ros2"):
         raise ConfigError(f"--transport takes ros2 (--serial, --slcan and --can serve the "
                           f"wire protocol), got {transport!r}")
-    if serial + slcan + (can is not None) + (transport is not None) != 1:
-        raise ConfigError("give exactly one of --serial, --slcan, --can INTERFACE:CHANNEL and "
-                          "--transport ros2")
     from ..link.protocol import PROTOCOL_VERSION
 
     _check_telemetry_rate(telemetry_rate_hz, internal_rate_hz)

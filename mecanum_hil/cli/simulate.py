@@ -22,15 +22,12 @@ def command(
     plot: Annotated[Path | None, typer.Option("--plot", help="Also write a PNG plot.")] = None,
 ) -> None:
     """Write the model's prediction as a recording with the same t_s and commands."""
-    from ..errors import ConfigError
     from ..io.recording import empty_like_times, read_recording, write_recording
     from ..model import load_calibration, load_robot_profile
     from ..prediction import predict
     from ..profiles import resolve_profile
     from ._options import refuse_overwriting, shipped_or_file
 
-    if (commands is None) == (profile is None):
-        raise ConfigError("give exactly one of --commands REC.csv and --profile NAME_OR_FILE")
     refuse_overwriting([(commands, "the --commands recording", True),
                         (shipped_or_file(calibration), "the calibration")],
                        [(out, "--out", True), (plot, "--plot")])

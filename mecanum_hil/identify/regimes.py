@@ -31,6 +31,14 @@ from ..model.robot import RobotProfile
 POSE_CHANNELS = (("X", "m"), ("Y", "m"), ("phi", "deg"))
 _JUMP_RPM = 1.0
 
+#: The regimes of :func:`regime_masks` in their three groupings: each puts every wheel sample
+#: in exactly one of its regimes.
+REGIME_GROUPS = {
+    "change": ("transient", "steady"),
+    "speed": ("rest", "low speed", "high speed"),
+    "motion": ("straight", "strafing", "turning", "stopped"),
+}
+
 
 def wheel_residual(measured: Recording, predicted: Recording) -> np.ndarray:
     """Measured minus predicted wheel speeds [rpm], shape (T, 4); NaN where not measured."""
@@ -190,12 +198,16 @@ class Localisation:
         Over all wheel samples [rpm].
     noise_rpm : float
         Wheel noise level estimated from the residual's differences [rpm].
+    n_samples : int
+        Measured wheel samples (a time row holds up to four); each regime grouping of
+        :data:`REGIME_GROUPS` shares them out.
     """
 
     recordings: tuple[RecordingStat, ...]
     regimes: dict[str, RegimeStat]
     rmse_rpm: float
     noise_rpm: float
+    n_samples: int = 0
 
     def worst_regimes(self, ratio: float = 1.5) -> list[str]:
         """Regimes whose share of the squared residual is ``ratio`` times their share of samples.
@@ -213,11 +225,17 @@ class Localisation:
             wheels = " ".join(f"{w:7.3f}" for w in r.wheel_rmse_rpm)
             pose = " ".join(f"{p:7.4f}" for p in r.pose_rmse)
             out.append(f"  {r.name:24s} {r.rmse_rpm:8.3f} | {wheels} | {pose}")
-        out.append("per regime: samples, RMSE [rpm], share of samples -> share of squared "
-                   "residual")
-        for name, s in self.regimes.items():
-            out.append(f"  {name:12s} {s.n_samples:7d} {s.rmse_rpm:8.3f}  "
-                       f"{100 * s.share_of_samples:5.1f} % -> {100 * s.share_of_sse:5.1f} %")
+        out.append(f"per regime: wheel samples, RMSE [rpm], share of samples -> share of "
+                   f"squared residual; each grouping shares out all {self.n_samples} wheel "
+                   "samples")
+        for group in REGIME_GROUPS:
+            out.append(f" by {group}:")
+            for name in REGIME_GROUPS[group]:
+                s = self.regimes.get(name)
+                if s is not None:
+                    out.append(f"  {name:12s} {s.n_samples:7d} {s.rmse_rpm:8.3f}  "
+                               f"{100 * s.share_of_samples:5.1f} % -> "
+                               f"{100 * s.share_of_sse:5.1f} %")
         worst = self.worst_regimes()
         out.append("the model fails most in: " + (", ".join(worst) if worst else
                                                     "no regime stands out"))
@@ -262,4 +280,5 @@ def localise(measured: Sequence[Recording], predicted: Sequence[Recording],
         v = np.concatenate(parts)
         regimes[regime] = RegimeStat(int(v.size), rmse(v), v.size / n_all,
                                      float(np.sum(v * v)) / sse_all)
-    return Localisation(tuple(stats), regimes, rmse(allr), pooled_noise_sd(residuals))
+    return Localisation(tuple(stats), regimes, rmse(allr), pooled_noise_sd(residuals),
+                        int(allr.size))

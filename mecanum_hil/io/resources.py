@@ -18,6 +18,18 @@ DEFAULT_ROBOT = "tdam-stm"
 DEFAULT_CALIBRATION = "paper"
 
 
+#: The folders of a checkout that hold what mecanum-hil ships, beside the package itself.
+SHIPPED_FOLDERS = ("bench", "calibration", "docs", "drivers", "examples", "recordings", "tests")
+
+
+def is_shipped(path: str | Path) -> bool:
+    """Whether ``path`` lies in mecanum-hil's own folders: the package (with a wheel's copies
+    of the shipped files), or one of :data:`SHIPPED_FOLDERS` of the checkout it runs from."""
+    p = Path(path).resolve()
+    roots = (_PACKAGE_DIR, *(_PACKAGE_DIR.parent / folder for folder in SHIPPED_FOLDERS))
+    return any(p.is_relative_to(root) for root in roots)
+
+
 def resource_dir(folder: str) -> Path:
     """The shipped folder ``drivers`` or ``calibration``."""
     for root in _SEARCH_ROOTS:

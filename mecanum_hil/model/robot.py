@@ -32,7 +32,8 @@ class RobotProfile:
     wheel_speed_max_rpm : float
         Largest wheel speed target the controller may be sent [rpm].
     source : str
-        File the profile came from.
+        Where the profile came from: a shipped profile's name (``tdam-stm``), or a user's
+        file as given.
     """
 
     name: str = "TDAM-STM"
@@ -113,5 +114,6 @@ def load_robot_profile(name_or_path: str | Path = DEFAULT_ROBOT) -> RobotProfile
         body_width_m=robot.number("body_width_m", minimum=0, strict_minimum=True),
         mass_kg=robot.number("mass_kg", minimum=0, strict_minimum=True),
         wheel_speed_max_rpm=limits.number("wheel_speed_max_rpm", minimum=0, strict_minimum=True),
-        source=str(path),
+        # a shipped profile by its name, a user's file as given: never this machine's folders
+        source=str(path) if path == Path(name_or_path) else str(name_or_path),
     )

@@ -39,15 +39,35 @@ def test_sim_robot_duration_that_makes_no_sense(one_line_error, value):
     (["fit", "--bogus"], "No such option: --bogus"),
     (["simulate", "--profile", "paper-step-60"], "Missing option '--out'"),
     (["nope"], "No such command 'nope'"),
+    # the package's own usage errors: a name that does not exist, a choice left out
+    (["simulate", "--profile", "nonexistent", "--out", "x.csv"], "unknown profile 'nonexistent'"),
+    (["record", "--profile", "nonexistent", "--out", "x.csv", "--dry-run"], "unknown profile"),
+    (["campaign", "--profile", "nonexistent", "--out", "c"], "unknown profile"),
+    (["shadow"], "give exactly one of --replay REC.csv and --transport can"),
+    (["shadow", "--replay", "x.csv", "--transport", "can"], "give exactly one of --replay"),
+    (["simulate", "--out", "x.csv"], "give exactly one of --commands REC.csv and --profile"),
+    (["record", "--out", "x.csv"], "give exactly one of --profile NAME_OR_FILE, --commands"),
+    (["record", "--out", "x", "--policy", "p.npz", "--profile", "paper-turn"], "exactly one"),
+    (["sim-robot"], "give exactly one of --serial, --slcan and --can"),
+    (["sim-robot", "--serial", "--slcan"], "give exactly one of --serial"),
+    (["import", "log.csv"], "give --out REC.csv (or --dry-run)"),
+    (["export", "x.csv", "--out", "x.mcap", "--events", "e", "--no-events"], "not both"),
+    (["campaign", "--out", "c", "--profile", "paper-turn", "--short"], "not both"),
 ])
-def test_usage_errors_are_one_line_with_where_the_help_is(capsys, argv, fragment):
+def test_usage_errors_are_one_line_with_where_the_help_is(capsys, tmp_path, monkeypatch,
+                                                          argv, fragment):
     # click's four-line usage block (exit 2) became one line, still exit 2
     from mecanum_hil.cli import main
+
+    monkeypatch.chdir(tmp_path)  # nothing a refused command might write lands in the tree
 
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "\n" not in err and fragment in err, err
     assert "--help')" in err
+    if argv[0] != "nope":
+        assert err.endswith(f"(see 'mecanum-hil {argv[0]} --help')"), err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_help_and_exit_codes_of_commands_are_kept(capsys):

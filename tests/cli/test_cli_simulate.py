@@ -44,7 +44,6 @@ def test_simulate_profile_then_commands_of_a_recording(tmp_path):
 @pytest.mark.parametrize(
     ("args", "fragment"),
     [
-        (["simulate", "--profile", "nope", "--out", "x.csv"], "unknown profile 'nope'"),
         (["simulate", "--commands", "missing.csv", "--out", "x.csv"],
          "missing.csv: file not found"),
         (["simulate", "--profile", "paper-step-60", "--calibration", "bad.toml", "--out", "x.csv"],

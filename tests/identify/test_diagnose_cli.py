@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from mecanum_hil.model import Effects, RobotProfile, load_calibration
 from mecanum_hil.profiles import ramp, step
 
 ROBOT = RobotProfile()
+REPO = Path(__file__).resolve().parents[2]
 # a short campaign: two steps and a fast ramp past a 110 rpm ceiling
 PROFILES = [step(60.0, duration_s=1.5, rest_s=0.3, stop_s=1.0),
             step(120.0, duration_s=1.5, rest_s=0.3, stop_s=1.0),
@@ -76,11 +79,43 @@ def test_cli_json_out_and_report(tmp_path, campaign):
     assert cal.info["effects_added"] == names
     text = (tmp_path / "rep" / "report.md").read_text()
     assert "## Step 1: saturation" in text and "step1-saturation.png" in text
+    _header_counts_agree_with_the_regime_table(text)
+    _every_key_is_named_in_the_docs(doc)
     assert (tmp_path / "rep" / "step1-saturation.png").stat().st_size > 10_000
     # the extended calibration is accepted by simulate
     r = cli("simulate", "--commands", paths[1], "--calibration", out, "--out", tmp_path / "s.csv")
     assert r.returncode == 0, r.stderr
     assert read_recording(tmp_path / "s.csv").wheel_rpm.max() < 111.0
+
+
+def _header_counts_agree_with_the_regime_table(text: str) -> None:
+    """The report's header counts the wheel samples that each regime grouping shares out."""
+    n = int(re.search(r"(\d+) measured wheel samples", text).group(1))
+    table = text.split("## Where the model as given fails", 1)[1].split("```")[1]
+    groups: dict[str, int] = {}
+    for line in table.splitlines():
+        if line.startswith(" by "):
+            group = line.strip()
+            groups[group] = 0
+        elif groups and line.startswith("  ") and "%" in line:
+            groups[group] += int(line[14:].split()[0])
+    assert len(groups) == 3 and set(groups.values()) == {n}, (n, groups)
+
+
+def _keys(value):
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield k
+            yield from _keys(v)
+    elif isinstance(value, list):
+        for v in value:
+            yield from _keys(v)
+
+
+def _every_key_is_named_in_the_docs(doc: dict) -> None:
+    docs = (REPO / "docs" / "diagnose.md").read_text(encoding="utf-8")
+    missing = sorted({k for k in _keys(doc) if f"`{k}`" not in docs})
+    assert not missing, f"docs/diagnose.md names no `{missing}`"
 
 
 def test_one_recording_is_enough(tmp_path, campaign):

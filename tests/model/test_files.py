@@ -1,7 +1,9 @@
 """Robot profiles, calibrations and command profiles as files (issue 2)."""
 
+import json
 import math
 from dataclasses import replace
+from pathlib import PurePosixPath, PureWindowsPath
 
 import numpy as np
 import pytest
@@ -147,3 +149,36 @@ def test_bad_profile_file(tmp_path):
     p.write_text('[[segments]]\nkind = "jump"\nduration_s = 1\n')
     with pytest.raises(ConfigError, match=r"key 'segments\[0\].kind' must be one of"):
         load_profile(p)
+
+
+# --- what a sidecar says of the files it came from ------------------------------------------
+
+def _strings(value, key=""):
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield from _strings(v, k)
+    elif isinstance(value, list):
+        for v in value:
+            yield from _strings(v, key)
+    elif isinstance(value, str):
+        yield key, value
+
+
+def _absolute(text: str) -> bool:
+    return PurePosixPath(text).is_absolute() or PureWindowsPath(text).is_absolute()
+
+
+def test_no_shipped_sidecar_holds_an_absolute_path(repo):
+    sidecars = sorted((repo / "recordings").rglob("*.json"))
+    assert sidecars
+    for path in sidecars:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        # a port names the device the link opened (/dev/pts/0), not a file of the machine
+        found = [(k, v) for k, v in _strings(doc) if k != "port" and _absolute(v)]
+        assert not found, f"{path.name}: {found}"
+
+
+@pytest.mark.parametrize("given", ["tdam-stm", "drivers/tdam-stm.toml"])
+def test_robot_profile_source_is_the_name_or_the_path_as_given(repo, monkeypatch, given):
+    monkeypatch.chdir(repo)
+    assert load_robot_profile(given).source == given

@@ -161,7 +161,6 @@ def test_a_recording_shorter_than_the_warm_up_is_refused_not_passed(runs, tmp_pa
 
 @pytest.mark.parametrize("args, message", [
     (["--replay", "missing.csv"], "file not found"),
-    ([], "exactly one of --replay"),
     (["--replay", "x.csv", "--on-divergence", "explode"], "--on-divergence"),
 ])
 def test_bad_input_is_one_error_line(args, message, tmp_path):
@@ -200,3 +199,33 @@ def test_passive_listening_needs_can(tmp_path):
     r = cli("shadow", "--transport", "serial")
     assert r.returncode == 1 and r.stderr.startswith("error: ")
     assert "--transport can" in r.stderr
+
+
+def test_a_replay_of_a_shipped_sample_writes_into_the_repository_only_when_asked(repo,
+                                                                                  tmp_path):
+    samples = repo / "recordings" / "samples"
+    before = sorted(p.name for p in samples.iterdir())
+    rec = samples / "paper-step-60.csv"
+    try:
+        r = cli("shadow", "--replay", rec, "--calibration", "paper")
+        assert r.returncode in (0, 3), r.stderr
+        assert sorted(p.name for p in samples.iterdir()) == before
+        assert "wrote" not in r.stdout
+        # asked for: the log goes where --events names it
+        r = cli("shadow", "--replay", rec, "--calibration", "paper", "--events",
+                tmp_path / "e.jsonl")
+        assert r.returncode in (0, 3), r.stderr
+        assert '"mode": "replay"' in (tmp_path / "e.jsonl").read_text()
+    finally:
+        for p in samples.iterdir():
+            if p.name not in before:
+                p.unlink()
+
+
+def test_shipped_folders_are_the_package_and_the_checkouts_own(repo, tmp_path):
+    from mecanum_hil.io.resources import is_shipped
+
+    assert is_shipped(repo / "recordings" / "samples" / "paper-step-60.csv")
+    assert is_shipped(repo / "mecanum_hil" / "x.csv")
+    assert not is_shipped(repo / "runs" / "x.csv")  # a user's folder in the checkout
+    assert not is_shipped(tmp_path / "x.csv")

@@ -249,8 +249,9 @@ def _summary_lines(d: Diagnosis, recordings: Sequence[Recording], title: str) ->
     the selection rules."""
     ini = d.initial
     return [f"# {title}", "",
-            f"{len(recordings)} recordings, {sum(len(r) for r in recordings)} samples. Model as "
-            f"given: A = {ini.A:.5g} 1/s, B = {ini.B:.5g} 1/s, C = {ini.C:.5g} 1/s^2 "
+            f"{len(recordings)} recordings, {sum(len(r) for r in recordings)} time rows, "
+            f"{d.localisation_initial.n_samples} measured wheel samples. Model as given: "
+            f"A = {ini.A:.5g} 1/s, B = {ini.B:.5g} 1/s, C = {ini.C:.5g} 1/s^2 "
             f"({ini.source}); effects: {', '.join(ini.effects.active()) or 'none'}.", "",
             f"**Wheel RMSE {d.rmse_initial:.4g} rpm -> {d.rmse_final:.4g} rpm** "
             f"(noise level about {d.noise_rpm:.3g} rpm). Effects named: "
