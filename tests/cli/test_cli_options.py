@@ -48,7 +48,7 @@ def test_sim_robot_duration_that_makes_no_sense(one_line_error, value):
     (["simulate", "--out", "x.csv"], "give exactly one of --commands REC.csv and --profile"),
     (["record", "--out", "x.csv"], "give exactly one of --profile NAME_OR_FILE, --commands"),
     (["record", "--out", "x", "--policy", "p.npz", "--profile", "paper-turn"], "exactly one"),
-    (["sim-robot"], "give exactly one of --serial, --slcan and --can"),
+    (["sim-robot"], "give exactly one of --serial, --slcan, --can INTERFACE:CHANNEL and --transport ros2"),
     (["sim-robot", "--serial", "--slcan"], "give exactly one of --serial"),
     (["import", "log.csv"], "give --out REC.csv (or --dry-run)"),
     (["export", "x.csv", "--out", "x.mcap", "--events", "e", "--no-events"], "not both"),
