@@ -352,3 +352,24 @@ def test_shadow_beside_a_driven_robot_raises_an_error_after_the_fault_only(
     assert "wheel2_rpm" in first.message
     assert events.exists() and "listen-ros2" in events.read_text().splitlines()[0]
     assert not math.isnan(float(values["wheel2_rpm residual"]))
+
+
+def test_record_shadow_and_policy_work_as_over_serial(dds, ros2_robot, tmp_path):
+    ros2_robot()
+    out = tmp_path / "shadowed.csv"
+    proc = _record(out, "--shadow", "paper")
+    assert proc.returncode == 0, proc.stderr
+    assert "0 alarm(s)" in proc.stdout  # the robot is the paper's model
+    assert out.with_suffix(".shadow.jsonl").exists()
+    folder = tmp_path / "episodes"
+    proc = subprocess.run(_cli("record", "--transport", "ros2", "--policy", "scripted",
+                               "--task", "reach", "--episodes", "1", "--out", str(folder),
+                               "--no-progress", "--json"),
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["success_rate"] == 1.0 and summary["end_reason"] == "completed"
+    _, events = _rows(folder / "episode_000.csv")
+    assert events.count("tlm") > 50
+    last_stop = len(events) - 1 - events[::-1].index("stop")
+    assert "cmd" not in events[last_stop:]  # the robot settles after its last STOP
