@@ -110,9 +110,10 @@ uint16_t mh_status(const mh_core *c)
 /* Sets the wheel targets the state asks for and tells the board when they changed. */
 static void mh_apply_targets(mh_core *c)
 {
-    float w[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+    float w[4];
     int i;
     bool changed = false;
+    w[0] = w[1] = w[2] = w[3] = 0.0f;
     if (c->session && !c->estop && !c->stopped && !c->watchdog && c->have_command) {
         mh_command_to_wheels(c->command[0], c->command[1], c->command[2], c->cfg.k, w);
     }
@@ -349,6 +350,7 @@ static void mh_on_piece(mh_core *c, const uint8_t *piece, size_t len, uint32_t n
         return;
     }
     c->counters.received++;
+    c->last_type = type;
     mh_account_seq(c, seq);
     if (type == MH_HELLO) {
         if (version != MH_PROTOCOL_VERSION) {
@@ -452,7 +454,8 @@ size_t mh_tx_pending(const mh_core *c)
 
 void mh_init(mh_core *c, const mh_board *board, const mh_config *cfg)
 {
-    uint8_t *p = (uint8_t *)c;
+    /* volatile: the compiler must not turn the loop into a call of memset */
+    volatile uint8_t *p = (volatile uint8_t *)c;
     size_t i;
     for (i = 0; i < sizeof *c; i++) {
         p[i] = 0;

@@ -95,6 +95,7 @@ typedef struct mh_core {
     bool rx_have_seq;
     uint16_t rx_expected_seq;
     uint32_t rx_dropped_since_valid;
+    uint8_t last_type; /* type of the last valid frame received (0: none yet) */
     /* sending */
     uint8_t tx[MH_TX_BUFFER];
     size_t tx_head;

@@ -164,18 +164,19 @@ static bool parse_double(const char *text, double *out)
     return true;
 }
 
-static void print_counters(const mh_counters *k)
+static void print_counters(const mh_counters *k, uint8_t last_type)
 {
     fprintf(stderr,
             "{\"received\": %lu, \"malformed\": %lu, \"crc\": %lu, \"unknown_types\": %lu, "
             "\"version_errors\": %lu, \"echoes\": %lu, \"lost\": %lu, \"garbage_bytes\": %lu, "
             "\"refused_commands\": %lu, \"dropped_output\": %lu, \"telemetry_sent\": %lu, "
-            "\"telemetry_skipped\": %lu}\n",
+            "\"telemetry_skipped\": %lu, \"last_type\": %u}\n",
             (unsigned long)k->received, (unsigned long)k->malformed, (unsigned long)k->crc,
             (unsigned long)k->unknown_types, (unsigned long)k->version_errors,
             (unsigned long)k->echoes, (unsigned long)k->lost, (unsigned long)k->garbage_bytes,
             (unsigned long)k->refused_commands, (unsigned long)k->dropped_output,
-            (unsigned long)k->telemetry_sent, (unsigned long)k->telemetry_skipped);
+            (unsigned long)k->telemetry_sent, (unsigned long)k->telemetry_skipped,
+            (unsigned)last_type);
     fflush(stderr);
 }
 
@@ -287,7 +288,7 @@ int main(int argc, char **argv)
             }
         }
     }
-    print_counters(&core.counters);
+    print_counters(&core.counters, core.last_type);
     close(pb.master);
     close(slave);
     return 0;
