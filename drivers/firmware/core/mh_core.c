@@ -1,6 +1,7 @@
 #include "mh_core.h"
 
-#define MH_WATCHDOG_US (MH_WATCHDOG_MS * 1000u)
+/* in 32 bits also where int has 16 */
+#define MH_WATCHDOG_US ((uint32_t)MH_WATCHDOG_MS * 1000u)
 
 /* Body lengths of the host's types. */
 static int mh_host_body_len(uint8_t type)
