@@ -4,12 +4,15 @@ over a pseudo-terminal."""
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 
 import pytest
 from controller_checks import conformance, outcomes, passes_every_rule, record_ends_with_stop
 from firmware_make import make
+
+from mecanum_hil.cli import main
 
 
 def test_unit_tests_of_the_worked_examples_pass(firmware_build):
@@ -68,3 +71,22 @@ def test_record_against_the_host_port_ends_with_stop(tmp_path, host_controller):
     assert max(moving) > 55.0
     # the last frame the controller read was the host's STOP
     assert ctl.counters["last_type"] == 0x03
+
+
+def test_a_stalled_controller_is_a_lost_link_and_its_fault_is_recorded(tmp_path,
+                                                                       host_controller):
+    # the drive reports a fault 0.5 s after the HELLO, the controller stalls for 1 s at 2 s:
+    # record sees no telemetry for its 0.5 s link timeout, sends STOP and exits 4
+    out = tmp_path / "x.csv"
+    with host_controller("--fault-at-s", "0.5", "--stall-at-s", "2", "--stall-s", "1") as ctl:
+        code = main(["record", "--port", ctl.path, "--profile", "paper-step-60", "--out",
+                     str(out), "--no-progress"])
+    assert code == 4
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["end_reason"] == "link_lost"
+    events = side["link_events"]
+    assert events[0]["event"] == "status_fault" and 0.0 < events[0]["t_s"] < 2.0
+    # (a sample read after the stall may also carry WATCHDOG: 1 s without a command)
+    assert {e["event"] for e in events} <= {"status_fault", "status_watchdog"}, events
+    # the STOP sent during the stall was read after it, last; the late samples were skipped
+    assert ctl.counters["last_type"] == 0x03 and ctl.counters["telemetry_skipped"] > 0

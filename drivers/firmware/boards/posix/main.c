@@ -7,7 +7,7 @@
  *
  * It prints the path of the pseudo-terminal's slave end as the first line of standard output
  * and serves until SIGTERM or SIGINT, then prints its counters as one JSON line on standard
- * error and exits 0. */
+ * error and exits 0. --fault-at-s and --stall-at-s count from the first HELLO. */
 #define _XOPEN_SOURCE 700
 
 #include <errno.h>
@@ -34,7 +34,8 @@ typedef struct posix_board {
     bool estop_pressed_at_start;
     bool estop_seen;
     double estop_held_s;
-    double fault_at_s; /* < 0: never */
+    double fault_at_s; /* after the first HELLO; < 0: never */
+    double first_hello_s; /* < 0: none yet */
 } posix_board;
 
 static volatile sig_atomic_t stop_requested = 0;
@@ -106,7 +107,8 @@ static bool board_estop_pressed(void *ctx)
 static bool board_drive_fault(void *ctx)
 {
     posix_board *b = ctx;
-    return b->fault_at_s >= 0.0 && seconds_since_start(b) >= b->fault_at_s;
+    return b->fault_at_s >= 0.0 && b->first_hello_s >= 0.0
+           && seconds_since_start(b) - b->first_hello_s >= b->fault_at_s;
 }
 
 static int open_pty(char *path, size_t cap, int *slave)
@@ -200,6 +202,7 @@ int main(int argc, char **argv)
 
     pb.tau_s = 0.05;
     pb.fault_at_s = -1.0;
+    pb.first_hello_s = -1.0;
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
         const char *v = i + 1 < argc ? argv[i + 1] : NULL;
@@ -268,7 +271,11 @@ int main(int argc, char **argv)
         struct pollfd pfd;
         uint32_t idle;
         uint8_t buf[4096];
-        if (!stalled && stall_at_s >= 0.0 && seconds_since_start(&pb) >= stall_at_s) {
+        if (pb.first_hello_s < 0.0 && core.session) {
+            pb.first_hello_s = seconds_since_start(&pb);
+        }
+        if (!stalled && stall_at_s >= 0.0 && pb.first_hello_s >= 0.0
+            && seconds_since_start(&pb) - pb.first_hello_s >= stall_at_s) {
             /* fault injection: the controller reads and sends nothing for a while */
             struct timespec d;
             stalled = true;
