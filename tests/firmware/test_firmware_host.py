@@ -1,0 +1,92 @@
+"""The reference controller firmware (drivers/firmware): its C unit tests, its core built
+freestanding, and its POSIX host port against ``mecanum-hil conformance`` and ``record``
+over a pseudo-terminal."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+
+import pytest
+from controller_checks import conformance, outcomes, passes_every_rule, record_ends_with_stop
+from firmware_make import make
+
+from mecanum_hil.cli import main
+
+
+def test_unit_tests_of_the_worked_examples_pass(firmware_build):
+    # built and run under AddressSanitizer and UBSan by the Makefile
+    done = make(firmware_build, "test")
+    checks, failed = map(int, re.search(r"(\d+) checks, (\d+) failed", done.stdout).groups())
+    assert failed == 0 and checks > 3000, done.stdout
+
+
+def test_core_compiles_freestanding(firmware_build):
+    make(firmware_build, "core-freestanding")
+    assert all((firmware_build / f"fs_{name}.o").stat().st_size > 0
+               for name in ("mh_wire", "mh_kinematics", "mh_core"))
+
+
+def test_standalone_fuzz_driver_finds_nothing(firmware_build):
+    # pseudo-random frames, damage, clock steps and e-stop presses, each output frame checked
+    make(firmware_build, str(firmware_build / "fuzz_core"))
+    run = subprocess.run([str(firmware_build / "fuzz_core"), "1500"], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    counts = dict(zip(("HELLO_ACK", "TELEMETRY", "PONG", "ERROR"),
+                      map(int, re.findall(r"(\d+) (?:HELLO_ACK|TELEMETRY|PONG|ERROR)",
+                                          run.stdout)), strict=True))
+    assert all(n > 100 for n in counts.values()), counts
+
+
+@pytest.mark.slow
+def test_host_port_passes_every_rule(tmp_path, host_controller):
+    counters = passes_every_rule(tmp_path, host_controller())
+    assert counters["unknown_types"] > 0 and counters["version_errors"] > 0
+
+
+def test_e_stop_rules_with_the_e_stop_pressed(tmp_path, host_controller):
+    with host_controller("--estop-pressed") as ctl:
+        code, report = conformance(tmp_path, ctl.path, "--estop-pressed", "--rule", "estop")
+    assert code == 0, report
+    assert outcomes(report) == {"estop.harmless": "skip", "estop.held": "pass",
+                                 "estop.reset": "pass"}
+
+
+def test_e_stop_reset_while_the_button_is_held_is_refused(tmp_path, host_controller):
+    with host_controller("--estop-pressed", "--estop-held-s", "600") as ctl:
+        code, report = conformance(tmp_path, ctl.path, "--estop-pressed", "--rule", "estop")
+    assert code == 0, report
+    assert outcomes(report) == {"estop.harmless": "skip", "estop.held": "pass",
+                                 "estop.reset": "skip"}
+    assert "ERROR 3" in report["rules"][-1]["detail"], report
+
+
+def test_record_against_the_host_port_ends_with_stop(tmp_path, host_controller):
+    ctl = host_controller()
+    events, _ = record_ends_with_stop(tmp_path, ctl)
+    # the wheels followed the 60 rpm step during the run
+    moving = [float(e["wheel1_rpm"]) for e in events if e["event"] == "tlm" and e["wheel1_rpm"]]
+    assert max(moving) > 55.0
+    # the last frame the controller read was the host's STOP
+    assert ctl.counters["last_type"] == 0x03
+
+
+def test_a_stalled_controller_is_a_lost_link_and_its_fault_is_recorded(tmp_path,
+                                                                       host_controller):
+    # the drive reports a fault 0.5 s after the HELLO, the controller stalls for 1 s at 2 s:
+    # record sees no telemetry for its 0.5 s link timeout, sends STOP and exits 4
+    out = tmp_path / "x.csv"
+    with host_controller("--fault-at-s", "0.5", "--stall-at-s", "2", "--stall-s", "1") as ctl:
+        code = main(["record", "--port", ctl.path, "--profile", "paper-step-60", "--out",
+                     str(out), "--no-progress"])
+    assert code == 4
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["end_reason"] == "link_lost"
+    events = side["link_events"]
+    assert events[0]["event"] == "status_fault" and 0.0 < events[0]["t_s"] < 2.0
+    # (a sample read after the stall may also carry WATCHDOG: 1 s without a command)
+    assert {e["event"] for e in events} <= {"status_fault", "status_watchdog"}, events
+    # the STOP sent during the stall was read after it, last; the late samples were skipped
+    assert ctl.counters["last_type"] == 0x03 and ctl.counters["telemetry_skipped"] > 0
