@@ -57,6 +57,15 @@ def dry_run_report(t_s: np.ndarray, commands: np.ndarray, robot: RobotProfile,
                           seq=i + 1)
             lines.append(f"    t={t_s[i]:.3f} s COMMAND {encode(msg).hex(' ')}")
         lines.append(f"    end     STOP {encode(Stop(seq=len(t_s) + 1)).hex(' ')}")
+    elif transport_name == "ros2":
+        from .ros2.convert import command_to_twist_si
+
+        lines.append("  first twists (linear.x, linear.y [m/s], angular.z [rad/s]):")
+        for i in range(min(frames, len(t_s))):
+            vx, vy, wz = (v + 0.0 for v in command_to_twist_si(*commands[i],
+                                                              robot.wheel_radius_m))
+            lines.append(f"    t={t_s[i]:.3f} s  {vx:+.4f} {vy:+.4f} {wz:+.4f}")
+        lines.append("    end     a zero twist, five times within 0.1 s")
     return "\n".join(lines)
 
 

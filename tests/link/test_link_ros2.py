@@ -373,3 +373,12 @@ def test_record_shadow_and_policy_work_as_over_serial(dds, ros2_robot, tmp_path)
     assert events.count("tlm") > 50
     last_stop = len(events) - 1 - events[::-1].index("stop")
     assert "cmd" not in events[last_stop:]  # the robot settles after its last STOP
+
+
+def test_a_dry_run_shows_the_twists_and_opens_nothing(tmp_path):
+    proc = subprocess.run(_cli("record", "--transport", "ros2", "--profile", "paper-turn",
+                               "--out", str(tmp_path / "t.csv"), "--dry-run"),
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "first twists" in proc.stdout and "a zero twist, five times" in proc.stdout
+    assert not (tmp_path / "t.csv").exists()
