@@ -207,19 +207,20 @@ def discretise_closed_form(A, B, C, h):
 
 
 @njit(cache=True)
-def _sse(A, B, C, h_s, seg_start, h_idx, target, weight, mean, bound, tab):
-    """Model-dependent part of the SSE of one point; stops early once above ``bound``."""
+def _sse(A, B, C, h_s, seg_start, h_idx, target, weight, mean, bound, tab, done, pid):
+    """Model-dependent part of the SSE of one point; stops early once above ``bound``.
+
+    ``tab`` rows (one discretisation per step length) are computed when a step first needs
+    them, marked in ``done`` with the point's id ``pid``: a recording timed by a host has
+    hundreds of step lengths, and a sum that stops early needs few of them. A wheel at rest
+    with a zero target stays exactly at rest, so such steps need none.
+    """
     if not _admissible(A, B, C):
         return np.inf
-    for k in range(h_s.size):
-        d = discretise_closed_form(A, B, C, h_s[k])
-        for j in range(6):
-            tab[k, j] = d[j]
     total = 0.0
     if h_s.size == 1:
         # uniform sampling (the usual case): the update in registers
-        a11, a12, a21, a22 = tab[0, 0], tab[0, 1], tab[0, 2], tab[0, 3]
-        b1, b2 = tab[0, 4], tab[0, 5]
+        a11, a12, a21, a22, b1, b2 = discretise_closed_form(A, B, C, h_s[0])
         for s in range(seg_start.size - 1):
             y = 0.0
             z = 0.0
@@ -239,8 +240,15 @@ def _sse(A, B, C, h_s, seg_start, h_idx, target, weight, mean, bound, tab):
             total += weight[j] * e * e
             if total > bound:
                 return total
-            r = h_idx[j]
             u = target[j]
+            if u == 0.0 and y == 0.0 and z == 0.0:
+                continue  # the update gives zeros again, whatever the step
+            r = h_idx[j]
+            if done[r] != pid:
+                d = discretise_closed_form(A, B, C, h_s[r])
+                for k in range(6):
+                    tab[r, k] = d[k]
+                done[r] = pid
             y, z = (tab[r, 0] * y + tab[r, 1] * z + tab[r, 4] * u,
                     tab[r, 2] * y + tab[r, 3] * z + tab[r, 5] * u)
     return total
@@ -253,8 +261,9 @@ def sse_points(points, h_s, seg_start, h_idx, target, weight, mean):
     out = np.empty(n)
     for i in prange(n):
         tab = np.empty((h_s.size, 6))
+        done = np.full(h_s.size, -1, np.int64)
         out[i] = _sse(points[i, 0], points[i, 1], points[i, 2], h_s, seg_start, h_idx, target,
-                      weight, mean, np.inf, tab)
+                      weight, mean, np.inf, tab, done, 0)
     return out
 
 
@@ -275,11 +284,12 @@ def grid_rows(a_values, b_values, c_values, bound, h_s, seg_start, h_idx, target
         A = a_values[row // nb]
         B = b_values[row % nb]
         tab = np.empty((h_s.size, 6))
+        done = np.full(h_s.size, -1, np.int64)
         b_sse = np.inf
         b_i = -1
         for ic in range(c_values.size):
             v = _sse(A, B, c_values[ic], h_s, seg_start, h_idx, target, weight, mean,
-                     min(bound, b_sse), tab)
+                     min(bound, b_sse), tab, done, ic)
             if v < b_sse:
                 b_sse = v
                 b_i = ic
@@ -338,7 +348,16 @@ def grid_argmin(g: GridData, a_values, b_values, c_values) -> tuple[float, float
     sb = max(1, b.size // 64)
     sc = max(1, c.size // 64)
     sub = np.array(np.meshgrid(a[::sa], b[::sb], c[::sc], indexing="ij")).reshape(3, -1).T
-    bound = float(np.min(sse_points(np.ascontiguousarray(sub), *_args(g))))
+    sse = sse_points(np.ascontiguousarray(sub), *_args(g))
+    bound = float(np.min(sse))
+    if np.isfinite(bound):
+        # and from every point of the grid around the sub-grid's best: near the minimum
+        ia, ib, ic = np.unravel_index(int(np.argmin(sse)), (a[::sa].size, b[::sb].size,
+                                                              c[::sc].size))
+        near = [v[max(0, i * st - st):i * st + st + 1]
+                for v, i, st in ((a, ia, sa), (b, ib, sb), (c, ic, sc))]
+        win = np.array(np.meshgrid(*near, indexing="ij")).reshape(3, -1).T
+        bound = min(bound, float(np.min(sse_points(np.ascontiguousarray(win), *_args(g)))))
     best, idx = grid_rows(a, b, c, bound, *_args(g))
     row = int(np.argmin(best))  # first occurrence: smallest A, then B
     if not np.isfinite(best[row]) or idx[row] < 0:

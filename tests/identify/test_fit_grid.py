@@ -95,6 +95,35 @@ def test_pruned_rows_give_the_exhaustive_argmin_including_ties():
     assert (A, B, C) == (a[ia], b[ib], c[ic]) and sse == full[i]
 
 
+def host_timed_recording(seed=3):
+    """A step after a second at rest, timed as a host receives it: jitter of up to 1.5 ms
+    gives every step its own length, and a zero command leaves the wheels at rest."""
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(np.r_[0.0, 0.01 + rng.uniform(-0.0015, 0.0015, 299)])
+    t = np.round(t, 6)
+    cmd = np.zeros((t.size, 3))
+    cmd[:, 2] = 90.0
+    cmd[t >= 1.0, 0] = 60.0
+    w = simulate(cmd, t, TRUE, ROBOT).wheel_rpm[0] + rng.normal(0.0, 0.5, (t.size, 4))
+    return Recording(t, cmd, w, np.full((t.size, 3), np.nan))
+
+
+def test_host_timed_steps_give_the_exhaustive_sse_and_argmin():
+    data = prepare([host_timed_recording()], ROBOT)
+    g = grid.grid_data(data, Calibration(), ROBOT)
+    assert g.h_s.size > 100  # many step lengths, each discretised when first needed
+    pts = np.array([[27.0, 8.5, 610.0], [10.0, 15.5, 300.0], [2000.0, 25.0, 2000.0]])
+    ref = _sse_of(data, [Calibration(A=a, B=b, C=c) for a, b, c in pts], ROBOT)
+    np.testing.assert_allclose(grid.evaluate_points(g, pts), ref, rtol=1e-9)
+    a, b, c = grid.axis((0, 60, 3)), [8.5], grid.axis((0, 900, 45))
+    full = grid.evaluate_points(g, np.array(np.meshgrid(a, b, c, indexing="ij"))
+                                .reshape(3, -1).T)
+    i = int(np.argmin(full))
+    ia, _, ic = np.unravel_index(i, (a.size, 1, c.size))
+    A, B, C, sse = grid.grid_argmin(g, a, b, c)
+    assert (A, B, C) == (a[ia], 8.5, c[ic]) and sse == full[i]
+
+
 def test_grid_axis_is_free_of_rounding_and_rejects_bad_specs():
     b = grid.axis(grid.PAPER_B_GRID)
     assert b.size == 201 and b[100] == 15.5 and b[-1] == 25.5
