@@ -72,9 +72,9 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
 
     echo = None if json_out else echo_safely
     link = open_transport(transport, options)
-    if before_run is not None:
-        before_run()  # everything checked and the port open: the run starts here
     try:
+        if before_run is not None:
+            before_run()  # everything checked and the port open: the run starts here
         config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
         meta = {"policy": str(policy), "policy_info": pol.describe()}
         kwargs = dict(episodes=episodes, seed=seed, out_dir=out, config=config,

@@ -37,6 +37,9 @@ from ._options import (
     shipped_or_file,
 )
 
+#: Slowest command rate over ROS 2 [Hz]: a Mecanum drive controller takes a twist stream.
+MIN_ROS2_RATE_HZ = 50.0
+
 
 def refuse_replacing_recording(out: Path, folder: bool) -> None:
     """One-line error when ``--out`` already holds a recording (a folder of episodes with
@@ -142,6 +145,9 @@ def command(
 
     if connect_timeout_s is None:
         connect_timeout_s = 5.0 if transport == "ros2" else 2.0
+    if transport == "ros2" and rate_hz < MIN_ROS2_RATE_HZ:
+        raise ConfigError(f"--rate must be at least {MIN_ROS2_RATE_HZ:g} Hz over ROS 2 (robots "
+                          f"stop at their reference timeout), got {rate_hz:g}")
     require_positive(connect_timeout_s, "--connect-timeout")
     require_positive(link_timeout_s, "--link-timeout")
     ros2 = ros2_options(transport, cmd_topic=cmd_topic, cmd_type=cmd_type,
@@ -191,9 +197,9 @@ def command(
         if live_view is not None:  # a port that does not open must not leave a server running
             live_view.live.close()
         raise
-    if force and shadow is None:  # the session replaces the recording from here on
-        clear_former_run(out, folder=False)
     try:
+        if force and shadow is None:  # the session replaces the recording from here on
+            clear_former_run(out, folder=False)
         config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
         meta = {"commands_from": source, "command_rate_hz": rate_hz}
         if progress:

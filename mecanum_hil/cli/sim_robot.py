@@ -169,7 +169,7 @@ def _serve_ros2(model, options: dict, duration_s: float | None, log) -> None:
             robot.serve(duration_s)
         except KeyboardInterrupt:
             pass  # Ctrl-C is how it is stopped (as SIGTERM): a normal end, exit 0
-        log(f"stopped; {robot.commands_received} commands, {robot.timeouts} reference "
-            f"timeouts, last command {robot.last_twist}")
+        log(f"stopped; {robot.commands_received} commands, {robot.stale_commands} refused as "
+            f"stale, {robot.timeouts} reference timeouts, last command {robot.last_twist}")
     finally:
         node.close()

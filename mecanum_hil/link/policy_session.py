@@ -260,7 +260,8 @@ class _PolicySession(_Session):
         if self.telemetry_rate_hz <= 0:
             raise ConfigError(f"{self.tr.port}: the controller sends no telemetry; a policy "
                               "needs measured wheel speeds to act on")
-        ping_period = 1.0 / self.config.ping_rate_hz if self.config.ping_rate_hz > 0 else math.inf
+        ping_period = (1.0 / self.config.ping_rate_hz
+                       if self.config.ping_rate_hz > 0 and self.tr.acknowledges else math.inf)
         self.t0 = time.perf_counter()
         # the first observation: the latest state of the robot at rest (recorded from t0)
         self.pump_until(self.t0 + min(0.05, 5.0 / self.telemetry_rate_hz))

@@ -315,7 +315,7 @@ def listen(open_source: Callable[[], HeardSource], calibration: str | Path,
            events: str | Path | None = None, duration_s: float | None = None,
            stop_on_divergence: bool = False, echo: Callable[[str], None] = print,
            status_every_s: float = 0.5, foxglove: str | None = None, name: str = "",
-           mode: str = "listen-can") -> int:
+           mode: str = "listen-can") -> tuple:
     """Listen passively to a source where someone else commands the robot.
 
     Commands act from their stamps; telemetry is timed by the robot's clock mapped onto the

@@ -8,8 +8,9 @@ Foxglove show it): once a second, and at once when the level changes. It never p
 command.
 
 Levels: OK (0) while the robot follows its model (also during the warm-up), ERROR (2) while
-a channel has diverged (its wheel, residual and CUSUM in ``values``), STALE (3) when no joint
-state came for a second.
+a channel has diverged (its wheel and residual in ``values``), STALE (3) when no joint
+state came for a second. When the commands stop coming (a teleop that publishes only on a
+key press), the model stops the wheels after the robot's reference timeout, as the robot does.
 """
 
 from __future__ import annotations
@@ -51,6 +52,9 @@ class Ros2Source(HeardSource):
         Wheel joints (default detected from the first joint state) and signs.
     diagnostics_topic : str
         Where the status goes.
+    reference_timeout_s : float
+        The robot's command timeout [s]: when the commands stop coming, the model stops the
+        wheels this long after the last one, as the robot's controller does.
     domain : int, optional
         DDS domain (default ``ROS_DOMAIN_ID``, else 0).
     """
@@ -60,7 +64,7 @@ class Ros2Source(HeardSource):
     def __init__(self, robot: RobotProfile, *, cmd_topic: str = "/cmd_vel",
                  cmd_type: str = "twist", joint_topic: str = "/joint_states", joints=None,
                  wheel_signs=None, diagnostics_topic: str = "/diagnostics",
-                 domain: int | None = None) -> None:
+                 reference_timeout_s: float = 0.5, domain: int | None = None) -> None:
         from ..importers.rosbag import parse_joints, parse_wheel_signs
         from ..link.ros2.node import Ros2Node, ros2_messages
 
@@ -90,9 +94,16 @@ class Ros2Source(HeardSource):
         except BaseException:
             self.node.close()
             raise
+        from ..link.ros2.convert import RobotClock
+
+        self.reference_timeout_s = reference_timeout_s
+        self.clock = RobotClock()
+        self.ignored = 0
+        self._names_seen: set[str] = set()
+        self._moving = False
+        self._last_cmd_s = -math.inf
         self._theta = THETA_START_DEG
         self._seq = 0
-        self._origin_ns: int | None = None
         self._last_joint_s = -math.inf
         self._level: int | None = None
         self._next_publish = 0.0
@@ -117,11 +128,18 @@ class Ros2Source(HeardSource):
             raise LinkLostError(f"{self.name}: link lost: {err}") from err
         now = time.time()
         out: list[tuple[Any, float]] = []
-        out += [(self._command(s), now) for s in cmds if valid_sample(s)]
+        for s in cmds:
+            if valid_sample(s):
+                out.append((self._command(s), now))
+                self._last_cmd_s = now
         for s in joints:
             if valid_sample(s):
                 out.append((self._telemetry(s, now), now))
-                self._last_joint_s = time.monotonic()
+        if self._moving and not cmds and now - self._last_cmd_s > self.reference_timeout_s:
+            # the robot's own reference timeout has stopped it (a teleop that went quiet)
+            self._moving = False
+            out.append((Command(0.0, 0.0, self._theta, seq=self._seq),
+                        self._last_cmd_s + self.reference_timeout_s))
         return [(msg, stamp) for msg, stamp in out if msg is not None]
 
     def _command(self, sample) -> Command | None:
@@ -135,26 +153,35 @@ class Ros2Source(HeardSource):
                                             self._theta)[0]
         self._theta = float(theta)
         self._seq += 1
+        self._moving = any(x != 0.0 for x in v)
         return Command(float(n), float(omega), float(theta), seq=self._seq)
 
-    def _telemetry(self, js, recv_s: float) -> Telemetry:
+    def _telemetry(self, js, recv_s: float) -> Telemetry | None:
+        """A joint state as telemetry; None for one without the wheel joints (another
+        publisher on the topic: an arm, casters)."""
         from ..importers.rosbag import wheel_joints
         from ..link.ros2.convert import joint_wheel_rpm, stamp_to_ns
 
         if self.joints is None:
             self.joints = wheel_joints(list(js.name))
             if self.joints is None:
-                raise ConfigError(f"cannot tell the wheels apart in {self.joint_topic}; joints "
-                                  f"found: {', '.join(js.name) or 'none'} (give --joints "
-                                  "FL,FR,RL,RR)")
-        stamp = stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec)
-        t_ns = stamp if stamp > 0 else round(recv_s * 1e9)
-        if self._origin_ns is None:
-            self._origin_ns = t_ns
+                self._names_seen.update(js.name)
+                if len(self._names_seen) > 64 or self.ignored > 500:
+                    raise ConfigError(f"cannot tell the wheels apart in {self.joint_topic}; "
+                                      f"joints found: {', '.join(sorted(self._names_seen))} "
+                                      "(give --joints FL,FR,RL,RR)")
+                self.ignored += 1
+                return None
+        if not set(self.joints) <= set(js.name):
+            self.ignored += 1
+            return None
+        t_ns = self.clock.time_ns(stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec),
+                                  js.sample_info.source_timestamp, round(recv_s * 1e9))
         self._seq += 1
+        self._last_joint_s = time.monotonic()
         wheels = joint_wheel_rpm(js.name, js.velocity, self.joints, self.signs)
-        return Telemetry(((t_ns - self._origin_ns) // 1000) % (1 << 32),
-                         tuple(float(w) for w in wheels), seq=self._seq)
+        return Telemetry(self.clock.controller_us(t_ns), tuple(float(w) for w in wheels),
+                         seq=self._seq)
 
     # -- the verdict on /diagnostics ---------------------------------------------------------
     def status(self, live: LiveShadow) -> tuple[int, str, list[tuple[str, str]]]:
@@ -198,7 +225,8 @@ class Ros2Source(HeardSource):
 
     def counts(self) -> dict[str, int]:
         return {"diagnostics_published": self.published,
-                "diagnostics_errors": self.errors_published}
+                "diagnostics_errors": self.errors_published,
+                "joint_states_ignored": self.ignored}
 
     def close(self) -> None:
         from cyclonedds.util import duration

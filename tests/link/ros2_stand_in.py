@@ -20,9 +20,16 @@ LOOPBACK_CONFIG = """<CycloneDDS><Domain Id="any">
     <AllowMulticast>false</AllowMulticast></General>
   <Discovery><ParticipantIndex>auto</ParticipantIndex>
     <MaxAutoParticipantIndex>60</MaxAutoParticipantIndex>
-    <Peers><Peer address="127.0.0.1"/></Peers></Discovery>
+    <Peers><Peer address="127.0.0.1"/></Peers>{tag}</Discovery>
 </Domain></CycloneDDS>
 """
+
+
+def loopback_config(tag: str | None = None) -> str:
+    """:data:`LOOPBACK_CONFIG`, with a DDS domain tag when given: participants of other tags
+    never match, so two test runs on one machine (same domain ids, same loopback) never hear
+    each other. Peers of other vendors may not speak domain tags: give none for them."""
+    return LOOPBACK_CONFIG.format(tag=f"<Tag>{tag}</Tag>" if tag else "")
 
 _counter = itertools.count()
 
@@ -62,6 +69,8 @@ class Spy:
         self.waitset = WaitSet(self.participant)
         self.waitset.attach(ReadCondition(self.reader, SampleState.Any))
         self.messages: list = []
+        #: Receive time of each message by the wall clock [s].
+        self.wall_s: list[float] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -74,6 +83,7 @@ class Spy:
             for s in self.reader.take(256):
                 if s is not None and type(s).__name__ != "InvalidSample":
                     self.messages.append((time.monotonic(), s))
+                    self.wall_s.append(time.time())
 
     def wait_matched(self, timeout_s: float = 10.0) -> bool:
         """Whether a publisher matched within ``timeout_s``."""
@@ -89,3 +99,38 @@ class Spy:
         self._thread.join(2.0)
         for entity in (self.reader, self.topic, self.participant):
             entity.__del__()
+
+
+class StubRobot:
+    """A ROS 2 robot reduced to its topics, on its own thread: JointState at ``rate_hz``
+    from ``joint_messages()`` (a list of JointStates per period, so tests shape them: no
+    stamps, other publishers' joints, no velocities), and a cmd_vel subscriber that keeps
+    what it hears."""
+
+    def __init__(self, domain: int, joint_messages, rate_hz: float = 50.0) -> None:
+        from mecanum_hil.link.ros2 import messages as m
+        from mecanum_hil.link.ros2.node import Ros2Node
+
+        self.node = Ros2Node(domain)
+        self.writer = self.node.writer("/joint_states", m.JointState)
+        self.cmd = self.node.reader("/cmd_vel", m.Twist)
+        self.joint_messages, self.period_s = joint_messages, 1.0 / rate_hz
+        self.twists: list = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            for msg in self.joint_messages():
+                self.writer.write(msg)
+            self.twists += [s for s in self.cmd.take(64)
+                            if s is not None and type(s).__name__ != "InvalidSample"]
+            next_t += self.period_s
+            time.sleep(max(0.0, next_t - time.monotonic()))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.node.close()

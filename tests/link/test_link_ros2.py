@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
-from ros2_stand_in import LOOPBACK_CONFIG, Spy, test_domain
+from ros2_stand_in import Spy, loopback_config, test_domain
 
 from mecanum_hil.link.ros2 import messages as m
 from mecanum_hil.link.ros2.convert import command_to_twist_si
@@ -32,7 +33,7 @@ ROBOT_RADIUS_M = 0.102  # the shipped tdam-stm profile's wheel radius
 def dds(tmp_path, monkeypatch):
     """The environment of one test's DDS participants: loopback config, its own domain."""
     config = tmp_path / "cyclonedds.xml"
-    config.write_text(LOOPBACK_CONFIG)
+    config.write_text(loopback_config(f"mecanum-hil-test-{uuid.uuid4().hex}"))
     domain = test_domain()
     env = {"CYCLONEDDS_URI": config.as_uri(), "ROS_DOMAIN_ID": str(domain)}
     for key, value in env.items():
@@ -216,7 +217,7 @@ def test_record_drives_the_robot_and_the_fit_recovers_it(dds, ros2_robot, tmp_pa
 
 def test_twist_stamped_to_a_best_effort_robot_with_its_own_clock(dds, ros2_robot, tmp_path):
     # a robot without NTP: its stamps are 7 s ahead of the host's clock
-    ros2_robot("--cmd-type", "twist-stamped", "--best-effort", "--clock-offset", "7")
+    robot = ros2_robot("--cmd-type", "twist-stamped", "--best-effort", "--clock-offset", "7")
     spy = Spy(dds["domain"], "/cmd_vel", m.TwistStamped)
     try:
         out = tmp_path / "stamped.csv"
@@ -224,15 +225,23 @@ def test_twist_stamped_to_a_best_effort_robot_with_its_own_clock(dds, ros2_robot
         assert proc.returncode == 0, proc.stderr
         time.sleep(0.3)
         stamped = [msg for _, msg in spy.messages]
+        received = list(spy.wall_s)
     finally:
         spy.close()
+    robot.stop()
     assert stamped and _is_zero(stamped[-1])
     assert all(s.header.frame_id == "base_link" for s in stamped)
-    now = time.time()
-    assert all(abs(s.header.stamp.sec - now) < 120 for s in stamped)
+    # stamped by the robot's clock, which ages them (sim-robot refuses stale ones)
+    ahead = [s.header.stamp.sec + s.header.stamp.nanosec * 1e-9 - w
+             for s, w in zip(stamped, received, strict=True)]
+    assert all(6.5 < a < 7.5 for a in ahead), (min(ahead), max(ahead))
+    assert "0 refused as stale" in robot.log()
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["ros2"]["qos"]["joint_state_publishers"] == ["best_effort"]
     assert meta["ros2"]["clock"] == "header stamps"
+    assert 6.9 < -meta["ros2"]["clock_offset_s"] < 7.5
+    _, events = _rows(out)
+    assert events.count("tlm") > 200  # the robot moved and reported
     # the robot's clock maps onto the host's: telemetry keeps its place among the commands
     from mecanum_hil.io.timing import read_for_analysis
 
@@ -321,17 +330,19 @@ def test_shadow_beside_a_driven_robot_raises_an_error_after_the_fault_only(
     effects = tmp_path / "fault.toml"
     effects.write_text("[noise]\nwheel_rpm_std = 0.5\nseed = 1\n\n[[faults]]\nat_s = 5.0\n"
                        "[faults.effects.wheel_gain]\ngains = [1.0, 0.8, 1.0, 1.0]\n")
+    started = time.monotonic()  # the robot's fault clock starts after this
     ros2_robot("--effects", str(effects))
-    started = time.monotonic()  # the robot's fault clock starts with it
     diag = Spy(dds["domain"], "/diagnostics", m.DiagnosticArray)
     events = tmp_path / "shadow.jsonl"
-    shadow = subprocess.Popen(_cli("shadow", "--transport", "ros2", "--duration", "10",
-                                   "--events", str(events), "--json"),
+    shadow = subprocess.Popen(_cli("shadow", "--transport", "ros2", "--events", str(events),
+                                   "--json"),
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert diag.wait_matched(30)
+        assert diag.wait_matched(60)
         driver = _record(tmp_path / "driver.csv")  # someone else drives the robot
         assert driver.returncode == 0, driver.stderr
+        assert time.monotonic() > started + 6.0  # the fault came while the robot was driven
+        shadow.send_signal(signal.SIGINT)  # Ctrl-C is how an open-ended listen ends
         stdout, stderr = shadow.communicate(timeout=60)
     finally:
         if shadow.poll() is None:
@@ -382,3 +393,49 @@ def test_a_dry_run_shows_the_twists_and_opens_nothing(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "first twists" in proc.stdout and "a zero twist, five times" in proc.stdout
     assert not (tmp_path / "t.csv").exists()
+
+
+WHEELS = ["front_left_wheel_joint", "front_right_wheel_joint", "rear_left_wheel_joint",
+          "rear_right_wheel_joint"]
+
+
+def test_unstamped_joint_states_beside_another_publisher_are_recorded(dds, tmp_path):
+    """A robot that stamps nothing (times: the DDS source timestamps) and an arm's joint
+    states on the same topic (skipped): the run completes, wheels recorded."""
+    from ros2_stand_in import StubRobot
+
+    def messages():
+        wheels = m.JointState(m.Header(), WHEELS, [0.0] * 4, [1.0, 1.0, 1.0, 1.0], [])
+        arm = m.JointState(m.Header(), ["arm_joint"], [0.3], [0.0], [])
+        return [wheels, wheels, arm]  # two in one cycle: equal receive times
+
+    robot = StubRobot(dds["domain"], messages)
+    try:
+        out = tmp_path / "unstamped.csv"
+        proc = _record(out)
+    finally:
+        robot.close()
+    assert proc.returncode == 0, proc.stderr
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["ros2"]["clock"] == "source timestamps"
+    assert meta["ros2"]["ignored_joint_states"] > 50
+    rec, events = _rows(out)
+    tlm = np.array(events) == "tlm"
+    assert tlm.sum() > 300
+    np.testing.assert_allclose(rec.wheel_rpm[tlm], 60.0 / (2 * math.pi))
+    assert _is_zero(robot.twists[-1])
+
+
+def test_joint_states_without_velocities_are_refused_in_one_line(dds, tmp_path):
+    from ros2_stand_in import StubRobot
+
+    robot = StubRobot(dds["domain"], lambda: [
+        m.JointState(m.Header(), WHEELS, [0.0] * 4, [], [])])
+    try:
+        proc = _record(tmp_path / "novel.csv")
+    finally:
+        robot.close()
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "no finite velocity" in lines[0], lines
+    assert robot.twists == []  # nothing commanded

@@ -23,9 +23,23 @@ NS = 1_000_000_000
 
 def command_to_twist_si(n_rpm: float, omega_dps: float, theta_deg: float,
                         wheel_radius_m: float) -> tuple[float, float, float]:
-    """One command as a ROS twist ``(linear.x [m/s], linear.y [m/s], angular.z [rad/s])``.
+    """One command as a ROS twist (REP-103: x forward, y left, z counter-clockwise).
 
-    ``x`` is forward and ``y`` left (REP-103); ``angular.z`` is counter-clockwise.
+    Parameters
+    ----------
+    n_rpm : float
+        Wheel speed command [rpm].
+    omega_dps : float
+        Turning speed command [deg/s].
+    theta_deg : float
+        Direction of travel [deg].
+    wheel_radius_m : float
+        Wheel radius [m].
+
+    Returns
+    -------
+    tuple of float
+        ``(linear.x [m/s], linear.y [m/s], angular.z [rad/s])``.
     """
     vx, vy, _ = command_to_twist(n_rpm, omega_dps, theta_deg)
     return (float(rpm_to_mps(vx, wheel_radius_m)), float(rpm_to_mps(vy, wheel_radius_m)),
@@ -76,3 +90,48 @@ def yaw_to_quaternion(phi_deg: float) -> tuple[float, float, float, float]:
     """A heading [deg] as the quaternion ``(x, y, z, w)`` of a rotation about z."""
     half = math.radians(phi_deg) / 2.0
     return 0.0, 0.0, math.sin(half), math.cos(half)
+
+
+class RobotClock:
+    """Times a ROS 2 robot's messages on the robot's own clock (the stateful part of a link).
+
+    A message's time is its header stamp; where that is unset, the DDS source timestamp (the
+    publisher's clock when it wrote the sample); where that is unset too, the receive time.
+    Equal times (two messages of one control cycle, a coarse clock) are pushed 1 us apart,
+    so the times a session sees increase; a time that runs back is kept as it is (the robot's
+    clock restarted). The least ``receive - robot time`` is the clock's offset from the host.
+    """
+
+    def __init__(self) -> None:
+        self.origin_ns: int | None = None
+        self.last_ns: int | None = None
+        #: Least ``receive - robot time`` seen [ns] (None before the first message).
+        self.offset_ns: int | None = None
+        #: How the last message was timed: ``header stamps``, ``source timestamps`` or
+        #: ``receive times``.
+        self.source = ""
+
+    def time_ns(self, stamp_ns: int, source_ns: int, receive_ns: int) -> int:
+        """The robot-clock time of one message [ns]."""
+        if stamp_ns > 0:
+            t, self.source = stamp_ns, "header stamps"
+        elif source_ns > 0:
+            t, self.source = source_ns, "source timestamps"
+        else:
+            t, self.source = receive_ns, "receive times"
+        d = receive_ns - t
+        self.offset_ns = d if self.offset_ns is None else min(self.offset_ns, d)
+        if self.last_ns is not None and t == self.last_ns:
+            t += 1000
+        self.last_ns = t
+        if self.origin_ns is None:
+            self.origin_ns = t
+        return t
+
+    def controller_us(self, t_ns: int) -> int:
+        """``t_ns`` as a controller's 32-bit microsecond clock since the first message."""
+        return ((t_ns - (self.origin_ns or t_ns)) // 1000) % (1 << 32)
+
+    def robot_now_ns(self, host_now_ns: int) -> int:
+        """The robot's clock now [ns], from the host's (the host's own without an offset)."""
+        return host_now_ns - (self.offset_ns or 0)

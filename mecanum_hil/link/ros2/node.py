@@ -135,13 +135,22 @@ class Ros2Node:
                    Policy.Durability.Volatile, Policy.History.KeepLast(depth))
 
     def _topic(self, ros_name: str, msg_type: type):
+        from cyclonedds.core import DDSException
         from cyclonedds.topic import Topic
 
         dds_name = dds_topic_name(ros_name)
-        topic = self._topics.get(dds_name)
-        if topic is None:
+        known = self._topics.get(dds_name)
+        if known is not None:
+            if known[1] is not msg_type:
+                raise ConfigError(f"{ros_name} is given for two message types "
+                                  f"({known[1].__name__}, {msg_type.__name__})")
+            return known[0]
+        try:
             topic = Topic(self.participant, dds_name, msg_type)
-            self._topics[dds_name] = topic
+        except DDSException as err:
+            raise LinkError(f"ROS 2 domain {self.domain}: cannot create {ros_name}: "
+                            f"{err}") from err
+        self._topics[dds_name] = (topic, msg_type)
         return topic
 
     def reader(self, ros_name: str, msg_type: type, depth: int = 100):
@@ -191,7 +200,7 @@ class Ros2Node:
         for entity in reversed(self._entities):
             entity.__del__()
         self._entities.clear()
-        for topic in self._topics.values():
+        for topic, _ in self._topics.values():
             topic.__del__()
         self._topics.clear()
         participant, self.participant = self.participant, None

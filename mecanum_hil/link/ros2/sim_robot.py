@@ -5,7 +5,8 @@ effects file's noise, faults and unmodelled effects, as the other simulated cont
 a real-time tick. It behaves as a ros2_control robot with a Mecanum drive controller does:
 
 - each Twist (or TwistStamped) on the command topic becomes the three commands (``import``'s
-  conversion) and acts from the tick it arrives;
+  conversion) and acts from the tick it arrives; a TwistStamped older than the reference
+  timeout by the robot's clock is refused;
 - without a command for the reference timeout (0.5 s) the wheels are commanded to zero;
 - JointState (the four wheel joints: position [rad], velocity [rad/s]) and Odometry (the
   true pose and body twist) are published at the joint-state rate, stamped by the robot's
@@ -24,7 +25,7 @@ import numpy as np
 from ...model import RobotProfile, wheels_to_twist
 from ...units import RPM_TO_RAD_S, rpm_to_mps
 from ..simulated import ControllerModel
-from .convert import ns_to_stamp, wheel_rpm_to_joint_velocity, yaw_to_quaternion
+from .convert import ns_to_stamp, stamp_to_ns, wheel_rpm_to_joint_velocity, yaw_to_quaternion
 from .node import Ros2Node, valid_sample
 
 #: Joint names published by default (wheels 1 FL, 2 FR, 3 RL, 4 RR).
@@ -87,6 +88,7 @@ class SimulatedRos2Robot:
         self._waitset.attach(ReadCondition(self.cmd_reader, SampleState.Any))
         self.stop_event = threading.Event()
         self.commands_received = 0
+        self.stale_commands = 0
         self.timeouts = 0
         self.last_twist: tuple[float, float, float] | None = None
         self._theta = THETA_START_DEG
@@ -121,6 +123,8 @@ class SimulatedRos2Robot:
         for sample in samples:
             if not valid_sample(sample):
                 continue
+            if self.stamped and self._stale(sample.header.stamp):
+                continue
             tw = sample.twist if self.stamped else sample
             v = (tw.linear.x, tw.linear.y, tw.angular.z)
             if not all(math.isfinite(x) for x in v):
@@ -134,6 +138,21 @@ class SimulatedRos2Robot:
             self.last_twist = v
             self._last_cmd_s = self.now_s()
             self._moving = any(x != 0.0 for x in v)
+
+    def _stale(self, stamp) -> bool:
+        """Whether a TwistStamped is older than the reference timeout by this robot's clock
+        (as ros2_control's Mecanum drive controller ages its references); said once."""
+        age_s = (self._robot_now_ns() - stamp_to_ns(stamp.sec, stamp.nanosec)) * 1e-9
+        if age_s <= self.reference_timeout_s:
+            return False
+        self.stale_commands += 1
+        if self.stale_commands == 1:
+            self.log(f"refused a command stamped {age_s:.3f} s ago by this robot's clock "
+                     f"(older than the {self.reference_timeout_s:g} s reference timeout)")
+        return True
+
+    def _robot_now_ns(self) -> int:
+        return time.time_ns() + self.clock_offset_ns
 
     def _check_timeout(self) -> None:
         if self._moving and self.now_s() - self._last_cmd_s > self.reference_timeout_s:

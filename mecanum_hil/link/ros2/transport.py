@@ -23,16 +23,19 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections import deque
 from typing import Any, ClassVar
 
 import numpy as np
 
-from ...errors import ConfigError, LinkError, LinkLostError
+from ...errors import ConfigError, LinkError, LinkLostError, MecanumHILWarning
+from ...importers.rosbag import quaternion_yaw_deg
+from ...importers.rosbag import wheel_joints as wheel_joints_of
 from ...model.robot import RobotProfile
 from ..protocol import PROTOCOL_VERSION, Command, Hello, HelloAck, Message, Stop, Telemetry
 from ..transport import PoseReading, Transport
-from .convert import command_to_twist_si, joint_wheel_rpm, ns_to_stamp, stamp_to_ns
+from .convert import RobotClock, command_to_twist_si, joint_wheel_rpm, ns_to_stamp, stamp_to_ns
 from .node import Ros2Node, ros2_messages, valid_sample
 
 #: Command types by ``--cmd-type``.
@@ -42,14 +45,15 @@ CMD_TYPES = ("twist", "twist-stamped")
 #: ``cmd_vel_timeout`` (commands must come at least this often).
 REFERENCE_TIMEOUT_MS = 500
 
-#: Zero twists published for a STOP, and the time they are spread over [s].
+#: Zero twists published for a STOP, and the time they must fit in [s] (spread over 60 %
+#: of it, so that writing them never pushes the last beyond).
 STOP_REPEATS, STOP_SPAN_S = 5, 0.1
 
 #: Joint states taken during discovery to measure their rate (at least).
 RATE_SAMPLES = 6
 
 #: A lost link is this many joint-state periods of silence (at least the configured timeout).
-LINK_TIMEOUT_PERIODS = 5.0
+LOST_AFTER_PERIODS = 5.0
 
 #: Frame of the TwistStamped commands.
 COMMAND_FRAME = "base_link"
@@ -126,9 +130,9 @@ class Ros2Transport(Transport):
         self._queue: deque[Message] = deque()
         self._hello_ack: HelloAck | None = None
         self._rx_seq = 0
-        self._origin_ns: int | None = None
-        self._offset_ns: int | None = None  # least (receive - stamp) of the joint states
-        self._stamped: bool | None = None
+        self.clock = RobotClock()
+        #: Joint states without the wheel joints (another publisher on the topic), skipped.
+        self.ignored_joint_states = 0
         self._last_twist_zero = True
         self.rate_hz = 0.0
         self.peer_reliability: list[str] = []
@@ -171,24 +175,29 @@ class Ros2Transport(Transport):
         if not self.node.wait_matched(self._joint_reader, until):
             raise LinkError(f"no publisher on {where} within {timeout_s:g} s (is the robot "
                             "running, in this ROS_DOMAIN_ID, on this network?)")
-        times: list[int] = []
-        names: list[str] = []
-        while len(times) < RATE_SAMPLES:
+        samples: list = []
+        names: set[str] = set()
+        while len(self._wheel_samples(samples)) < RATE_SAMPLES:
             if time.monotonic() >= until:
-                if not times:
-                    raise LinkError(f"a publisher on {where}, but no joint state within "
-                                    f"{timeout_s:g} s")
                 break
             for js, recv_ns in self._take(self._joint_reader, 0.05):
-                stamp = stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec)
-                times.append(stamp if stamp > 0 else recv_ns)
-                names = list(js.name)
-        self._detect_joints(names)
+                samples.append((js, recv_ns))
+                names.update(js.name)
+            if self._odom_reader is not None:
+                self._odom_reader.take(256)  # not yet wanted; a waiting sample wakes the wait
+        if not samples:
+            raise LinkError(f"a publisher on {where}, but no joint state within "
+                            f"{timeout_s:g} s")
+        self._detect_joints(samples, sorted(names))
+        wheel = self._wheel_samples(samples)
+        times = [self.clock.time_ns(stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec),
+                                    js.sample_info.source_timestamp, recv)
+                 for js, recv in wheel]
         span_s = (times[-1] - times[0]) * 1e-9
         self.rate_hz = (len(times) - 1) / span_s if len(times) > 1 and span_s > 0 else 0.0
         if not self.rate_hz > 0:
-            raise LinkError(f"{where}: joint states do not advance in time ({len(times)} "
-                            f"within {timeout_s:g} s)")
+            raise LinkError(f"{where}: the wheels' joint states do not advance in time "
+                            f"({len(times)} within {timeout_s:g} s)")
         if not self.node.wait_matched(self._cmd, until):
             raise LinkError(f"no subscriber on {self.cmd_topic} in ROS 2 domain "
                             f"{self.node.domain} within {timeout_s:g} s (does the robot take "
@@ -196,19 +205,39 @@ class Ros2Transport(Transport):
                             " commands on this topic? see --cmd-topic, --cmd-type)")
         self.peer_reliability = self.node.peer_qos(self._joint_reader)
 
-    def _detect_joints(self, names: list[str]) -> None:
-        from ...importers.rosbag import wheel_joints
+    def _wheel_samples(self, samples: list) -> list:
+        """The ``(sample, receive time)`` pairs that carry every wheel joint."""
+        if self.joints is None:
+            return [(js, t) for js, t in samples if wheel_joints_of(js.name) is not None]
+        return [(js, t) for js, t in samples if set(self.joints) <= set(js.name)]
 
+    def _detect_joints(self, samples: list, names: list[str]) -> None:
         found = ", ".join(names) or "none"
         if self.joints is None:
-            self.joints = wheel_joints(names)
-            if self.joints is None:
-                raise ConfigError(f"cannot tell the wheels apart in {self.joint_topic}; joints "
-                                  f"found: {found} (give --joints FL,FR,RL,RR)")
+            for js, _ in samples:
+                self.joints = wheel_joints_of(js.name)
+                if self.joints is not None:
+                    break
+            else:
+                split = wheel_joints_of(names) is not None
+                raise ConfigError(
+                    f"{self.joint_topic}: the wheel joints come in separate messages, which "
+                    f"this transport does not merge; joints found: {found}" if split else
+                    f"cannot tell the wheels apart in {self.joint_topic}; joints found: "
+                    f"{found} (give --joints FL,FR,RL,RR)")
         missing = [j for j in self.joints if j not in names]
         if missing:
             raise ConfigError(f"{self.joint_topic} has no joint {', '.join(missing)}; joints "
                               f"found: {found}")
+        whole = [js for js, _ in self._wheel_samples(samples)]
+        if not whole:
+            raise ConfigError(f"{self.joint_topic}: no message carries all four wheel joints "
+                              f"({', '.join(self.joints)}) together")
+        wheels = joint_wheel_rpm(whole[-1].name, whole[-1].velocity, self.joints, self.signs)
+        if not np.isfinite(wheels).all():
+            bad = [j for j, w in zip(self.joints, wheels, strict=True) if not np.isfinite(w)]
+            raise ConfigError(f"{self.joint_topic} carries no finite velocity for "
+                              f"{', '.join(bad)}: its wheel speeds cannot be recorded")
 
     # -- receiving ---------------------------------------------------------------------------
     def set_role(self, role: str) -> None:
@@ -229,34 +258,19 @@ class Ros2Transport(Transport):
         now_ns = time.time_ns()
         return [(s, now_ns) for s in samples if valid_sample(s)]
 
-    def _robot_time_us(self, stamp_ns: int, recv_ns: int, joint: bool) -> int:
-        """A message's time on the robot's clock [us since its first joint state], wrapped
-        into 32 bits as a controller's clock: the header stamp, or the receive time where the
-        robot stamps nothing."""
-        if joint:
-            if self._stamped is None:
-                self._stamped = stamp_ns > 0
-            t_ns = stamp_ns if self._stamped else recv_ns
-            d = recv_ns - t_ns
-            self._offset_ns = d if self._offset_ns is None else min(self._offset_ns, d)
-        else:
-            t_ns = stamp_ns if stamp_ns > 0 else recv_ns - (self._offset_ns or 0)
-        if self._origin_ns is None:
-            self._origin_ns = t_ns
-        return ((t_ns - self._origin_ns) // 1000) % (1 << 32)
-
     def _fill(self, timeout_s: float) -> None:
-        got = self._take(self._joint_reader, timeout_s)
-        for js, recv_ns in got:
-            stamp = stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec)
+        for js, recv_ns in self._take(self._joint_reader, timeout_s):
+            if not set(self.joints) <= set(js.name):
+                self.ignored_joint_states += 1  # another publisher's joints (an arm, casters)
+                continue
+            t_ns = self.clock.time_ns(stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec),
+                                      js.sample_info.source_timestamp, recv_ns)
             wheels = joint_wheel_rpm(js.name, js.velocity, self.joints, self.signs)
             self._rx_seq = (self._rx_seq + 1) % self.seq_modulus
-            self._queue.append(Telemetry(self._robot_time_us(stamp, recv_ns, True),
+            self._queue.append(Telemetry(self.clock.controller_us(t_ns),
                                          tuple(float(w) for w in wheels), 0, 0, self._rx_seq))
         if self._odom_reader is not None:
             for od, _recv_ns in self._take(self._odom_reader, 0.0):
-                from ...importers.rosbag import quaternion_yaw_deg
-
                 p, q = od.pose.pose.position, od.pose.pose.orientation
                 self._rx_seq = (self._rx_seq + 1) % self.seq_modulus
                 self._queue.append(PoseReading(float(p.x), float(p.y),
@@ -281,7 +295,9 @@ class Ros2Transport(Transport):
         twist = m.Twist(m.Vector3(vx, vy, 0.0), m.Vector3(0.0, 0.0, wz))
         if self.cmd_type == "twist":
             return twist
-        sec, nanosec = ns_to_stamp(time.time_ns())
+        # the robot's clock: ros2_control ages a TwistStamped by its own clock, and a host
+        # clock seconds away would keep an old command in force or refuse every new one
+        sec, nanosec = ns_to_stamp(self.clock.robot_now_ns(time.time_ns()))
         return m.TwistStamped(m.Header(m.Time(sec, nanosec), COMMAND_FRAME), twist)
 
     def _publish(self, vx: float, vy: float, wz: float) -> None:
@@ -298,7 +314,7 @@ class Ros2Transport(Transport):
 
         for i in range(STOP_REPEATS):
             if i:
-                time.sleep(STOP_SPAN_S / STOP_REPEATS)
+                time.sleep(0.6 * STOP_SPAN_S / (STOP_REPEATS - 1))
             self._publish(0.0, 0.0, 0.0)
         try:
             self._cmd.wait_for_acks(duration(seconds=STOP_SPAN_S))
@@ -314,8 +330,10 @@ class Ros2Transport(Transport):
             self.publish_zero()
         elif isinstance(msg, Hello):
             rate = max(1, round(self.rate_hz))
-            # a session starts from now: what waited in the readers is not its data
+            # a session starts from now: what waited in the readers is not its data, and its
+            # controller clock starts at its first joint state (the offset is kept)
             self._queue.clear()
+            self.clock.origin_ns = self.clock.last_ns = None
             for reader in (self._joint_reader, self._odom_reader):
                 while reader is not None and reader.take(256):
                     pass
@@ -327,7 +345,7 @@ class Ros2Transport(Transport):
 
     def min_link_timeout_s(self, telemetry_rate_hz: float) -> float:
         """Five joint-state periods [s]."""
-        return LINK_TIMEOUT_PERIODS / telemetry_rate_hz
+        return LOST_AFTER_PERIODS / telemetry_rate_hz
 
     def link_metadata(self) -> dict[str, Any]:
         """Domain, topics, joints, signs, QoS and the clock used (the sidecar's ``ros2``)."""
@@ -341,7 +359,10 @@ class Ros2Transport(Transport):
             "qos": {"commands": "reliable, volatile, keep last 10",
                     "readers": "best effort, volatile, keep last 100",
                     "joint_state_publishers": self.peer_reliability},
-            "clock": ("header stamps" if self._stamped else "receive times"),
+            "clock": self.clock.source,
+            "clock_offset_s": (None if self.clock.offset_ns is None
+                               else round(self.clock.offset_ns * 1e-9, 6)),
+            "ignored_joint_states": self.ignored_joint_states,
             "rows": "tlm: a joint state, timed by controller_time_s (the robot's clock since "
                     "its first joint state); odom: an odometry pose at its receive time",
         }}
@@ -350,8 +371,10 @@ class Ros2Transport(Transport):
         try:
             if not self._last_twist_zero:
                 self.publish_zero()
-        except Exception:
-            pass
+        except Exception as err:  # said, never raised: the link is being closed anyway
+            warnings.warn(f"{self.port}: the zero twist on closing could not be published "
+                          f"({err}): the robot's own reference timeout must stop it",
+                          MecanumHILWarning, stacklevel=2)
         finally:
             self.node.close()
             self._waitset = None
