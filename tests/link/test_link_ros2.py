@@ -439,3 +439,34 @@ def test_joint_states_without_velocities_are_refused_in_one_line(dds, tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "no finite velocity" in lines[0], lines
     assert robot.twists == []  # nothing commanded
+
+
+def test_shadow_follows_a_teleop_that_goes_quiet_without_a_false_alarm(
+        dds, ros2_robot, tmp_path):
+    """A teleop publishes 0.2 m/s for 3 s and then nothing: the robot stops at its reference
+    timeout, and so does the model, so shadow raises nothing."""
+    from mecanum_hil.link.ros2.node import Ros2Node
+
+    effects = tmp_path / "noise.toml"
+    effects.write_text("[noise]\nwheel_rpm_std = 0.5\nseed = 4\n")
+    ros2_robot("--effects", str(effects))
+    shadow = subprocess.Popen(_cli("shadow", "--transport", "ros2", "--no-events", "--json"),
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    teleop = Ros2Node(dds["domain"])
+    try:
+        writer = teleop.writer("/cmd_vel", m.Twist)
+        assert teleop.wait_matched(writer, time.monotonic() + 60)
+        time.sleep(3.0)  # shadow's warm-up on a robot at rest
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end:
+            writer.write(m.Twist(m.Vector3(0.2, 0.0, 0.0), m.Vector3()))
+            time.sleep(0.05)
+        time.sleep(3.0)  # silence: the robot's reference timeout stops it
+        shadow.send_signal(signal.SIGINT)
+        stdout, stderr = shadow.communicate(timeout=60)
+    finally:
+        if shadow.poll() is None:
+            shadow.kill()
+        teleop.close()
+    assert shadow.returncode == 0, stderr
+    assert json.loads(stdout)["alarms"] == []
