@@ -11,7 +11,9 @@ fit of the recording recovers the robot's A, B, C.
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -35,16 +37,27 @@ TRUE_ABC = {"A": 14.7, "B": 16.1, "C": 303.0}  # the robot's wheel model
 
 @pytest.fixture(scope="module")
 def robot_binary(tmp_path_factory) -> Path:
-    """robot.cpp built with g++ (skipped without g++ or the Fast DDS headers)."""
+    """robot.cpp built with g++ (skipped without g++ or the Fast DDS headers): once per test
+    session, the pytest-xdist workers sharing the session's folder and one build."""
     if shutil.which("g++") is None:
         pytest.skip("g++ is missing (apt-get install g++)")
     if not FASTDDS_HEADER.exists():
         pytest.skip("Fast DDS headers are missing (apt-get install libfastrtps-dev)")
-    out = tmp_path_factory.mktemp("fastdds_robot") / "robot"
-    build = subprocess.run(["g++", "-std=c++17", "-O1", "-o", str(out), str(ROBOT_SOURCE),
-                            "-lfastrtps", "-lfastcdr", "-lpthread"],
-                           capture_output=True, text=True, timeout=600)
-    assert build.returncode == 0, build.stderr
+    folder = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        folder = folder.parent  # this session's own, shared by its workers
+    folder = folder / "fastdds_robot"
+    folder.mkdir(exist_ok=True)
+    out = folder / "robot"
+    with (folder / "build.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one worker builds, the others wait for it
+        if not out.exists():
+            build = subprocess.run(["g++", "-std=c++17", "-o", str(folder / "robot.part"),
+                                    str(ROBOT_SOURCE), "-lfastrtps", "-lfastcdr",
+                                    "-lpthread"], capture_output=True, text=True,
+                                   timeout=600)
+            assert build.returncode == 0, build.stderr
+            (folder / "robot.part").rename(out)
     return out
 
 
