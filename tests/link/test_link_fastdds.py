@@ -25,7 +25,7 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
-from ros2_stand_in import LOOPBACK_CONFIG, test_domain
+from ros2_stand_in import loopback_config, test_domain
 
 from mecanum_hil.link.ros2.convert import command_to_twist_si
 
@@ -114,7 +114,7 @@ def fastdds_robot(robot_binary, tmp_path, monkeypatch):
     """Start the Fast DDS robot in a domain of this test's own; record's Cyclone participant
     reads the loopback configuration (CYCLONEDDS_URI) and that domain (ROS_DOMAIN_ID)."""
     config = tmp_path / "cyclonedds.xml"
-    config.write_text(LOOPBACK_CONFIG)
+    config.write_text(loopback_config())
     domain = test_domain()
     monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))

@@ -5,8 +5,9 @@ effects file's noise, faults and unmodelled effects, as the other simulated cont
 a real-time tick. It behaves as a ros2_control robot with a Mecanum drive controller does:
 
 - each Twist (or TwistStamped) on the command topic becomes the three commands (``import``'s
-  conversion) and acts from the tick it arrives; a TwistStamped older than the reference
-  timeout by the robot's clock is refused;
+  conversion) and acts from the tick it was published (its DDS source timestamp, this host's
+  clock: a robot does not share the host's processor); a TwistStamped older than the
+  reference timeout by the robot's clock is refused;
 - without a command for the reference timeout (0.5 s) the wheels are commanded to zero;
 - JointState (the four wheel joints: position [rad], velocity [rad/s]) and Odometry (the
   true pose and body twist) are published at the joint-state rate, stamped by the robot's
@@ -133,11 +134,23 @@ class SimulatedRos2Robot:
             cmd = twist_to_commands([v[0]], [v[1]], [v[2]], self.robot.wheel_radius_m,
                                     self._theta)[0]
             self._theta = float(cmd[2])
-            self.model.set_command(self._tick_now(), cmd)
+            self.model.set_command(self._arrival_tick(sample), cmd)
             self.commands_received += 1
             self.last_twist = v
             self._last_cmd_s = self.now_s()
             self._moving = any(x != 0.0 for x in v)
+
+    def _arrival_tick(self, sample) -> int:
+        """The tick a command acts from: when it was published (its DDS source timestamp,
+        on this host's clock) rather than when this process got to read it. A robot has a
+        processor of its own; this one shares the host's, and a starved process would read
+        commands late and act as if the robot had a dead time."""
+        now = self._tick_now()
+        src_ns = sample.sample_info.source_timestamp
+        if src_ns <= 0:
+            return now
+        sent = math.floor((src_ns - self._wall0_ns) * 1e-9 * self.model.rate_hz)
+        return min(now, max(sent, self.model.anchor))
 
     def _stale(self, stamp) -> bool:
         """Whether a TwistStamped is older than the reference timeout by this robot's clock
