@@ -73,20 +73,32 @@ def test_record_against_the_host_port_ends_with_stop(tmp_path, host_controller):
     assert ctl.counters["last_type"] == 0x03
 
 
-def test_a_stalled_controller_is_a_lost_link_and_its_fault_is_recorded(tmp_path,
-                                                                       host_controller):
-    # the drive reports a fault 0.5 s after the HELLO, the controller stalls for 1 s at 2 s:
-    # record sees no telemetry for its 0.5 s link timeout, sends STOP and exits 4
+def test_a_stalled_controller_is_a_lost_link(tmp_path, host_controller):
+    # the controller stalls for 1 s at 2 s: record sees no telemetry for its 0.5 s link
+    # timeout, sends STOP and exits 4
     out = tmp_path / "x.csv"
-    with host_controller("--fault-at-s", "0.5", "--stall-at-s", "2", "--stall-s", "1") as ctl:
+    with host_controller("--stall-at-s", "2", "--stall-s", "1") as ctl:
         code = main(["record", "--port", ctl.path, "--profile", "paper-step-60", "--out",
                      str(out), "--no-progress"])
     assert code == 4
     side = json.loads(out.with_suffix(".json").read_text())
     assert side["end_reason"] == "link_lost"
-    events = side["link_events"]
-    assert events[0]["event"] == "status_fault" and 0.0 < events[0]["t_s"] < 2.0
-    # (a sample read after the stall may also carry WATCHDOG: 1 s without a command)
-    assert {e["event"] for e in events} <= {"status_fault", "status_watchdog"}, events
+    # (a sample read after the stall may carry WATCHDOG: 1 s without a command)
+    assert {e["event"] for e in side["link_events"]} <= {"status_watchdog"}, side
     # the STOP sent during the stall was read after it, last; the late samples were skipped
     assert ctl.counters["last_type"] == 0x03 and ctl.counters["telemetry_skipped"] > 0
+
+
+def test_a_drive_fault_mid_run_stops_it_at_once(tmp_path, host_controller, capsys):
+    # the drive reports a fault 0.5 s after the HELLO: record sends STOP then and exits 8
+    out = tmp_path / "x.csv"
+    with host_controller("--fault-at-s", "0.5") as ctl:
+        code = main(["record", "--port", ctl.path, "--profile", "paper-step-60", "--out",
+                     str(out), "--no-progress"])
+    assert code == 8
+    assert capsys.readouterr().out.startswith("drive_fault (exit 8) after ")
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["end_reason"] == "drive_fault" and "FAULT" in side["end_message"]
+    events = side["link_events"]
+    assert events[0]["event"] == "status_fault" and 0.0 < events[0]["t_s"] < 1.0
+    assert ctl.counters["last_type"] == 0x03  # STOP, and no command after it
