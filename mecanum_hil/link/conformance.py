@@ -585,6 +585,32 @@ def rule_command_beyond_limit(p: Probe) -> str:
     return f"{done} commands beyond the {lim:g} rpm limit refused with ERROR 2, ignored"
 
 
+def rule_command_k(p: Probe) -> str:
+    p.hello()
+    p.needs_telemetry()
+    k, lim = p.robot.k, p.limit
+    near, beyond = 0.99 * lim * 6.0 / k, 1.01 * lim * 6.0 / k  # pure rotations [deg/s]
+    if p.can and beyond > 327.67:
+        raise RuleSkippedError(f"a rotation of {beyond:.1f} deg/s does not fit the CAN signal")
+    base = p.command(0.1 * lim)
+    p.in_force(base)
+    try:
+        _accepts(p, p.command(0.0, near, 90.0), f"omega = {near:.2f} deg/s")
+    except RuleFailedError as err:
+        raise RuleFailedError(f"{err}: it needs {0.99 * lim:.2f} rpm by k = {k:.6g} (--robot), "
+                              "so the controller's k is more than 1 % larger") from None
+    base = p.command(0.1 * lim)
+    p.in_force(base)
+    try:
+        _refused(p, lambda: p.command(0.0, beyond, 90.0), f"omega = {beyond:.2f} deg/s", base)
+    except RuleFailedError as err:
+        raise RuleFailedError(f"{err}: it needs {1.01 * lim:.2f} rpm by k = {k:.6g} (--robot), "
+                              "so the controller's k is more than 1 % smaller") from None
+    p.end()
+    return (f"rotations needing 0.99 and 1.01 x {lim:g} rpm by k = {k:.6g} accepted and "
+            "refused: the controller's k is the host's within 1 %")
+
+
 def rule_command_malformed(p: Probe) -> str:
     p.hello()
     base = p.command(0.1 * p.limit)
@@ -970,6 +996,9 @@ RULES: dict[str, tuple[Callable[[Probe], str], str, str]] = {
     "command.beyond_limit": (rule_command_beyond_limit, "a wheel target beyond the announced "
                              "limit or |theta| > 655.36: ERROR 2, ignored",
                              'COMMAND: "exceeds `wheel_limit_rpm` by more than 1 ppm"'),
+    "command.k": (rule_command_k, "the controller's k is the host's (--robot) within 1 %: a "
+                  "rotation needing 0.99 x the limit accepted, 1.01 x refused",
+                  'COMMAND: "`k` is not on the wire"'),
     "command.malformed": (rule_command_malformed, "a COMMAND of the wrong length (CAN: or "
                           "reserved != 0): ERROR 2, ignored",
                           'COMMAND: "on serial, the body is not 12 bytes"'),

@@ -14,8 +14,9 @@ reason                code   meaning
 ``observer_stop``     3      an observer (shadow mode) asked to stop
 ``link_lost``         4      the port vanished, or the controller's telemetry stopped
 ``telemetry_rate``    5      telemetry far from the announced rate (or some when none was)
-``controller_reset``  6      the controller clock went back, its seq restarted, or an
-                             unasked HELLO_ACK came: it restarted behind the host's back
+``controller_reset``  6      the controller clock went back, its seq restarted, an unasked
+                             HELLO_ACK came, or it answers PING after its telemetry stopped:
+                             it restarted behind the host's back
 ``estop``             7      the controller reported ``ESTOP`` during the run (stops at once)
 ``drive_fault``       8      the controller reported ``FAULT`` during the run (stops at once)
 ``not_acknowledged``  9      ``ack_seq`` stopped following the commands (stops at once)
@@ -130,6 +131,12 @@ LINK_TIMEOUT_PERIODS = 3.0
 
 #: Largest wheel reading a recording holds [rpm] (a larger one is a corrupt field there).
 WHEEL_READING_MAX_RPM = MAX_ABS_VALUE["wheel1_rpm"]
+
+#: After telemetry stopped for the link timeout (and STOP went out), the host sends PING every
+#: 0.1 s for this long [s]: PONGs and no telemetry mean the controller restarted (a power-cycle:
+#: it answers PING before a HELLO but sends no telemetry), ``controller_reset``; nothing, or
+#: telemetry again (a stall), leaves it ``link_lost``.
+RESTART_PROBE_S = 1.0
 
 #: Non-telemetry frames in a row after which the link timeout is checked even though frames
 #: keep arriving (fewer could be a backlog read after the host itself stalled).
@@ -255,6 +262,10 @@ class RecordResult:
     controller: str = ""
     error: BaseException | None = field(default=None, compare=False, repr=False)
     signal_at_end: int | None = None
+
+
+class TelemetrySilenceError(LinkLostError):
+    """No telemetry for the link timeout (the port itself still works)."""
 
 
 class TelemetryCheckError(LinkError):
@@ -671,7 +682,7 @@ class _Session:
             # a lost link is telemetry that stopped, whatever else keeps arriving
             if self.telemetry_rate_hz > 0 and now - self.last_tlm > self.link_timeout_s \
                     and (msg is None or self._other_frames >= _OTHER_FRAMES_BEFORE_CHECK):
-                raise LinkLostError(
+                raise TelemetrySilenceError(
                     f"{self.tr.port}: link lost: no telemetry from the controller for "
                     f"{now - self.last_tlm:.2f} s" + (
                         f" ({self._other_frames} other frames came meanwhile)"
@@ -834,6 +845,38 @@ class _Session:
                           extra=("cmd", "" if sent is None else sent.seq, "", ""))
         self.pump.push_command(t_row, self.cmd_in_force.copy())
         return now
+
+    def restarted(self, probe_s: float = RESTART_PROBE_S) -> str | None:
+        """After the STOP of a run whose telemetry stopped: PING every 0.1 s for ``probe_s``.
+
+        Returns why the controller restarted (it answers PING, yet sends no telemetry: it has
+        no session), or None (no answer, telemetry again after a stall, or no PING on this
+        transport). Never raises: the run is over whatever this finds.
+        """
+        if not self.tr.acknowledges:
+            return None
+        start = time.perf_counter()
+        end, next_ping, tokens, pongs = start + probe_s, start, set(), 0
+        try:
+            while (now := time.perf_counter()) < end:
+                if now >= next_ping:
+                    self._ping_token = (self._ping_token + 1) & 0xFFFFFFFF
+                    self.tr.send(Ping(self._ping_token))
+                    tokens.add(self._ping_token)
+                    next_ping += 0.1
+                msg = self.tr.recv(max(0.0, min(end, next_ping) - now))
+                if isinstance(msg, Telemetry):
+                    return None  # the session lives on: a stall, not a restart
+                if isinstance(msg, Pong) and msg.token in tokens:
+                    pongs += 1
+        except Exception:  # the port went away meanwhile: a lost link
+            return None
+        if not pongs:
+            return None
+        return (f"{self.tr.port}: no telemetry from the controller for "
+                f"{self.link_timeout_s:g} s, yet it answered {pongs} PINGs in the "
+                f"{probe_s:g} s after the STOP without sending telemetry: it restarted (a "
+                "power-cycle or a reset) and has no session")
 
     def stop(self, keep_receiving_s: float) -> None:
         """Send STOP (best effort) and record it, then keep the tail.
@@ -1023,6 +1066,10 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
         # every way out: STOP first, then the recording is closed cleanly
         try:
             sess.stop(tail if settle is None else 0.0)
+            if isinstance(error, TelemetrySilenceError):  # silence: a restart or a lost link
+                why = sess.restarted()
+                if why is not None:
+                    reason, message = "controller_reset", why
         except (KeyboardInterrupt, SessionTerminated) as exc:
             # raised after STOP went out, where no guard defers signals (not the main
             # thread, handle_sigterm off): during the tail a courtesy, the run still

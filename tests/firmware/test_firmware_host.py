@@ -74,32 +74,44 @@ def test_record_against_the_host_port_ends_with_stop(tmp_path, host_controller):
     assert ctl.counters["last_type"] == 0x03
 
 
+def _record(tmp_path, host_controller, *options: str):
+    """``record --profile paper-step-60`` against the host port with ``options``: the exit
+    code, the sidecar and the controller (stopped, its counters read)."""
+    out = tmp_path / "x.csv"
+    with host_controller(*options) as ctl:
+        code = main(["record", "--port", ctl.path, "--profile", "paper-step-60", "--out",
+                     str(out), "--no-progress"])
+    return code, json.loads(out.with_suffix(".json").read_text()), ctl
+
+
 def test_a_stalled_controller_is_a_lost_link(tmp_path, host_controller):
     # the controller stalls for 1 s at 2 s: record sees no telemetry for its 0.5 s link
     # timeout, sends STOP and exits 4
-    out = tmp_path / "x.csv"
-    with host_controller("--stall-at-s", "2", "--stall-s", "1") as ctl:
-        code = main(["record", "--port", ctl.path, "--profile", "paper-step-60", "--out",
-                     str(out), "--no-progress"])
-    assert code == 4
-    side = json.loads(out.with_suffix(".json").read_text())
-    assert side["end_reason"] == "link_lost"
+    code, side, ctl = _record(tmp_path, host_controller, "--stall-at-s", "2", "--stall-s", "1")
+    assert code == 4 and side["end_reason"] == "link_lost"
     # (a sample read after the stall may carry WATCHDOG: 1 s without a command)
     assert {e["event"] for e in side["link_events"]} <= {"status_watchdog"}, side
-    # the STOP sent during the stall was read after it, last; the late samples were skipped
-    assert ctl.counters["last_type"] == 0x03 and ctl.counters["telemetry_skipped"] > 0
+    # the STOP sent during the stall was read after it, then the PINGs that looked for a
+    # restart (telemetry came again: a stall, not a restart); the late samples were skipped
+    assert ctl.counters["last_type"] == 0x05 and ctl.counters["telemetry_skipped"] > 0
 
 
 def test_a_drive_fault_mid_run_stops_it_at_once(tmp_path, host_controller, capsys):
     # the drive reports a fault 0.5 s after the HELLO: record sends STOP then and exits 8
-    out = tmp_path / "x.csv"
-    with host_controller("--fault-at-s", "0.5") as ctl:
-        code = main(["record", "--port", ctl.path, "--profile", "paper-step-60", "--out",
-                     str(out), "--no-progress"])
+    code, side, ctl = _record(tmp_path, host_controller, "--fault-at-s", "0.5")
     assert code == 8
     assert capsys.readouterr().out.startswith("drive_fault (exit 8) after ")
-    side = json.loads(out.with_suffix(".json").read_text())
     assert side["end_reason"] == "drive_fault" and "FAULT" in side["end_message"]
     events = side["link_events"]
     assert events[0]["event"] == "status_fault" and 0.0 < events[0]["t_s"] < 1.0
     assert ctl.counters["last_type"] == 0x03  # STOP, and no command after it
+
+
+def test_a_power_cycled_controller_is_a_controller_reset(tmp_path, host_controller, capsys):
+    # the controller restarts 1 s after the HELLO as at power-up: no telemetry, no session,
+    # PING still answered. record sees the telemetry stop, sends STOP, then PINGs: PONGs
+    # without telemetry are a restart (exit 6), not a lost link (exit 4)
+    code, side, _ = _record(tmp_path, host_controller, "--restart-at-s", "1")
+    assert code == 6
+    assert capsys.readouterr().out.startswith("controller_reset (exit 6) after ")
+    assert side["end_reason"] == "controller_reset" and "restarted" in side["end_message"]

@@ -3,11 +3,13 @@
  *
  *   mh-controller [--telemetry-rate HZ] [--limit RPM] [--k K] [--tau-s S] [--name NAME]
  *                 [--estop-pressed [--estop-held-s S]] [--fault-at-s S] [--stall-at-s S
- *                 --stall-s S]
+ *                 --stall-s S] [--restart-at-s S]
  *
  * It prints the path of the pseudo-terminal's slave end as the first line of standard output
  * and serves until SIGTERM or SIGINT, then prints its counters as one JSON line on standard
- * error and exits 0. --fault-at-s and --stall-at-s count from the first HELLO. */
+ * error and exits 0. --fault-at-s, --stall-at-s and --restart-at-s count from the first HELLO;
+ * --restart-at-s plays a power-cycle: the core starts again as at power-up (no session, no
+ * telemetry, PING still answered). */
 #define _XOPEN_SOURCE 700
 
 #include <errno.h>
@@ -151,7 +153,7 @@ static void usage(const char *prog)
     fprintf(stderr,
             "usage: %s [--telemetry-rate HZ] [--limit RPM] [--k K] [--tau-s S] [--name NAME]\n"
             "          [--estop-pressed [--estop-held-s S]] [--fault-at-s S]\n"
-            "          [--stall-at-s S --stall-s S]\n",
+            "          [--stall-at-s S --stall-s S] [--restart-at-s S]\n",
             prog);
 }
 
@@ -194,6 +196,8 @@ int main(int argc, char **argv)
     double stall_at_s = -1.0;
     double stall_s = 0.0;
     bool stalled = false;
+    double restart_at_s = -1.0;
+    bool restarted = false;
     const char *name = "mecanum-hil-c99";
     char path[256];
     int slave = -1;
@@ -227,6 +231,8 @@ int main(int argc, char **argv)
             ok = parse_double(v, &pb.fault_at_s) && pb.fault_at_s >= 0.0;
         } else if (strcmp(a, "--stall-at-s") == 0) {
             ok = parse_double(v, &stall_at_s) && stall_at_s >= 0.0;
+        } else if (strcmp(a, "--restart-at-s") == 0) {
+            ok = parse_double(v, &restart_at_s) && restart_at_s >= 0.0;
         } else if (strcmp(a, "--stall-s") == 0) {
             ok = parse_double(v, &stall_s) && stall_s >= 0.0;
         } else if (strcmp(a, "--name") == 0) {
@@ -282,6 +288,14 @@ int main(int argc, char **argv)
             d.tv_sec = (time_t)stall_s;
             d.tv_nsec = (long)((stall_s - (double)d.tv_sec) * 1e9);
             nanosleep(&d, NULL);
+        }
+        if (!restarted && restart_at_s >= 0.0 && pb.first_hello_s >= 0.0
+            && seconds_since_start(&pb) - pb.first_hello_s >= restart_at_s) {
+            /* fault injection: a power-cycle, the core as at power-up (counters kept) */
+            mh_counters kept = core.counters;
+            restarted = true;
+            mh_init(&core, &board, &cfg);
+            core.counters = kept;
         }
         mh_poll(&core);
         idle = mh_idle_us(&core);
