@@ -115,3 +115,18 @@ def test_a_power_cycled_controller_is_a_controller_reset(tmp_path, host_controll
     assert code == 6
     assert capsys.readouterr().out.startswith("controller_reset (exit 6) after ")
     assert side["end_reason"] == "controller_reset" and "restarted" in side["end_message"]
+
+
+@pytest.mark.parametrize(("fault", "reason", "code", "says"), [
+    ("--nan-at-s", "invalid_readings", 10, "in a row"),
+    ("--freeze-ack-at-s", "not_acknowledged", 9, "unacknowledged")])
+def test_a_nan_sensor_or_a_frozen_ack_is_not_a_completed_run(fault, reason, code, says,
+                                                            tmp_path, host_controller,
+                                                            capsys):
+    # from 1 s after the HELLO wheel 2 reads NaN, or ack_seq stays where it was: the first
+    # lets the profile run to its end (exit 10), the second stops it at once (exit 9)
+    code_seen, side, ctl = _record(tmp_path, host_controller, fault, "1")
+    assert code_seen == code
+    assert capsys.readouterr().out.startswith(f"{reason} (exit {code}) after ")
+    assert side["end_reason"] == reason and says in side["end_message"]
+    assert ctl.counters["last_type"] == 0x03  # the STOP came last
