@@ -12,8 +12,10 @@ them and returns a :class:`ConformanceReport` (``mecanum-hil conformance`` print
 Every verdict names the section and sentence of ``drivers/protocol.md`` it checks. A rule
 during which the host's own stream (commands, heartbeats) slipped by more than
 :data:`SLIP_S` is run again, up to :data:`ATTEMPTS` times; when every attempt slipped its
-outcome is ``inconclusive``, never ``fail``. A controller announcing no telemetry fails every
-rule that watches it: without samples nothing it does can be seen.
+outcome is ``inconclusive``, never ``fail``. A rule in which the host could not send (a link
+error, the link not lost) runs again too; it fails only when every attempt could not. A
+controller announcing no telemetry fails every rule that watches it: without samples nothing
+it does can be seen.
 
 The wheels turn (up to the announced limit for a fraction of a second): run it against a real
 robot on stands only.
@@ -1071,15 +1073,19 @@ def _run_rules(probe: Probe, rules: Sequence[str], results: list,
             results.append(RuleResult(name, "skip", f"not run: {lost}", 0.0, section))
             continue
         slipped: list[float] = []
-        attempt = 0
+        attempt, send_failed = 0, False
         while attempt < ATTEMPTS:
             attempt += 1
             probe.slips.clear()
-            outcome, detail, lost = _attempt(probe, check, guard)
+            outcome, detail, lost, send_failed = _attempt(probe, check, guard)
+            if send_failed:  # the host could not write: tried again, failed if it persists
+                continue
             if not probe.slips or outcome == "skip" or lost is not None:
                 break
             slipped.append(max(probe.slips))
-        if len(slipped) == ATTEMPTS:
+        if send_failed:
+            detail += f" (in each of {attempt} attempts)"
+        elif len(slipped) == ATTEMPTS:
             outcome = "inconclusive"
             detail = (f"the host's own frames came up to {max(slipped) * 1000:.0f} ms apart in "
                       f"each of {ATTEMPTS} attempts (the host was too slow): not judged; last "
@@ -1095,9 +1101,11 @@ def _run_rules(probe: Probe, rules: Sequence[str], results: list,
 
 
 def _attempt(probe: Probe, check: Callable[[Probe], str], guard: SignalGuard
-             ) -> tuple[str, str, str | None]:
-    """One run of a rule, ended by STOP: outcome, detail, and why the rest cannot run."""
+             ) -> tuple[str, str, str | None, bool]:
+    """One run of a rule, ended by STOP: outcome, detail, why the rest cannot run, and
+    whether the host failed to send (a link error, the link not lost)."""
     lost: str | None = None
+    send_failed = False
     try:
         outcome, detail = "pass", check(probe)
     except RuleFailedError as err:
@@ -1108,7 +1116,7 @@ def _attempt(probe: Probe, check: Callable[[Probe], str], guard: SignalGuard
         outcome, detail = "fail", f"link lost: {err}"
         lost = "the link was lost"
     except LinkError as err:
-        outcome, detail = "fail", f"link error: {err}"
+        outcome, detail, send_failed = "fail", f"link error: {err}", True
     finally:
         guard.defer()  # a signal now waits for the rule's STOP
         if lost is None:
@@ -1117,7 +1125,7 @@ def _attempt(probe: Probe, check: Callable[[Probe], str], guard: SignalGuard
             except LinkError:
                 pass
         guard.rearm()  # ... and ends the run here
-    return outcome, detail, lost
+    return outcome, detail, lost, send_failed
 
 
 def run_conformance(transport: Transport, robot: RobotProfile, *,

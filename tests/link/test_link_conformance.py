@@ -12,6 +12,7 @@ import time
 import pytest
 
 from mecanum_hil.cli import main
+from mecanum_hil.errors import LinkError
 from mecanum_hil.link import protocol as proto
 from mecanum_hil.link.conformance import RULES, run_conformance, select_rules
 from mecanum_hil.link.effects_file import load_sim_effects
@@ -154,13 +155,14 @@ def _run_against(cls, pty_pair, rules, sim_effects=None, estop=False, answer_s=0
 
 
 @pytest.mark.parametrize(("cls", "rules", "broken"), [
-    (NoRangeCheck, ["command"], "command.beyond_limit"),
-    (HeartbeatReleasesWatchdog, ["watchdog"], "watchdog.latched"),
-    (StaleAckAfterHello, ["hello", "ping"], "hello.restart"),
+    # without a range check, the rotation command.k needs refused is taken too
+    (NoRangeCheck, ["command"], ["command.beyond_limit", "command.k"]),
+    (HeartbeatReleasesWatchdog, ["watchdog"], ["watchdog.latched"]),
+    (StaleAckAfterHello, ["hello", "ping"], ["hello.restart"]),
 ])
 def test_a_broken_controller_fails_with_the_rule_it_breaks(cls, rules, broken, pty_pair):
     report = _run_against(cls, pty_pair, rules)
-    assert report.failed == [broken], report.format()
+    assert report.failed == broken, report.format()
     assert len(report.results) == len(select_rules(rules)) > 1
 
 
@@ -176,7 +178,7 @@ def test_a_hello_that_clears_the_e_stop_fails_estop_held(pty_pair, tmp_path):
 @pytest.mark.slow
 def test_the_whole_suite_against_a_controller_without_range_check(pty_pair):
     report = _run_against(NoRangeCheck, pty_pair, [])
-    assert report.failed == ["command.beyond_limit"], report.format()
+    assert report.failed == ["command.beyond_limit", "command.k"], report.format()
 
 
 class Recorded(SimulatedController):
@@ -258,3 +260,38 @@ def test_a_late_error_does_not_hide_a_refused_command_taken(pty_pair):
     report = _run_against(LateErrorThenTakesIt, pty_pair, ["command.non_finite"], answer_s=1.0)
     assert report.failed == ["command.non_finite"]
     assert "acknowledged (ack_seq)" in report.results[0].detail, report.results
+
+
+class FailsToWrite(SerialTransport):
+    """The host's end, whose first ``failures`` sends of a HEARTBEAT fail (a full output
+    buffer, an adapter that refused a write)."""
+
+    def __init__(self, *args, failures: int, **kw) -> None:
+        super().__init__(*args, **kw)
+        self.failures = failures
+
+    def send(self, msg):
+        if isinstance(msg, proto.Heartbeat) and self.failures > 0:
+            self.failures -= 1
+            raise LinkError("send failed: could not write (test)")
+        return super().send(msg)
+
+
+@pytest.mark.parametrize(("failures", "outcome"), [(1, "pass"), (3, "fail")])
+def test_a_rule_the_host_could_not_send_is_tried_again(failures, outcome, pty_pair):
+    p = pty_pair()
+    ctrl = SimulatedController(SerialTransport(fd=p.master),
+                               ControllerModel(Calibration(), ROBOT, None, rate_hz=1000.0))
+    thread = threading.Thread(target=ctrl.serve, daemon=True)
+    thread.start()
+    try:
+        with FailsToWrite(port=p.path, failures=failures) as host:
+            report = run_conformance(host, ROBOT, rules=["watchdog.fed"], answer_s=2.0)
+    finally:
+        ctrl.stop_event.set()
+        thread.join(2)
+    (result,) = report.results
+    assert result.outcome == outcome, result
+    assert result.attempts == min(failures + 1, 3)
+    if outcome == "fail":
+        assert "link error" in result.detail and "in each of 3 attempts" in result.detail
