@@ -138,7 +138,8 @@ class LateErrorThenTakesIt(SimulatedController):
         super().handle(msg)
 
 
-def _run_against(cls, pty_pair, rules, sim_effects=None, estop=False, answer_s=0.3):
+def _run_against(cls, pty_pair, rules, sim_effects=None, estop=False, answer_s=0.3,
+                 host=lambda path: SerialTransport(port=path)):
     p = pty_pair()
     ctrl = cls(SerialTransport(fd=p.master),
                ControllerModel(Calibration(), ROBOT, sim_effects, rate_hz=1000.0))
@@ -146,8 +147,8 @@ def _run_against(cls, pty_pair, rules, sim_effects=None, estop=False, answer_s=0
     thread = threading.Thread(target=ctrl.serve, daemon=True)
     thread.start()
     try:
-        with SerialTransport(port=p.path) as host:
-            return run_conformance(host, ROBOT, rules=rules, estop_pressed=estop,
+        with host(p.path) as link:
+            return run_conformance(link, ROBOT, rules=rules, estop_pressed=estop,
                                    answer_s=answer_s)
     finally:
         ctrl.stop_event.set()
@@ -279,17 +280,8 @@ class FailsToWrite(SerialTransport):
 
 @pytest.mark.parametrize(("failures", "outcome"), [(1, "pass"), (3, "fail")])
 def test_a_rule_the_host_could_not_send_is_tried_again(failures, outcome, pty_pair):
-    p = pty_pair()
-    ctrl = SimulatedController(SerialTransport(fd=p.master),
-                               ControllerModel(Calibration(), ROBOT, None, rate_hz=1000.0))
-    thread = threading.Thread(target=ctrl.serve, daemon=True)
-    thread.start()
-    try:
-        with FailsToWrite(port=p.path, failures=failures) as host:
-            report = run_conformance(host, ROBOT, rules=["watchdog.fed"], answer_s=2.0)
-    finally:
-        ctrl.stop_event.set()
-        thread.join(2)
+    report = _run_against(SimulatedController, pty_pair, ["watchdog.fed"], answer_s=2.0,
+                          host=lambda path: FailsToWrite(port=path, failures=failures))
     (result,) = report.results
     assert result.outcome == outcome, result
     assert result.attempts == min(failures + 1, 3)
