@@ -92,9 +92,10 @@ class _Interrupted(BaseException):
 
 def _interrupt_passes_typer(fn, name: str):
     """``fn`` with a Ctrl-C it did not handle raised as :class:`_Interrupted` (its ``finally``
-    clauses have run by then); a command that handles Ctrl-C itself and says how the run
-    ended (``record``) exits 130 through ``typer.Exit`` as before. Before ``fn`` runs, the
-    options of which command ``name`` takes exactly one are checked (:func:`check_one_of`)."""
+    clauses have run by then); a command that handles Ctrl-C itself (``record``) prints how
+    the run ended, then raises it again, so that it ends as every command does. Before ``fn``
+    runs, the options of which command ``name`` takes exactly one are checked
+    (:func:`check_one_of`)."""
     @functools.wraps(fn)
     def command(*args, **kwargs):
         check_one_of(name, kwargs)

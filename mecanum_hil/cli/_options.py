@@ -223,6 +223,18 @@ def echo_safely(text: str) -> None:
         point_at_devnull(sys.stdout)
 
 
+def raise_signal_end(reason: str) -> None:
+    """End a command whose run Ctrl-C or a signal cut short (it sent STOP and printed its
+    summary) as any command ends then: ``error: interrupted`` (exit 130) or ``error:
+    terminated by a signal`` (exit 143) on standard error."""
+    from ..errors import SessionTerminated
+
+    if reason == "interrupted":
+        raise KeyboardInterrupt
+    if reason == "terminated":
+        raise SessionTerminated()
+
+
 def point_at_devnull(stream) -> None:
     """Make ``stream``'s file descriptor the null device (a closed pipe or a hung-up terminal
     behind it), so that what is still buffered or printed later goes nowhere instead of

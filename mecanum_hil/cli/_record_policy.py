@@ -10,7 +10,7 @@ from pathlib import Path
 
 import typer
 
-from ._options import echo_safely, link_name
+from ._options import echo_safely, link_name, raise_signal_end
 
 
 def record_policy(*, out: Path, transport: str, port, interface, channel, bitrate, link_option,
@@ -99,6 +99,7 @@ def record_policy(*, out: Path, transport: str, port, interface, channel, bitrat
     if last.error is not None and last.reason not in ("interrupted", "terminated",
                                                       "observer_stop"):
         raise last.error
+    raise_signal_end(s["end_reason"])
     raise typer.Exit(run.exit_code)
 
 

@@ -57,7 +57,7 @@ def command(
     from ..model import load_robot_profile
 
     if list_rules:
-        for name, (_, text) in RULES.items():
+        for name, (_, text, _section) in RULES.items():
             typer.echo(f"{name:<22} {text}")
         return
     require_positive(answer_timeout, "--answer-timeout")

@@ -31,6 +31,7 @@ from ._options import (
     WheelSignsOpt,
     echo_safely,
     link_name,
+    raise_signal_end,
     refuse_overwriting,
     require_positive,
     ros2_options,
@@ -218,6 +219,7 @@ def command(
         return
     if result.error is not None and result.reason in ("error", "link_lost"):
         raise result.error
+    raise_signal_end(result.reason)
     raise typer.Exit(result.exit_code)
 
 

@@ -10,7 +10,7 @@ from ..io.recording import Recording
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
 from .protocol import Command, Stop, encode
-from .session import RecordResult
+from .session import NOT_AS_ASKED, STOP_AT_ONCE, RecordResult
 
 
 def stream_from_recording(rec: Recording, rate_hz: float, source: str = "recording"
@@ -95,9 +95,12 @@ def format_summary(result: RecordResult) -> str:
         f"  round trip  {pct('rtt')}",
         f"  cmd -> ack  {pct('ack')}",
     ]
-    if result.reason in ("telemetry_rate", "controller_reset"):
+    if result.reason in ("telemetry_rate", "controller_reset", *STOP_AT_ONCE):
         lines.append("  telemetry   the run was stopped: see end_message and link_events in the "
                      "sidecar")
+    elif result.reason in NOT_AS_ASKED:
+        lines.append("  not asked   the profile ran to its end, but not as asked: see end_message "
+                     "and link_events in the sidecar")
     if result.observer_dropped:
         lines.append(f"  observers   missed {result.observer_dropped} samples (too slow)")
     return "\n".join(lines)

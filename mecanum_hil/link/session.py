@@ -14,11 +14,24 @@ reason                code   meaning
 ``observer_stop``     3      an observer (shadow mode) asked to stop
 ``link_lost``         4      the port vanished, or the controller's telemetry stopped
 ``telemetry_rate``    5      telemetry far from the announced rate (or some when none was)
-``controller_reset``  6      the controller clock went back, its seq restarted, or an
-                             unasked HELLO_ACK came: it restarted behind the host's back
+``controller_reset``  6      the controller clock went back, its seq restarted, an unasked
+                             HELLO_ACK came, or it answers PING after its telemetry stopped:
+                             it restarted behind the host's back
+``estop``             7      the controller reported ``ESTOP`` during the run (stops at once)
+``drive_fault``       8      the controller reported ``FAULT`` during the run (stops at once)
+``not_acknowledged``  9      ``ack_seq`` stopped following the commands (stops at once)
+``invalid_readings``  10     too many wheel readings not finite (judged at the end)
+``clock_drift``       11     the controller clock drifted from the host's (judged at the end)
+``host_stall``        12     the host's own command stream paused longer than half the
+                             watchdog (judged at the end)
 ``interrupted``       130    Ctrl-C
 ``terminated``        143    SIGTERM or SIGHUP
 ====================  =====  ===========================================================
+
+Reasons 7 to 9 stop the run at once: the robot is not doing what was asked. Reasons 10 to 12
+let the profile run to its end (the robot did what was asked, the recording is not what was
+asked) and only set the reason and exit code; the first one found is the one reported, the
+others are ``link_events``. Each limit is a constant below.
 
 Observers (shadow mode) see every telemetry sample on their own thread, so a slow observer
 never delays a command; see :class:`TelemetryObserver`.
@@ -72,8 +85,41 @@ from .transport import PoseReading, Transport
 
 #: Exit code of each way a session can end.
 EXIT_CODES = {"completed": 0, "error": 1, "observer_stop": 3, "link_lost": 4,
-              "telemetry_rate": 5, "controller_reset": 6, "interrupted": 130,
-              "terminated": 143}
+              "telemetry_rate": 5, "controller_reset": 6, "estop": 7, "drive_fault": 8,
+              "not_acknowledged": 9, "invalid_readings": 10, "clock_drift": 11,
+              "host_stall": 12, "interrupted": 130, "terminated": 143}
+
+#: Reasons that end the run at once (STOP, then the tail of telemetry is kept).
+STOP_AT_ONCE = ("estop", "drive_fault", "not_acknowledged")
+#: Reasons judged while the profile runs to its end: they only set the reason and exit code.
+NOT_AS_ASKED = ("invalid_readings", "clock_drift", "host_stall")
+
+#: Commands left unacknowledged (``ack_seq`` not reaching them) after which, when the oldest
+#: was sent more than :data:`ACK_FROZEN_S` before a telemetry sample, the run ends with
+#: ``not_acknowledged``.
+ACK_FROZEN_COMMANDS = 10
+#: See :data:`ACK_FROZEN_COMMANDS` [s]: twice the watchdog time, so a controller that stalls
+#: for less than its watchdog and then takes the commands sent meanwhile passes.
+ACK_FROZEN_S = 2 * WATCHDOG_S
+
+#: Share of telemetry samples with a wheel reading not finite (or beyond
+#: :data:`WHEEL_READING_MAX_RPM`) above which the run ends with ``invalid_readings``.
+INVALID_SHARE_MAX = 0.01
+#: Longest run of such samples [s] (host time) before the run ends with ``invalid_readings``.
+INVALID_RUN_MAX_S = 0.1
+
+#: The controller clock may drift from the host's by this share of the elapsed time plus
+#: :data:`CLOCK_DRIFT_SLACK_S` before the run ends with ``clock_drift``. It is measured on the
+#: earliest arrival in each second (a late arrival is the host's or the link's delay).
+CLOCK_DRIFT_MAX = 0.02
+#: See :data:`CLOCK_DRIFT_MAX` [s].
+CLOCK_DRIFT_SLACK_S = 0.1
+#: Window of :data:`CLOCK_DRIFT_MAX`'s earliest arrivals [s].
+CLOCK_DRIFT_WINDOW_S = 1.0
+
+#: Share of the announced watchdog time the host's own command stream may pause (two commands
+#: sent further apart) before the run ends with ``host_stall``.
+HOST_STALL_SHARE = 0.5
 
 #: Telemetry rate (observed over windows of at least 1 s) outside this factor of the
 #: announced one ends the run with ``telemetry_rate``.
@@ -85,6 +131,12 @@ LINK_TIMEOUT_PERIODS = 3.0
 
 #: Largest wheel reading a recording holds [rpm] (a larger one is a corrupt field there).
 WHEEL_READING_MAX_RPM = MAX_ABS_VALUE["wheel1_rpm"]
+
+#: After telemetry stopped for the link timeout (and STOP went out), the host sends PING every
+#: 0.1 s for this long [s]: PONGs and no telemetry mean the controller restarted (a power-cycle:
+#: it answers PING before a HELLO but sends no telemetry), ``controller_reset``; nothing, or
+#: telemetry again (a stall), leaves it ``link_lost``.
+RESTART_PROBE_S = 1.0
 
 #: Non-telemetry frames in a row after which the link timeout is checked even though frames
 #: keep arriving (fewer could be a backlog read after the host itself stalled).
@@ -212,13 +264,18 @@ class RecordResult:
     signal_at_end: int | None = None
 
 
+class TelemetrySilenceError(LinkLostError):
+    """No telemetry for the link timeout (the port itself still works)."""
+
+
 class TelemetryCheckError(LinkError):
     """The telemetry is not sane: the run ends with STOP and ``reason``'s exit code.
 
     Attributes
     ----------
     reason : str
-        ``"telemetry_rate"`` or ``"controller_reset"`` (see :data:`EXIT_CODES`).
+        ``"telemetry_rate"``, ``"controller_reset"`` or one of :data:`STOP_AT_ONCE` (see
+        :data:`EXIT_CODES`).
     """
 
     def __init__(self, reason: str, message: str) -> None:
@@ -353,6 +410,22 @@ class _Session:
         self._ctrl_wrap = 0
         self._ctrl_last = None
         self._last_progress = 0.0
+        #: The profile is over (STOP sent): the run's checks no longer apply to the tail.
+        self.run_over = False
+        #: The first reason of :data:`NOT_AS_ASKED` found, and its message.
+        self.not_as_asked: tuple[str, str] | None = None
+        #: Telemetry samples with an invalid wheel reading; when the current run of them began.
+        self.invalid_samples = 0
+        self._invalid_since: float | None = None
+        self.longest_invalid_s = 0.0
+        # clock drift: host and controller time of the first sample, the earliest arrival of
+        # the first window (host - controller time), the current window (start, earliest)
+        self._drift0: tuple[float, float] | None = None
+        self._drift_first: float | None = None
+        self._drift_win: tuple[float, float] = (0.0, math.inf)
+        self.clock_drift_s = 0.0
+        self._last_cmd_sent: float | None = None
+        self.widest_command_gap_s = 0.0
 
     # -- rows --------------------------------------------------------------------------------
     def _row_time(self, now: float) -> float:
@@ -445,8 +518,17 @@ class _Session:
         started = bad & ~self._invalid
         self._invalid = bad
         if not bad.any():
+            self._invalid_since = None
             return wheels
         self.invalid_readings += int(bad.sum())
+        self.invalid_samples += 1
+        if self._invalid_since is None:
+            self._invalid_since = now
+        lasted = now - self._invalid_since
+        self.longest_invalid_s = max(self.longest_invalid_s, lasted)
+        if lasted > INVALID_RUN_MAX_S:
+            self._flag("invalid_readings", now, f"{self.tr.port}: wheel readings not finite "
+                       f"for {lasted:.3f} s in a row (more than {INVALID_RUN_MAX_S:g} s)")
         if started.any():
             which = ", ".join(f"wheel {i + 1}: {float(wheels[i]):g}"
                               for i in np.flatnonzero(started))
@@ -474,6 +556,9 @@ class _Session:
             self.writer.write(t, self.cmd_in_force, wheels,
                               extra=("tlm", msg.seq, f"{ctrl_t:.6f}", msg.status))
             self.pump.push(t, self.cmd_in_force.copy(), wheels, ctrl_t)
+            if not self.run_over:  # the sample is kept first, then judged
+                self._check_drift(now, ctrl_t)
+                self._check_stopped_by_controller(t, msg.status)
         elif isinstance(msg, PoseReading):
             if self.t0 is None:
                 return
@@ -494,6 +579,67 @@ class _Session:
                 "controller_reset", f"{self.tr.port}: a HELLO_ACK came in the middle of the "
                 "run: the controller restarted its session")
 
+    def _flag(self, reason: str, now: float, message: str) -> None:
+        """A reason of :data:`NOT_AS_ASKED`: a link event; the run's reason if the first."""
+        if self.not_as_asked is None:
+            self.not_as_asked = (reason, message)
+            self._event(now, reason, message)
+
+    def _check_stopped_by_controller(self, t_s: float, status: int) -> None:
+        if status & Status.ESTOP:
+            raise TelemetryCheckError(
+                "estop", f"{self.tr.port}: the controller reported ESTOP at {t_s:.3f} s: the "
+                "wheels are held at zero, not doing what was asked")
+        if status & Status.FAULT:
+            raise TelemetryCheckError(
+                "drive_fault", f"{self.tr.port}: the controller reported FAULT at {t_s:.3f} s: "
+                "the drive is not doing what was asked")
+
+    def _check_drift(self, now: float, ctrl_t: float) -> None:
+        """Compare the controller clock with the host's on the earliest arrival of each window
+        (a late arrival is delay on the host or the link, not the controller's clock)."""
+        offset = now - ctrl_t
+        if self._drift0 is None:
+            self._drift0 = (now, ctrl_t)
+            self._drift_win = (now, offset)
+            return
+        start, earliest = self._drift_win
+        earliest = min(earliest, offset)
+        if now - start < CLOCK_DRIFT_WINDOW_S:
+            self._drift_win = (start, earliest)
+            return
+        self._judge_drift(now, ctrl_t, earliest)
+        self._drift_win = (now, offset)
+
+    def _judge_drift(self, now: float, ctrl_t: float, earliest: float) -> None:
+        if self._drift_first is None:
+            self._drift_first = earliest
+            return
+        assert self._drift0 is not None
+        drift = earliest - self._drift_first
+        if abs(drift) > abs(self.clock_drift_s):
+            self.clock_drift_s = drift
+        host_s, ctrl_s = now - self._drift0[0], ctrl_t - self._drift0[1]
+        if abs(drift) > CLOCK_DRIFT_MAX * host_s + CLOCK_DRIFT_SLACK_S:
+            self._flag("clock_drift", now, f"{self.tr.port}: the controller clock advanced "
+                       f"{ctrl_s:.2f} s while the host's advanced {host_s:.2f} s (a drift of "
+                       f"{drift:+.3f} s, more than {CLOCK_DRIFT_MAX:.0%} + "
+                       f"{CLOCK_DRIFT_SLACK_S:g} s)")
+
+    def finish_checks(self) -> None:
+        """The checks judged at the end of a profile run to its end."""
+        now = time.perf_counter()
+        earliest = self._drift_win[1]
+        if self._drift0 is not None and math.isfinite(earliest) and self._ctrl_last is not None:
+            self._judge_drift(now, self._controller_time_s_last(), earliest)
+        if self.telemetry and self.invalid_samples > INVALID_SHARE_MAX * self.telemetry:
+            self._flag("invalid_readings", now, f"{self.tr.port}: {self.invalid_samples} of "
+                       f"{self.telemetry} telemetry samples had a wheel reading not finite "
+                       f"(more than {INVALID_SHARE_MAX:.0%}; written empty)")
+
+    def _controller_time_s_last(self) -> float:
+        return ((self._ctrl_last or 0) + self._ctrl_wrap) * 1e-6
+
     def _take_acks(self, ack_seq: int, now: float) -> None:
         """Count the latency of every command a sample acknowledges.
 
@@ -508,9 +654,17 @@ class _Session:
         while self._acks:
             seq, sent = next(iter(self._acks.items()))
             if (ack_seq - seq) % modulus >= modulus // 2:
-                return  # sent after what the sample acknowledges: still pending
+                break  # sent after what the sample acknowledges: still pending
             del self._acks[seq]
             self.ack.append(now - sent)
+        if self.run_over or len(self._acks) < ACK_FROZEN_COMMANDS:
+            return
+        oldest = next(iter(self._acks.values()))
+        if now - oldest > ACK_FROZEN_S:
+            raise TelemetryCheckError(
+                "not_acknowledged", f"{self.tr.port}: {len(self._acks)} commands unacknowledged, "
+                f"the oldest sent {now - oldest:.3f} s ago (ack_seq stays at {ack_seq}): the "
+                "controller is not taking the commands")
 
     def pump_until(self, deadline: float) -> None:
         while True:
@@ -528,7 +682,7 @@ class _Session:
             # a lost link is telemetry that stopped, whatever else keeps arriving
             if self.telemetry_rate_hz > 0 and now - self.last_tlm > self.link_timeout_s \
                     and (msg is None or self._other_frames >= _OTHER_FRAMES_BEFORE_CHECK):
-                raise LinkLostError(
+                raise TelemetrySilenceError(
                     f"{self.tr.port}: link lost: no telemetry from the controller for "
                     f"{now - self.last_tlm:.2f} s" + (
                         f" ({self._other_frames} other frames came meanwhile)"
@@ -669,6 +823,16 @@ class _Session:
         """Send one checked command, record it as in force; return when it was sent [s]."""
         wire = self.tr.wire_command(*command)
         now = time.perf_counter()
+        if self._last_cmd_sent is not None:
+            gap = now - self._last_cmd_sent
+            self.widest_command_gap_s = max(self.widest_command_gap_s, gap)
+            watchdog_s = self.watchdog_ms / 1000.0 if self.watchdog_ms > 0 else WATCHDOG_S
+            if gap > HOST_STALL_SHARE * watchdog_s:
+                at = now - (self.t0 or now)
+                self._flag("host_stall", now, f"{self.tr.port}: the host's command stream "
+                           f"paused {gap * 1000:.0f} ms at {at:.3f} s (more than half the "
+                           f"controller's {watchdog_s * 1000:.0f} ms watchdog)")
+        self._last_cmd_sent = now
         sent = self.send(wire)
         if sent is not None:
             self.commands_sent += 1
@@ -682,6 +846,38 @@ class _Session:
         self.pump.push_command(t_row, self.cmd_in_force.copy())
         return now
 
+    def restarted(self, probe_s: float = RESTART_PROBE_S) -> str | None:
+        """After the STOP of a run whose telemetry stopped: PING every 0.1 s for ``probe_s``.
+
+        Returns why the controller restarted (it answers PING, yet sends no telemetry: it has
+        no session), or None (no answer, telemetry again after a stall, or no PING on this
+        transport). Never raises: the run is over whatever this finds.
+        """
+        if not self.tr.acknowledges:
+            return None
+        start = time.perf_counter()
+        end, next_ping, tokens, pongs = start + probe_s, start, set(), 0
+        try:
+            while (now := time.perf_counter()) < end:
+                if now >= next_ping:
+                    self._ping_token = (self._ping_token + 1) & 0xFFFFFFFF
+                    self.tr.send(Ping(self._ping_token))
+                    tokens.add(self._ping_token)
+                    next_ping += 0.1
+                msg = self.tr.recv(max(0.0, min(end, next_ping) - now))
+                if isinstance(msg, Telemetry):
+                    return None  # the session lives on: a stall, not a restart
+                if isinstance(msg, Pong) and msg.token in tokens:
+                    pongs += 1
+        except Exception:  # the port went away meanwhile: a lost link
+            return None
+        if not pongs:
+            return None
+        return (f"{self.tr.port}: no telemetry from the controller for "
+                f"{self.link_timeout_s:g} s, yet it answered {pongs} PINGs in the "
+                f"{probe_s:g} s after the STOP without sending telemetry: it restarted (a "
+                "power-cycle or a reset) and has no session")
+
     def stop(self, keep_receiving_s: float) -> None:
         """Send STOP (best effort) and record it, then keep the tail.
 
@@ -690,6 +886,7 @@ class _Session:
         to be swallowed, and the run went on: the next episode of ``record --policy``). Other
         failures to send are not raised (best effort)."""
         self.stop_attempted = True
+        self.run_over = True
         sent = None
         interrupt: BaseException | None = None
         for _ in range(3):
@@ -863,11 +1060,16 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
         except (KeyboardInterrupt, SessionTerminated) as exc:  # as the stream was ending
             reason, tail = signal_reason(exc), 0.0
             guard.defer()
-        if reason != "completed" and cut_short is not None:
+        ran_to_end = reason == "completed" or reason in NOT_AS_ASKED
+        if not ran_to_end and cut_short is not None:
             cut_short(reason)
         # every way out: STOP first, then the recording is closed cleanly
         try:
             sess.stop(tail if settle is None else 0.0)
+            if isinstance(error, TelemetrySilenceError):  # silence: a restart or a lost link
+                why = sess.restarted()
+                if why is not None:
+                    reason, message = "controller_reset", why
         except (KeyboardInterrupt, SessionTerminated) as exc:
             # raised after STOP went out, where no guard defers signals (not the main
             # thread, handle_sigterm off): during the tail a courtesy, the run still
@@ -875,7 +1077,7 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
             if settle is not None:
                 reason = signal_reason(exc)
             settle = None
-        if settle is not None and reason == "completed" and sess.t0 is not None:
+        if settle is not None and ran_to_end and sess.t0 is not None:
             try:
                 with guard.raising():  # waiting for rest may be cut short: STOP is out
                     settle()
@@ -889,7 +1091,8 @@ def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWr
     except BaseException as exc:  # what no end of the stream takes (SystemExit, a callback's)
         guard.defer()  # nothing may cut STOP or the close short from here
         failing = exc
-        if reason == "completed":  # the sidecar must not say the stream completed
+        if reason == "completed" or reason in NOT_AS_ASKED:  # the sidecar must not say the
+            # stream ran to its end
             if isinstance(exc, (KeyboardInterrupt, SessionTerminated)):
                 reason = signal_reason(exc)  # no guard (handle_sigterm off): raised here
             else:
@@ -1073,11 +1276,16 @@ def _stream_until_end(sess: _Session, config: SessionConfig
     """
     try:
         sess.run()
+        sess.finish_checks()
+        if sess.not_as_asked is not None:  # the profile ran to its end, not as asked
+            reason, message = sess.not_as_asked
+            return reason, message, None, config.tail_s
         return "completed", "", None, config.tail_s
     except _ObserverStopError:
         return "observer_stop", "", None, 0.0
     except TelemetryCheckError as err:
-        return err.reason, str(err), err, 0.0
+        # the controller stopped (or ignores) the commands: the tail shows the wheels at rest
+        return err.reason, str(err), err, config.tail_s if err.reason in STOP_AT_ONCE else 0.0
     except LinkLostError as err:
         return "link_lost", str(err), err, 0.0
     except KeyboardInterrupt:
@@ -1096,6 +1304,12 @@ def _end_metadata(sess: _Session, transport: Transport, reason: str, message: st
                    "link_events": sess.events,
                    **transport.link_metadata(),
                    "invalid_readings": sess.invalid_readings,
+                   "run_checks": {
+                       "invalid_samples": sess.invalid_samples,
+                       "longest_invalid_s": round(sess.longest_invalid_s, 6),
+                       "clock_drift_s": round(sess.clock_drift_s, 6),
+                       "widest_command_gap_s": round(sess.widest_command_gap_s, 6),
+                       "unacknowledged_commands": len(sess._acks)},
                    "controller": sess.controller,
                    "controller_wheel_limit_rpm": (sess.wheel_limit_rpm
                                                   if math.isfinite(sess.wheel_limit_rpm)

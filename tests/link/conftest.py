@@ -56,7 +56,7 @@ class ScriptedController:
     """A controller played by the test on a pty master: answers HELLO, then after the first
     COMMAND sends ``telemetry`` samples, each preceded by whatever ``before(i)`` returns (raw
     bytes: garbage, damaged frames ...). ``skip(i)`` true makes sample i a sequence gap.
-    ``acks`` makes each sample acknowledge the last COMMAND read (``ack_seq``, else 0);
+    ``acks`` (the default) makes each sample acknowledge the last COMMAND read (else 0);
     ``stall_of(i)`` [s] stops the controller, reading nothing, before sample i."""
 
     def __init__(self, master: int, telemetry: int = 40, period_s: float = 0.004,
@@ -64,7 +64,7 @@ class ScriptedController:
                  hello_version: int = proto.PROTOCOL_VERSION, then=None, rate_hz: int = 250,
                  wheel_limit_rpm: float = 130.0, time_step_us: int = 4000, seq_of=None,
                  time_of=None, status_of=None, pong: bool = False, wheels_of=None,
-                 acks: bool = False, stall_of=None) -> None:
+                 acks: bool = True, stall_of=None) -> None:
         self.master = master
         self.telemetry = telemetry
         self.period_s = period_s

@@ -140,6 +140,12 @@ def f32_or_inf(x: float) -> float:
 # The controller
 # ---------------------------------------------------------------------------------------------
 
+
+def sample_time_us(k: int, rate_hz: int) -> int:
+    """``time_us`` of telemetry sample ``k`` after the HELLO: k * 10^6 / rate rounded half up
+    to the microsecond, in integer arithmetic, modulo 2^32 (protocol.md, "Telemetry")."""
+    return (k * 1_000_000 + rate_hz // 2) // rate_hz % (1 << 32)
+
 class Controller:
     """The firmware state machine; I/O is the caller's (``feed`` bytes in, ``take_output``)."""
 
@@ -383,7 +389,7 @@ class Controller:
         """The next sample, taken at ``t_sample`` on the announced period."""
         if t_sample > self.model_t:
             self.advance_model(t_sample)
-        time_us = round(self.sample_index * 1e6 / self.rate_hz) % (1 << 32)
+        time_us = sample_time_us(self.sample_index, self.rate_hz)
         wheels = [f32_or_inf(w) for w in self.wheels]
         body = struct.pack("<I4fHH", time_us, *wheels, self.status(), self.ack_seq & 0xFFFF)
         self.send(TELEMETRY, body)

@@ -94,20 +94,25 @@ def test_2_commands_beyond_the_announced_limit_are_refused_by_the_controller(n_r
     assert tlm[-1].status & proto.Status.WATCHDOG  # the watchdog took over
 
 
-# -- 3: a telemetry stall is a lost link, whatever else arrives ------------------------------
-def test_3_telemetry_stall_with_pongs_still_arriving_is_a_lost_link(pty_pair, scripted,
-                                                                    host_serial, tmp_path):
+# -- 3: a telemetry stall ends the run, whatever else arrives --------------------------------
+@pytest.mark.parametrize(("pong", "reason", "code"), [(True, "controller_reset", 6),
+                                                      (False, "link_lost", 4)])
+def test_3_telemetry_stall_ends_the_run_pongs_without_telemetry_are_a_restart(
+        pong, reason, code, pty_pair, scripted, host_serial, tmp_path):
     p = pty_pair()
-    scripted(p.master, telemetry=40, pong=True)  # 0.16 s of telemetry, then PONGs only
-    t, cmd = _stream(1.2)
+    # 0.16 s of telemetry, then nothing but (with pong) PONGs: a controller that answers PING
+    # and sends no telemetry has no session (a power-cycled one answers PING before a HELLO)
+    scripted(p.master, telemetry=40, pong=pong)
+    t, cmd = _stream(3.0)
     cfg = SessionConfig(connect_timeout_s=1.0, link_timeout_s=0.3, tail_s=0.05,
                         ping_rate_hz=20.0)
     res = run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT,
                              config=cfg)
-    assert res.reason == "link_lost" and res.exit_code == 4
+    assert (res.reason, res.exit_code) == (reason, code), res.message
     assert "no telemetry" in res.message
+    assert res.duration_s < 2.0  # ended at the link timeout, not at the profile's end
     meta = json.loads((tmp_path / "r.json").read_text())
-    assert meta["end_reason"] == "link_lost" and meta["exit_code"] == 4
+    assert meta["end_reason"] == reason and meta["exit_code"] == code
 
 
 # -- 4: telemetry that is not sane ends the run with STOP and its own exit code --------------

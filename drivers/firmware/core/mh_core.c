@@ -1,5 +1,12 @@
 #include "mh_core.h"
 
+/* Deliberate bugs, each off unless defined at compile time; the conformance tests build
+ * them to show that a rule fails on each:
+ *   MH_BUG_PING_FEEDS_WATCHDOG         a PING feeds the watchdog
+ *   MH_BUG_WATCHDOG_ONLY_WHILE_MOVING  the watchdog runs only while a command is in force
+ *   MH_BUG_ESTOP_ERROR_FEEDS_WATCHDOG  an ESTOP_RESET answered with ERROR 3 feeds it
+ *   MH_BUG_BYTES_FEED_WATCHDOG         every received byte feeds it */
+
 /* in 32 bits also where int has 16 */
 #define MH_WATCHDOG_US ((uint32_t)MH_WATCHDOG_MS * 1000u)
 
@@ -204,6 +211,11 @@ static void mh_tick(mh_core *c, uint32_t now)
     if (!c->session) {
         return;
     }
+#ifdef MH_BUG_WATCHDOG_ONLY_WHILE_MOVING
+    if (!c->have_command || c->stopped) {
+        mh_feed_watchdog(c, now);
+    }
+#endif
     if (!c->watchdog && now - c->last_feed_us >= MH_WATCHDOG_US) {
         c->watchdog = true;
         c->have_command = false;
@@ -288,6 +300,9 @@ static void mh_on_command(mh_core *c, uint16_t seq, const uint8_t *body, uint32_
 static void mh_on_estop_reset(mh_core *c, uint16_t seq, uint32_t now)
 {
     if (c->estop && c->board.estop_pressed != 0 && c->board.estop_pressed(c->board.ctx)) {
+#ifdef MH_BUG_ESTOP_ERROR_FEEDS_WATCHDOG
+        mh_feed_watchdog(c, now);
+#endif
         mh_send_error(c, MH_E_ESTOP_HELD, "e-stop still held");
         return;
     }
@@ -362,6 +377,11 @@ static void mh_on_piece(mh_core *c, const uint8_t *piece, size_t len, uint32_t n
         return;
     }
     if (type == MH_PING) {
+#ifdef MH_BUG_PING_FEEDS_WATCHDOG
+        if (c->session) {
+            mh_feed_watchdog(c, now);
+        }
+#endif
         mh_send(c, MH_PONG, raw + MH_HEADER, 4);
         return;
     }
@@ -397,6 +417,11 @@ void mh_feed(mh_core *c, const uint8_t *data, size_t len)
     size_t i;
     /* what was due before these bytes came happens first */
     mh_tick(c, now);
+#ifdef MH_BUG_BYTES_FEED_WATCHDOG
+    if (c->session && len > 0) {
+        mh_feed_watchdog(c, now);
+    }
+#endif
     for (i = 0; i < len; i++) {
         uint8_t b = data[i];
         if (b == 0) {

@@ -3,11 +3,14 @@
  *
  *   mh-controller [--telemetry-rate HZ] [--limit RPM] [--k K] [--tau-s S] [--name NAME]
  *                 [--estop-pressed [--estop-held-s S]] [--fault-at-s S] [--stall-at-s S
- *                 --stall-s S]
+ *                 --stall-s S] [--restart-at-s S] [--nan-at-s S] [--freeze-ack-at-s S]
  *
  * It prints the path of the pseudo-terminal's slave end as the first line of standard output
  * and serves until SIGTERM or SIGINT, then prints its counters as one JSON line on standard
- * error and exits 0. --fault-at-s and --stall-at-s count from the first HELLO. */
+ * error and exits 0. The fault options count from the first HELLO. --restart-at-s plays a
+ * power-cycle: the core starts again as at power-up (no session, no telemetry, PING still
+ * answered). --nan-at-s makes wheel 2's reading NaN from then on; --freeze-ack-at-s keeps
+ * ack_seq at its value of that time (the commands still drive the wheels). */
 #define _XOPEN_SOURCE 700
 
 #include <errno.h>
@@ -35,6 +38,7 @@ typedef struct posix_board {
     bool estop_seen;
     double estop_held_s;
     double fault_at_s; /* after the first HELLO; < 0: never */
+    double nan_at_s;   /* after the first HELLO; < 0: never */
     double first_hello_s; /* < 0: none yet */
 } posix_board;
 
@@ -84,6 +88,10 @@ static void board_read_wheels(void *ctx, float rpm[4])
     posix_board *b = ctx;
     advance_model(b);
     memcpy(rpm, b->wheels, sizeof b->wheels);
+    if (b->nan_at_s >= 0.0 && b->first_hello_s >= 0.0
+        && seconds_since_start(b) - b->first_hello_s >= b->nan_at_s) {
+        rpm[1] = (float)NAN; /* fault injection: a sensor that reads no number */
+    }
 }
 
 static void board_set_targets(void *ctx, const float rpm[4])
@@ -151,7 +159,8 @@ static void usage(const char *prog)
     fprintf(stderr,
             "usage: %s [--telemetry-rate HZ] [--limit RPM] [--k K] [--tau-s S] [--name NAME]\n"
             "          [--estop-pressed [--estop-held-s S]] [--fault-at-s S]\n"
-            "          [--stall-at-s S --stall-s S]\n",
+            "          [--stall-at-s S --stall-s S] [--restart-at-s S] [--nan-at-s S]\n"
+            "          [--freeze-ack-at-s S]\n",
             prog);
 }
 
@@ -194,6 +203,11 @@ int main(int argc, char **argv)
     double stall_at_s = -1.0;
     double stall_s = 0.0;
     bool stalled = false;
+    double restart_at_s = -1.0;
+    bool restarted = false;
+    double freeze_ack_at_s = -1.0;
+    bool frozen = false;
+    uint16_t frozen_ack = 0;
     const char *name = "mecanum-hil-c99";
     char path[256];
     int slave = -1;
@@ -202,6 +216,7 @@ int main(int argc, char **argv)
 
     pb.tau_s = 0.05;
     pb.fault_at_s = -1.0;
+    pb.nan_at_s = -1.0;
     pb.first_hello_s = -1.0;
     for (i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -227,6 +242,12 @@ int main(int argc, char **argv)
             ok = parse_double(v, &pb.fault_at_s) && pb.fault_at_s >= 0.0;
         } else if (strcmp(a, "--stall-at-s") == 0) {
             ok = parse_double(v, &stall_at_s) && stall_at_s >= 0.0;
+        } else if (strcmp(a, "--nan-at-s") == 0) {
+            ok = parse_double(v, &pb.nan_at_s) && pb.nan_at_s >= 0.0;
+        } else if (strcmp(a, "--freeze-ack-at-s") == 0) {
+            ok = parse_double(v, &freeze_ack_at_s) && freeze_ack_at_s >= 0.0;
+        } else if (strcmp(a, "--restart-at-s") == 0) {
+            ok = parse_double(v, &restart_at_s) && restart_at_s >= 0.0;
         } else if (strcmp(a, "--stall-s") == 0) {
             ok = parse_double(v, &stall_s) && stall_s >= 0.0;
         } else if (strcmp(a, "--name") == 0) {
@@ -283,6 +304,22 @@ int main(int argc, char **argv)
             d.tv_nsec = (long)((stall_s - (double)d.tv_sec) * 1e9);
             nanosleep(&d, NULL);
         }
+        if (!restarted && restart_at_s >= 0.0 && pb.first_hello_s >= 0.0
+            && seconds_since_start(&pb) - pb.first_hello_s >= restart_at_s) {
+            /* fault injection: a power-cycle, the core as at power-up (counters kept) */
+            mh_counters kept = core.counters;
+            restarted = true;
+            mh_init(&core, &board, &cfg);
+            core.counters = kept;
+        }
+        if (!frozen && freeze_ack_at_s >= 0.0 && pb.first_hello_s >= 0.0
+            && seconds_since_start(&pb) - pb.first_hello_s >= freeze_ack_at_s) {
+            frozen = true;
+            frozen_ack = core.ack_seq;
+        }
+        if (frozen) {
+            core.ack_seq = frozen_ack; /* fault injection: telemetry stops acknowledging */
+        }
         mh_poll(&core);
         idle = mh_idle_us(&core);
         pfd.fd = pb.master;
@@ -291,6 +328,9 @@ int main(int argc, char **argv)
         if (poll(&pfd, 1, (int)((idle + 999u) / 1000u)) > 0 && (pfd.revents & POLLIN)) {
             ssize_t n = read(pb.master, buf, sizeof buf);
             if (n > 0) {
+                if (frozen) {
+                    core.ack_seq = frozen_ack;
+                }
                 mh_feed(&core, buf, (size_t)n);
             }
         }
