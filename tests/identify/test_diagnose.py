@@ -42,11 +42,12 @@ NOISE_RPM = 0.25
 LINK_LATENCY_S = 0.001
 
 
-def _campaign(tmp_path, effects: Effects, *, unmodelled=None, seed: int = 1):
+def _campaign(tmp_path, effects: Effects, *, unmodelled=None, seed: int = 1,
+              profiles=PROFILES):
     fx = sim_effects_for(effects, wheel_rpm_std=NOISE_RPM, seed=seed, unmodelled=unmodelled)
     path = save_sim_effects(fx, tmp_path / f"robot-effects-{seed}.toml")
     assert load_sim_effects(path).effects == fx.effects
-    return paper_campaign(path, ROBOT, profiles=PROFILES, seed=seed)
+    return paper_campaign(path, ROBOT, profiles=profiles, seed=seed)
 
 
 def _diagnose(recs) -> Diagnosis:
@@ -223,7 +224,7 @@ def test_noise_level_from_differences():
 
 
 def test_initial_pose_is_averaged_over_the_rest(tmp_path):
-    recs = _campaign(tmp_path, Effects(), seed=7)
+    recs = _campaign(tmp_path, Effects(), seed=7, profiles=PROFILES[:1])
     rec = initial_pose_at_rest(recs[0])
     # 0.3 s at rest: 30 samples, so the first pose is 5 times closer to the truth
     assert abs(rec.pose[0, 2] - 90.0) < 0.2
@@ -233,7 +234,7 @@ def test_initial_pose_is_averaged_over_the_rest(tmp_path):
 def test_bad_input_is_a_diagnose_error(tmp_path):
     from mecanum_hil.errors import DiagnoseError
 
-    recs = _campaign(tmp_path, Effects(), seed=8)[:2]
+    recs = _campaign(tmp_path, Effects(), seed=8, profiles=PROFILES[:2])
     with pytest.raises(DiagnoseError, match="no recordings"):
         diagnose([], Calibration(), ROBOT)
     with pytest.raises(DiagnoseError, match="unknown effect"):
