@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from mecanum_hil.io.recording import read_recording
+from mecanum_hil.model import load_calibration
 
 
 def cli(*args):
@@ -37,14 +38,24 @@ def test_a_short_campaign_fit_diagnose_from_the_command_line(tmp_path):
     cal = tmp_path / "cal.toml"
     r = cli("fit", *files, "--out", cal, "--no-report")
     assert r.returncode == 0, r.stderr
+    # the text the command prints (diagnose --json: tests/identify/test_diagnose_cli.py)
+    out = tmp_path / "diagnosed.toml"
     r = cli("diagnose", *files, "--calibration", cal, "--candidates", "dead_time,saturation",
-            "--json")
+            "--out", out)
     assert r.returncode == 0, r.stderr
-    doc = json.loads(r.stdout)
-    assert [e["effect"] for e in doc["effects"]] == ["dead_time"]
+    lines = r.stdout.splitlines()
+    named = [x for x in lines if x.startswith("named: ")]
+    assert len(named) == 1 and named[0].startswith("named: dead_time {'dead_time_s': "), r.stdout
+    assert lines[-1] == f"wrote {out}"
+    rmse = next(x for x in lines if x.startswith("wheel RMSE "))
+    assert "unexplained" not in rmse, rmse
+    before, after = (float(v) for v in rmse.removeprefix("wheel RMSE ").split(" rpm")[0]
+                     .split(" -> "))
+    assert after <= 0.5 * before
+    diagnosed = load_calibration(out)
+    assert diagnosed.info["effects_added"] == ["dead_time"]
     # the link adds about 1 ms to the robot's dead time (tests/identify/test_diagnose.py)
-    assert doc["effects"][0]["parameters"]["dead_time_s"] == pytest.approx(0.041, abs=0.003)
-    assert doc["rmse_final"] <= 0.5 * doc["rmse_initial"] and not doc["unexplained"]
+    assert diagnosed.effects.dead_time_s == pytest.approx(0.041, abs=0.003)
     assert not any(k.startswith("true_") for k in rec.metadata)
     r = cli("campaign", "--profile", "paper-turn", "--out", camp)
     assert r.returncode == 1 and "already holds recordings" in r.stderr
