@@ -89,6 +89,7 @@ def test_malformed_csv_is_one_line(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+@pytest.mark.slow
 def test_demo_runs_the_whole_loop(tmp_path):
     """`demo --quick`: model, record over a pty, video, fit, diagnose, shadow, one report.
 

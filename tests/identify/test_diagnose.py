@@ -42,11 +42,12 @@ NOISE_RPM = 0.25
 LINK_LATENCY_S = 0.001
 
 
-def _campaign(tmp_path, effects: Effects, *, unmodelled=None, seed: int = 1):
+def _campaign(tmp_path, effects: Effects, *, unmodelled=None, seed: int = 1,
+              profiles=PROFILES):
     fx = sim_effects_for(effects, wheel_rpm_std=NOISE_RPM, seed=seed, unmodelled=unmodelled)
     path = save_sim_effects(fx, tmp_path / f"robot-effects-{seed}.toml")
     assert load_sim_effects(path).effects == fx.effects
-    return paper_campaign(path, ROBOT, profiles=PROFILES, seed=seed)
+    return paper_campaign(path, ROBOT, profiles=profiles, seed=seed)
 
 
 def _diagnose(recs) -> Diagnosis:
@@ -85,8 +86,8 @@ HIDDEN_DRIVE = {
 }
 
 
-@pytest.mark.parametrize("effect", [*HIDDEN, *(
-    pytest.param(e, marks=pytest.mark.slow) for e in HIDDEN_DRIVE)])
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", [*HIDDEN, *HIDDEN_DRIVE])
 def test_names_and_recovers_each_hidden_effect(effect, tmp_path):
     hidden, expect = {**HIDDEN, **HIDDEN_DRIVE}[effect]
     recs = _campaign(tmp_path, hidden)
@@ -139,6 +140,7 @@ def test_a_fast_decay_drive_is_named_with_its_friction_and_no_load_speed(tmp_pat
     assert d.rmse_final < 1.5 * NOISE_RPM and not d.unexplained
 
 
+@pytest.mark.slow
 def test_no_hidden_effect_names_nothing(tmp_path):
     d = _diagnose(_campaign(tmp_path, Effects(), seed=2))
     assert d.effects == []
@@ -167,6 +169,7 @@ def test_two_hidden_effects_are_both_named(tmp_path):
     assert doc["effects"][0]["rmse_before"] == pytest.approx(d.steps[0].rmse_before)
 
 
+@pytest.mark.slow
 def test_effect_outside_the_library_is_unexplained_not_mislabelled(tmp_path):
     # the rollers' periodic speed ripple: nothing in the library is periodic in wheel angle
     recs = _campaign(tmp_path, Effects(), seed=4,
@@ -193,6 +196,7 @@ def test_resonance_outside_the_library_is_unexplained_not_mislabelled(tmp_path):
     assert d.shape is not None
 
 
+@pytest.mark.slow
 def test_localisation_points_at_the_regime_where_the_model_fails(tmp_path):
     recs = _campaign(tmp_path, Effects(top_speed_rpm=110.0), seed=6)
     cal = Calibration()
@@ -220,7 +224,7 @@ def test_noise_level_from_differences():
 
 
 def test_initial_pose_is_averaged_over_the_rest(tmp_path):
-    recs = _campaign(tmp_path, Effects(), seed=7)
+    recs = _campaign(tmp_path, Effects(), seed=7, profiles=PROFILES[:1])
     rec = initial_pose_at_rest(recs[0])
     # 0.3 s at rest: 30 samples, so the first pose is 5 times closer to the truth
     assert abs(rec.pose[0, 2] - 90.0) < 0.2
@@ -230,7 +234,7 @@ def test_initial_pose_is_averaged_over_the_rest(tmp_path):
 def test_bad_input_is_a_diagnose_error(tmp_path):
     from mecanum_hil.errors import DiagnoseError
 
-    recs = _campaign(tmp_path, Effects(), seed=8)[:2]
+    recs = _campaign(tmp_path, Effects(), seed=8, profiles=PROFILES[:2])
     with pytest.raises(DiagnoseError, match="no recordings"):
         diagnose([], Calibration(), ROBOT)
     with pytest.raises(DiagnoseError, match="unknown effect"):
@@ -276,6 +280,7 @@ def test_a_ceiling_one_recording_of_four_reaches_is_named(tmp_path):
     assert d.rmse_final <= 0.5 * d.rmse_initial
 
 
+@pytest.mark.slow
 def test_a_ceiling_is_named_from_the_corner_fit_lands_in(tmp_path):
     # The quick demo's two experiments (a 120 rpm step, a turn) on a drive with a 115 rpm
     # ceiling and a noisy encoder (2 rpm): fit lands in its C -> 0 corner, whose lower

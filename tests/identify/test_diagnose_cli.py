@@ -48,6 +48,39 @@ def campaign():
     return paper_campaign(hidden, ROBOT, seed=11, profiles=PROFILES)
 
 
+def test_cli_json_out_and_report_with_two_candidates(tmp_path, campaign):
+    """The fast suite's run of the command: the two effects the ceiling and the link's latency
+    are named as; the whole library's search is the slow test below."""
+    paths = [write_recording(r, tmp_path / f"{r.metadata['profile']}.csv") for r in campaign]
+    out = tmp_path / "cal2.toml"
+    r = cli("diagnose", *paths, "--calibration", "paper", "--candidates", "saturation,dead_time",
+            "--out", out, "--report", tmp_path / "rep", "--json")
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)  # stdout is exactly the JSON document
+    assert list(doc) == JSON_KEYS
+    names = [e["effect"] for e in doc["effects"]]
+    assert names[0] == "saturation", doc
+    assert set(names[1:]) <= {"dead_time"}, doc
+    for e in doc["effects"][1:]:
+        assert e["parameters"]["dead_time_s"] <= 0.002, doc
+    assert doc["effects"][0]["parameters"]["top_speed_rpm"] == pytest.approx(110.0, abs=1.5)
+    assert doc["unexplained"] is False
+    assert doc["rmse_final"] <= 0.5 * doc["rmse_initial"]
+    cal = load_calibration(out)
+    assert cal.effects.top_speed_rpm == pytest.approx(110.0, abs=1.5)
+    assert cal.info["effects_added"] == names
+    text = (tmp_path / "rep" / "report.md").read_text()
+    assert "## Step 1: saturation" in text and "step1-saturation.png" in text
+    assert (tmp_path / "rep" / "step1-saturation.png").stat().st_size > 10_000
+    _header_counts_agree_with_the_regime_table(text)
+    _every_key_is_named_in_the_docs(doc)
+    # the extended calibration is accepted by simulate
+    r = cli("simulate", "--commands", paths[1], "--calibration", out, "--out", tmp_path / "s.csv")
+    assert r.returncode == 0, r.stderr
+    assert read_recording(tmp_path / "s.csv").wheel_rpm.max() < 111.0
+
+
+@pytest.mark.slow
 def test_cli_json_out_and_report(tmp_path, campaign):
     paths = [write_recording(r, tmp_path / f"{r.metadata['profile']}.csv") for r in campaign]
     out = tmp_path / "cal2.toml"
@@ -82,6 +115,8 @@ def test_cli_json_out_and_report(tmp_path, campaign):
     _header_counts_agree_with_the_regime_table(text)
     _every_key_is_named_in_the_docs(doc)
     assert (tmp_path / "rep" / "step1-saturation.png").stat().st_size > 10_000
+    _header_counts_agree_with_the_regime_table(text)
+    _every_key_is_named_in_the_docs(doc)
     # the extended calibration is accepted by simulate
     r = cli("simulate", "--commands", paths[1], "--calibration", out, "--out", tmp_path / "s.csv")
     assert r.returncode == 0, r.stderr
@@ -118,6 +153,7 @@ def _every_key_is_named_in_the_docs(doc: dict) -> None:
     assert not missing, f"docs/diagnose.md names no `{missing}`"
 
 
+@pytest.mark.slow
 def test_one_recording_is_enough(tmp_path, campaign):
     # the fast ramp alone reaches the ceiling: held-out time blocks instead of recordings
     p = write_recording(campaign[2], tmp_path / "ramp.csv")

@@ -208,6 +208,7 @@ def lab(tmp_path):
 STAIRCASE = [4, 8, 12, 16, -30, -20, -10, 0, 6, 16, 24, 30, 16, -30, -16, -8, 0, 10, 20, 5]
 
 
+@pytest.mark.slow
 def test_a_fast_motor_1khz_staircase_whitespace_log(lab):
     """(a) A small fast motor (PI loop, at the target in about 10 ms) logged at 1 kHz in
     whitespace text with a `%` header, time in s with 1 ms resolution (stamps truncated, so

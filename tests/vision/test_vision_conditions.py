@@ -49,6 +49,7 @@ def assert_done(s: dict) -> None:
     assert s["rmse"] <= 2.0, s
 
 
+@pytest.mark.slow
 def test_slow_start_at_60_fps_is_measured_throughout(tmp_path):
     res = render_video(scenario_recording("slow-start"), tmp_path / "slow.mp4",
                        RenderSettings(640, 480, fps=60.0, noise_std=2.0, duration_s=8.0))
@@ -61,6 +62,7 @@ def test_slow_start_at_60_fps_is_measured_throughout(tmp_path):
     assert w["gaps"] == [] and not w["aliasing"] and w["hub"] == "still"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("knobs", [
     {"noise_std": 3.0, "fender": 0.35},
     {"noise_std": 3.0, "shake_px": 1.5, "drift_px": 15.0},
