@@ -44,6 +44,7 @@ def _failed(report) -> set[str]:
     return {r for r, o in outcomes(report).items() if o == "FAIL" or o == "fail"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("bug", "broken"), [
     ("MH_BUG_PING_FEEDS_WATCHDOG", {"watchdog.ping"}),
     ("MH_BUG_WATCHDOG_ONLY_WHILE_MOVING", {"watchdog.idle"}),

@@ -145,7 +145,9 @@ def _wait_for(predicate, timeout_s: float) -> bool:
 
 
 @pytest.mark.parametrize("robot_args, publishers", [((), ["reliable"]),
-                                                    (("--best-effort",), ["best_effort"])],
+                                                    pytest.param(("--best-effort",),
+                                                                 ["best_effort"],
+                                                                 marks=pytest.mark.slow)],
                          ids=["reliable", "best-effort"])
 def test_record_drives_a_fast_dds_robot_and_the_fit_recovers_it(
         fastdds_robot, tmp_path, robot_args, publishers):

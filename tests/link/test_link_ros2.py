@@ -215,6 +215,7 @@ def test_record_drives_the_robot_and_the_fit_recovers_it(dds, ros2_robot, tmp_pa
         assert abs(got[key] / true - 1) < 0.25, (key, got[key])
 
 
+@pytest.mark.slow
 def test_twist_stamped_to_a_best_effort_robot_with_its_own_clock(dds, ros2_robot, tmp_path):
     # a robot without NTP: its stamps are 7 s ahead of the host's clock
     robot = ros2_robot("--cmd-type", "twist-stamped", "--best-effort", "--clock-offset", "7")
@@ -325,6 +326,7 @@ def test_no_robot_is_one_line_and_nothing_commanded(dds, tmp_path):
     assert not (tmp_path / "none.csv").exists()
 
 
+@pytest.mark.slow
 def test_shadow_beside_a_driven_robot_raises_an_error_after_the_fault_only(
         dds, ros2_robot, tmp_path):
     effects = tmp_path / "fault.toml"
@@ -370,6 +372,7 @@ def test_shadow_beside_a_driven_robot_raises_an_error_after_the_fault_only(
     assert not math.isnan(float(values["wheel2_rpm residual"]))
 
 
+@pytest.mark.slow
 def test_record_shadow_and_policy_work_as_over_serial(dds, ros2_robot, tmp_path):
     effects = tmp_path / "noise.toml"  # encoder noise, as a real robot's
     effects.write_text("[noise]\nwheel_rpm_std = 0.5\nseed = 5\n")
@@ -448,6 +451,7 @@ def test_joint_states_without_velocities_are_refused_in_one_line(dds, tmp_path):
     assert robot.twists == []  # nothing commanded
 
 
+@pytest.mark.slow
 def test_shadow_follows_a_teleop_that_goes_quiet_without_a_false_alarm(
         dds, ros2_robot, tmp_path):
     """A teleop publishes 0.2 m/s for 3 s and then nothing: the robot stops at its reference

@@ -215,10 +215,11 @@ def test_record_that_cannot_open_its_port_stops_the_live_view(tmp_path, capsys):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     code = main(["record", "--transport", "serial", "--port", str(tmp_path / "no-such-tty"),
-                 "--profile", "straight", "--out", str(tmp_path / "r.csv"), "--no-progress",
+                 "--profile", "paper-step-60", "--out", str(tmp_path / "r.csv"), "--no-progress",
                  "--foxglove", f"127.0.0.1:{port}"])
     err = capsys.readouterr().err.strip()
     assert code == 1 and err.startswith("error: ") and "\n" not in err, err
+    assert "no-such-tty" in err  # the port, not the profile
     with socket.socket() as c:  # nothing listens there any more
         c.settimeout(5)
         assert c.connect_ex(("127.0.0.1", port)) != 0
