@@ -117,7 +117,7 @@ def _model_stage(out: Path, echo, names=None) -> Path:
         plot_recordings({"model": rec}, out / "model" / f"{name}.png",
                         title=f"{name}: the paper's model")
     echo(f"   {len(names)} experiments predicted -> {out / 'model'}")
-    return out / "model" / f"{names[0]}.png"
+    return out / "model" / f"{'paper-step-120' if 'paper-step-120' in names else names[0]}.png"
 
 
 def _interrupted(result) -> None:
@@ -485,7 +485,7 @@ def _write_report(out: Path, res: dict, clock: _Clock) -> Path:
         "pseudo-terminal, to the simulated controller in another process; it answers with "
         "telemetry at 100 Hz. At 120 rpm the wheels stop near 115 rpm: the ceiling.",
         "",
-        f"![recorded]({_rel(out, res['recorded'][0].with_suffix('.png'))})",
+        f"![recorded]({_rel(out, _named(res['recorded'], 'paper-step-120').with_suffix('.png'))})",
         "",
         "## 3. video",
         "",
@@ -555,6 +555,11 @@ def _write_report(out: Path, res: dict, clock: _Clock) -> Path:
     path = out / "REPORT.md"
     path.write_text("\n".join(lines))
     return path
+
+
+def _named(paths: list[Path], stem: str) -> Path:
+    """The path among ``paths`` named ``stem`` (else the first)."""
+    return next((p for p in paths if p.stem == stem), paths[0])
 
 
 def _params_text(params: dict) -> str:
