@@ -9,14 +9,15 @@ takes to simulate in the interpreter. So ``@njit`` here records the function and
 nothing:
 
 - calling a :class:`Kernel` runs numba's compiled code, compiling (or loading from cache) its
-  module on the first call, exactly as ``numba.njit`` did;
+  module on the first call, exactly as ``numba.njit`` did (in mode ``never``, its source in the
+  interpreter);
 - :func:`pick` lets a caller that knows the size of its job run small jobs in the interpreter
   instead (the same source, the same arithmetic: results agree to rounding), until the process
   has spent :data:`INTERPRETED_BUDGET` robot-steps there; after that, or once numba is loaded
   for any kernel anyway, it returns the compiled code.
 
 ``MECANUM_HIL_JIT=always`` compiles every job, ``never`` interprets every job (slow on large
-ones), ``auto`` (default) as above.
+ones), ``auto`` (default) as above. :func:`forced` sets the mode for this process only.
 """
 
 from __future__ import annotations
@@ -40,12 +41,33 @@ _lock = threading.RLock()
 _state = threading.local()
 _compiled_modules: set[str] = set()
 _spent = 0
+_forced: str | None = None
 
 
 def mode() -> str:
-    """``MECANUM_HIL_JIT``: ``always``, ``never`` or ``auto`` (the default, also for others)."""
+    """``MECANUM_HIL_JIT``: ``always``, ``never`` or ``auto`` (the default, also for others);
+    inside :func:`forced`, its mode."""
+    if _forced is not None:
+        return _forced
     value = os.environ.get("MECANUM_HIL_JIT", "auto").strip().lower()
     return value if value in ("always", "never", "auto") else "auto"
+
+
+@contextlib.contextmanager
+def forced(how: str):
+    """This process (every thread) in mode ``how`` inside, whatever ``MECANUM_HIL_JIT`` says;
+    child processes still get the environment's. For a process that hands its compiled work
+    to another one and keeps only small jobs: ``forced("never")`` keeps numba out of it.
+    Kernels already compiled in this process stay compiled."""
+    global _forced
+    if how not in ("always", "never", "auto"):
+        raise ValueError(f"mode must be always, never or auto, got {how!r}")
+    before = _forced
+    _forced = how
+    try:
+        yield
+    finally:
+        _forced = before
 
 
 class Kernel:
@@ -73,7 +95,7 @@ class Kernel:
         disp = self._dispatcher
         if disp is not None:
             return disp(*args)
-        if getattr(_state, "interpreting", False):
+        if getattr(_state, "interpreting", False) or mode() == "never":
             return self.py_func(*args)
         return self.compiled()(*args)
 

@@ -119,6 +119,7 @@ def record_profile_to_simulated_controller(
     telemetry_rate_hz: float = 100.0,
     observers: Sequence[Any] = (),
     progress=None,
+    env: dict[str, str] | None = None,
 ):
     """Record a profile through the serial path to a freshly spawned simulated controller.
 
@@ -136,6 +137,9 @@ def record_profile_to_simulated_controller(
         Rates [Hz].
     observers : sequence of TelemetryObserver
         Passed to the session (shadow mode).
+    env : dict, optional
+        Extra environment of the simulated controller's process (``MECANUM_HIL_JIT=never``:
+        its simulator in the interpreter, without numba's first compile).
 
     Returns
     -------
@@ -154,7 +158,7 @@ def record_profile_to_simulated_controller(
             "--telemetry-rate", f"{telemetry_rate_hz:g}"]
     if effects is not None:
         args += ["--effects", str(effects)]
-    with spawn_sim_robot(*args) as sim, SerialTransport(port=sim.path) as link:
+    with spawn_sim_robot(*args, env=env) as sim, SerialTransport(port=sim.path) as link:
         return run_record_session(
             link, t, cmd, out_csv, rob, observers=observers, progress=progress,
             metadata={"profile": prof.name, "command_rate_hz": command_rate_hz,

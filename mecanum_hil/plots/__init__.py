@@ -39,6 +39,31 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     return p
 
 
+#: A path shorter than this in X and in Y [m] is drawn as a point: the robot turned in place.
+IN_PLACE_M = 1e-3
+
+
+def _mark_travel_in_place(ax, recordings: Mapping[str, Recording]) -> bool:
+    """A path that stays within :data:`IN_PLACE_M` (a turn on the spot) is a line of zero
+    length, invisible: mark where it stays and say so, with a view 0.2 m across. Returns
+    whether it did."""
+    pts = [r.pose[np.isfinite(r.pose[:, :2]).all(axis=1), :2] for r in recordings.values()]
+    pts = [p for p in pts if p.size]
+    if not pts:
+        return False
+    xy = np.concatenate(pts)
+    if np.ptp(xy[:, 0]) > IN_PLACE_M or np.ptp(xy[:, 1]) > IN_PLACE_M:
+        return False
+    x0, y0 = xy.mean(axis=0)
+    ax.plot([x0], [y0], "o", ms=9, mfc="none", mec="k")
+    ax.annotate("in place: no travel in X-Y", (x0, y0), xytext=(0, 14),
+                textcoords="offset points", ha="center", fontsize=9)
+    ax.set_xlim(x0 - 0.1, x0 + 0.1)
+    ax.locator_params(axis="x", nbins=5)
+    ax.set_ylim(y0 - 0.1, y0 + 0.1)
+    return True
+
+
 def plot_recordings(recordings: Mapping[str, Recording], path: str | Path, title: str = "",
                     styles: Mapping[str, str] | None = None) -> Path:
     """Wheel speeds against time, path in the plane and heading against time.
@@ -81,7 +106,8 @@ def plot_recordings(recordings: Mapping[str, Recording], path: str | Path, title
                 ax_h.plot(rec.t_s, rec.pose[:, 2], style, label=label, ms=2)
         ax_p.set_xlabel("X [m]")
         ax_p.set_ylabel("Y [m]")
-        ax_p.set_aspect("equal", adjustable="datalim")
+        if not _mark_travel_in_place(ax_p, recordings):
+            ax_p.set_aspect("equal", adjustable="datalim")
         ax_p.grid(True, alpha=0.3)
         ax_p.legend(fontsize=7)
         ax_h.set_xlabel("t [s]")

@@ -1,5 +1,6 @@
 """The thin CLI: simulate and demo, errors as one line (run as a user would, in a subprocess)."""
 
+import re
 import subprocess
 import sys
 
@@ -91,13 +92,14 @@ def test_malformed_csv_is_one_line(tmp_path):
 
 @pytest.mark.slow
 def test_demo_runs_the_whole_loop(tmp_path):
-    """`demo --quick`: model, record over a pty, video, fit, diagnose, shadow, one report.
+    """`demo` (the miniature): model, record over a pty, video, fit, diagnose, shadow, pose,
+    one report.
 
     Each stage's own conclusions are tested in its own area; here the loop's: the hidden
     115 rpm ceiling, recorded through the serial path, is named first by diagnose from the two
-    recordings of the quick demo.
+    recordings of the miniature, and REPORT.md says so, and names the shadow alarm.
     """
-    r = cli("demo", "--quick", "--out", tmp_path / "demo")
+    r = cli("demo", "--out", tmp_path / "demo")
     assert r.returncode == 0, r.stderr
     out = tmp_path / "demo"
     rec = read_recording(out / "model" / "paper-step-120.csv")
@@ -116,7 +118,7 @@ def test_demo_runs_the_whole_loop(tmp_path):
     assert diagnosed.effects.top_speed_rpm == pytest.approx(115.0, abs=1.5)
     # The link's own latency is real too: a command acts from the controller's next 1 ms tick
     # after the controller reads it from the pty, later still on a loaded machine. With the
-    # noise the quick demo has, diagnose may name it (a CI run found 1.1 ms), as a dead time or
+    # noise the miniature demo has, diagnose may name it (a CI run found 1.1 ms), as a dead time or
     # as its close substitutes on step responses, a short drive lag or a held controller output
     # (docs/diagnose.md), or a steep ramp limit of the set-point (a CI run: 120 rpm spread
     # over a few ms since the ramp limit's start is read off the measured slopes); nothing
@@ -144,8 +146,17 @@ def test_demo_runs_the_whole_loop(tmp_path):
     assert shadow.metadata["end_reason"] == "observer_stop"
     assert '"alarm"' in (out / "shadow" / "paper-step-60-fault.shadow.jsonl").read_text()
     report = (out / "REPORT.md").read_text()
-    for stage in ("1. model", "2. record", "3. video", "4. fit", "5. diagnose", "6. shadow"):
+    for stage in ("1. model", "2. record", "3. video", "4. fit", "5. diagnose", "6. shadow",
+                  "7. pose"):
         assert stage in report
+    ceiling = re.search(r"diagnose names saturation \(top_speed_rpm = ([0-9.]+)\)", report)
+    assert ceiling and float(ceiling.group(1)) == pytest.approx(115.0, abs=1.5)
+    assert re.search(r"alarm on wheel2_rpm at 2\.[5-9]\d s", report)
+    assert "run ended: observer_stop" in report and "diagnose named: slip" in report
+    # every picture the report shows exists
+    for png in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report):
+        assert (out / png).stat().st_size > 10_000, png
+    assert "[diagnose:" in r.stdout  # a progress line per stage, with its time
 
 
 _CLOSED_STDERR = """
@@ -214,7 +225,7 @@ def test_a_demo_whose_recording_was_interrupted_ends_as_the_signal_says(tmp_path
 
     monkeypatch.setattr(sim_process, "record_profile_to_simulated_controller",
                         lambda *a, **k: SimpleNamespace(reason=reason, exit_code=code))
-    assert main(["demo", "--quick", "--out", str(tmp_path / "d")]) == code
+    assert main(["demo", "--out", str(tmp_path / "d")]) == code
     assert not (tmp_path / "d" / "REPORT.md").exists()
 
 

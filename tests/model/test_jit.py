@@ -143,3 +143,26 @@ def test_kernel_threads_caps_the_calling_threads_kernels_and_restores_them():
     env_threads = {"NUMBA_NUM_THREADS": "2"}
     assert _run(code, "auto", env_threads) == {"numba_loaded_by_it": False, "inside": 1,
                                                "after": 2}
+
+
+def test_forced_never_keeps_numba_out_of_the_process_even_for_large_jobs_and_the_monitor():
+    """``forced("never")``: a job over the interpreter's budget and the shadow monitor's
+    per-sample core (a kernel called directly) run in the interpreter; numba is not loaded,
+    and after the block the environment's mode is back."""
+    code = """
+    import json, sys
+    import numpy as np
+    from mecanum_hil._jit import forced, mode
+    from mecanum_hil.model import Calibration, RobotProfile
+    from mecanum_hil.model.simulate import simulate, uniform_time
+    from mecanum_hil.monitor.core import ShadowMonitor
+    with forced("never"):
+        inside = mode()
+        t = uniform_time(20.0, 1000)  # 20,001 robot-steps: over the interpreter's budget
+        simulate(np.tile([60.0, 0.0, 90.0], (t.size, 1)), t)
+        mon = ShadowMonitor(Calibration(), RobotProfile())
+        mon.on_telemetry(0.0, (60.0, 0.0, 90.0), np.zeros(4))
+    print(json.dumps({"numba_loaded": "numba" in sys.modules, "inside": inside,
+                      "after": mode()}))
+    """
+    assert _run(code, "auto") == {"numba_loaded": False, "inside": "never", "after": "auto"}

@@ -148,7 +148,9 @@ def plot_steps(recording: Recording, curves: dict[str, Recording], rows, path: s
     n = max(len(mine), 1)
     cols = min(5, n)
     nrows = math.ceil(n / cols)
-    fig, axes = plt.subplots(nrows, cols, figsize=(2.6 * cols, 2.2 * nrows), squeeze=False)
+    # at least 6.4 in wide: one panel's figure still holds its title whole
+    fig, axes = plt.subplots(nrows, cols, figsize=(max(3.2 * cols, 6.4), 2.8 * nrows),
+                             squeeze=False)
     t = recording.t_s
     y = recording.wheel_rpm[:, wheel]
     styles = ["--", "-", ":", "-."]
@@ -166,16 +168,16 @@ def plot_steps(recording: Recording, curves: dict[str, Recording], rows, path: s
         ax.axhline(s.target_rpm, color="k", lw=0.6, ls=":")
         ax.axvline(0.0, color="k", lw=0.5)
         ax.set_title(f"step {s.index + 1}: {s.before_rpm:.4g} -> {s.target_rpm:.4g} rpm",
-                     fontsize=7)
-        ax.tick_params(labelsize=6)
+                     fontsize=9)
+        ax.tick_params(labelsize=8)
         ax.grid(True, alpha=0.3)
     for ax in list(axes.flat)[len(mine):]:
         ax.set_visible(False)
-    axes.flat[0].legend(["measured", *curves], fontsize=6)
-    fig.supxlabel("time since the step [ms]", fontsize=8)
-    fig.supylabel(f"wheel {wheel + 1} speed [rpm]", fontsize=8)
+    axes.flat[0].legend(["measured", *curves], fontsize=8)
+    fig.supxlabel("time since the step [ms]", fontsize=9)
+    fig.supylabel(f"wheel {wheel + 1} speed [rpm]", fontsize=9)
     if title:
-        fig.suptitle(title, fontsize=9)
+        fig.suptitle(title, fontsize=10)
     return save_figure(fig, path, dpi=100)
 
 
