@@ -57,7 +57,7 @@ def command(
     if len(set(names)) != len(names):
         names = [str(p) for p in recordings]
     pool = candidate_pool(None if candidates is None else candidates.split(","))
-    echo = None if json_out else typer.echo
+    echo = _progress_on_stderr if json_out else typer.echo
     diag = diagnose(recs, cal, rob, names=names, candidates=pool, echo=echo, jobs=jobs)
     if out is not None:
         save_calibration(diag.calibration, out,
@@ -94,3 +94,11 @@ def command(
         typer.echo(f"wrote {out}")
     if report is not None:
         typer.echo(f"wrote {report / 'report.md'}")
+
+
+def _progress_on_stderr(line: str) -> None:
+    """With ``--json`` (stdout is the document): each round's start and outcome on stderr, so
+    a diagnosis of many seconds shows it is alive."""
+    text = line.strip()
+    if text.startswith(("round ", "-> ")):
+        typer.echo(f"diagnose: {text}", err=True)

@@ -58,6 +58,7 @@ def test_cli_json_out_and_report_with_two_candidates(tmp_path, campaign):
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)  # stdout is exactly the JSON document
     assert list(doc) == JSON_KEYS
+    assert "diagnose: round 1 " in r.stderr  # a sign of life meanwhile
     names = [e["effect"] for e in doc["effects"]]
     assert names[0] == "saturation", doc
     assert set(names[1:]) <= {"dead_time"}, doc
