@@ -145,11 +145,10 @@ def _serve_ros2(model, options: dict, duration_s: float | None, log) -> None:
 
     from ..errors import ConfigError
     from ..importers.rosbag import parse_joints, parse_wheel_signs
-    from ..link.ros2.node import Ros2Node
+    from ..link.ros2.node import CMD_TYPES, Ros2Node
     from ..link.ros2.sim_robot import DEFAULT_JOINTS, SimulatedRos2Robot
-    from ..link.ros2.transport import CMD_TYPES
 
-    if options["cmd_type"] not in CMD_TYPES:
+    if options["cmd_type"] not in CMD_TYPES:  # before the participant is created
         raise ConfigError(f"--cmd-type must be one of {', '.join(CMD_TYPES)}, "
                           f"got {options['cmd_type']!r}")
     require_positive(options["joint_rate_hz"], "--joint-rate", "Hz")

@@ -66,16 +66,13 @@ class Ros2Source(HeardSource):
                  wheel_signs=None, diagnostics_topic: str = "/diagnostics",
                  reference_timeout_s: float = 0.5, domain: int | None = None) -> None:
         from ..importers.rosbag import parse_joints, parse_wheel_signs
-        from ..link.ros2.node import Ros2Node, ros2_messages
+        from ..link.ros2.node import Ros2Node, command_type, ros2_messages
 
         m = ros2_messages()
         from cyclonedds.core import ReadCondition, SampleState, WaitSet
 
-        from ..link.ros2.transport import CMD_TYPES
 
-        if cmd_type not in CMD_TYPES:
-            raise ConfigError(f"--cmd-type must be one of {', '.join(CMD_TYPES)}, "
-                              f"got {cmd_type!r}")
+        cmd_msg = command_type(m, cmd_type)
         self.m, self.robot = m, robot
         self.stamped = cmd_type == "twist-stamped"
         self.joint_topic = joint_topic
@@ -84,8 +81,7 @@ class Ros2Source(HeardSource):
         self.node = Ros2Node(domain)
         self.name = f"ROS 2 domain {self.node.domain} ({cmd_topic}, {joint_topic})"
         try:
-            self.cmd_reader = self.node.reader(cmd_topic,
-                                               m.TwistStamped if self.stamped else m.Twist)
+            self.cmd_reader = self.node.reader(cmd_topic, cmd_msg)
             self.joint_reader = self.node.reader(joint_topic, m.JointState)
             self.diag_writer = self.node.writer(diagnostics_topic, m.DiagnosticArray)
             self.waitset = WaitSet(self.node.participant)

@@ -48,6 +48,23 @@ def ros2_messages():
     return messages
 
 
+#: Command types by ``--cmd-type``.
+CMD_TYPES = ("twist", "twist-stamped")
+
+
+def command_type(messages, cmd_type: str) -> type:
+    """The message type of ``--cmd-type`` (Twist or TwistStamped).
+
+    Raises
+    ------
+    ConfigError
+        Another name.
+    """
+    if cmd_type not in CMD_TYPES:
+        raise ConfigError(f"--cmd-type must be one of {', '.join(CMD_TYPES)}, got {cmd_type!r}")
+    return messages.TwistStamped if cmd_type == "twist-stamped" else messages.Twist
+
+
 def domain_id(environ: dict[str, str] | None = None) -> int:
     """The ROS 2 domain: ``ROS_DOMAIN_ID`` (default 0), as ROS reads it.
 

@@ -36,10 +36,7 @@ from ...model.robot import RobotProfile
 from ..protocol import PROTOCOL_VERSION, Command, Hello, HelloAck, Message, Stop, Telemetry
 from ..transport import PoseReading, Transport
 from .convert import RobotClock, command_to_twist_si, joint_wheel_rpm, ns_to_stamp, stamp_to_ns
-from .node import Ros2Node, ros2_messages, valid_sample
-
-#: Command types by ``--cmd-type``.
-CMD_TYPES = ("twist", "twist-stamped")
+from .node import Ros2Node, command_type, ros2_messages, valid_sample
 
 #: The reference timeout announced for a ROS 2 robot [ms]: ros2_control's default
 #: ``cmd_vel_timeout`` (commands must come at least this often).
@@ -113,9 +110,7 @@ class Ros2Transport(Transport):
         super().__init__()
         m = ros2_messages()
 
-        if cmd_type not in CMD_TYPES:
-            raise ConfigError(f"--cmd-type must be one of {', '.join(CMD_TYPES)}, "
-                              f"got {cmd_type!r}")
+        cmd_msg = command_type(m, cmd_type)
         if isinstance(robot, str) or robot is None:
             from ...model import load_robot_profile
 
@@ -139,8 +134,7 @@ class Ros2Transport(Transport):
         self.node = Ros2Node(domain)
         self.port = f"ROS 2 domain {self.node.domain}"
         try:
-            self._cmd = self.node.writer(cmd_topic, m.TwistStamped if cmd_type ==
-                                         "twist-stamped" else m.Twist)
+            self._cmd = self.node.writer(cmd_topic, cmd_msg)
             self._joint_reader = self.node.reader(joint_topic, m.JointState)
             self._odom_reader = (self.node.reader(self.odom_topic, m.Odometry)
                                  if self.odom_topic else None)
