@@ -266,9 +266,21 @@ class FoxgloveLive:
             ns = self._ns(entry.t_s)
             self._log("alarms", log_message(ns, entry.level, entry.text), ns)
 
-    def close(self) -> None:
-        """Stop serving."""
+    def close(self, wait_s: float = 2.0) -> None:
+        """Stop serving, and wait (at most ``wait_s`` [s]) until the port takes no connection:
+        the sdk closes its listener in the background, and a caller may serve there again."""
+        import socket
+
+        port = self.port
         self._server.stop()
+        host = "127.0.0.1" if self.host in ("", "0.0.0.0") else self.host
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as c:
+                c.settimeout(0.2)
+                if c.connect_ex((host, port)) != 0:
+                    return
+            time.sleep(0.02)
 
 
 class FoxgloveObserver:
