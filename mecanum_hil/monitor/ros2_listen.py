@@ -139,14 +139,12 @@ class Ros2Source(HeardSource):
         return [(msg, stamp) for msg, stamp in out if msg is not None]
 
     def _command(self, sample) -> Command | None:
-        from ..importers.rosbag import twist_to_commands
+        from ..link.ros2.convert import heard_command
 
-        tw = sample.twist if self.stamped else sample
-        v = (tw.linear.x, tw.linear.y, tw.angular.z)
-        if not all(math.isfinite(x) for x in v):
+        v, cmd = heard_command(sample, self.stamped, self.robot.wheel_radius_m, self._theta)
+        if cmd is None:
             return None
-        n, omega, theta = twist_to_commands([v[0]], [v[1]], [v[2]], self.robot.wheel_radius_m,
-                                            self._theta)[0]
+        n, omega, theta = cmd
         self._theta = float(theta)
         self._seq += 1
         self._moving = any(x != 0.0 for x in v)
@@ -156,7 +154,7 @@ class Ros2Source(HeardSource):
         """A joint state as telemetry; None for one without the wheel joints (another
         publisher on the topic: an arm, casters)."""
         from ..importers.rosbag import wheel_joints
-        from ..link.ros2.convert import joint_wheel_rpm, stamp_to_ns
+        from ..link.ros2.convert import joint_wheel_rpm
 
         if self.joints is None:
             self.joints = wheel_joints(list(js.name))
@@ -171,8 +169,7 @@ class Ros2Source(HeardSource):
         if not set(self.joints) <= set(js.name):
             self.ignored += 1
             return None
-        t_ns = self.clock.time_ns(stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec),
-                                  js.sample_info.source_timestamp, round(recv_s * 1e9))
+        t_ns = self.clock.time_of(js, round(recv_s * 1e9))
         self._seq += 1
         self._last_joint_s = time.monotonic()
         wheels = joint_wheel_rpm(js.name, js.velocity, self.joints, self.signs)

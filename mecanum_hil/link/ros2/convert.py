@@ -69,6 +69,27 @@ def joint_wheel_rpm(names: Sequence[str], velocities: Sequence[float],
     return out
 
 
+def heard_command(sample, stamped: bool, wheel_radius_m: float, theta_deg: float
+                  ) -> tuple[tuple[float, float, float], np.ndarray | None]:
+    """A Twist (or TwistStamped) heard on a command topic, as ``import`` reads it.
+
+    Returns
+    -------
+    twist : tuple of float
+        ``(linear.x [m/s], linear.y [m/s], angular.z [rad/s])``.
+    command : ndarray, shape (3,), or None
+        ``(n [rpm], omega [deg/s], theta [deg])``, theta held at ``theta_deg`` without a
+        translation; None for a twist that is not finite.
+    """
+    from ...importers.rosbag import twist_to_commands
+
+    tw = sample.twist if stamped else sample
+    v = (tw.linear.x, tw.linear.y, tw.angular.z)
+    if not all(math.isfinite(x) for x in v):
+        return v, None
+    return v, twist_to_commands([v[0]], [v[1]], [v[2]], wheel_radius_m, theta_deg)[0]
+
+
 def wheel_rpm_to_joint_velocity(wheel_rpm: np.ndarray, signs: np.ndarray) -> list[float]:
     """Wheel speeds [rpm] as JointState velocities [rad/s] (the inverse of
     :func:`joint_wheel_rpm`)."""
@@ -127,6 +148,12 @@ class RobotClock:
         if self.origin_ns is None:
             self.origin_ns = t
         return t
+
+    def time_of(self, msg, receive_ns: int) -> int:
+        """:meth:`time_ns` of a taken sample with a header (its stamp and its sample info)."""
+        info = getattr(msg, "sample_info", None)
+        return self.time_ns(stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec),
+                            info.source_timestamp if info is not None else 0, receive_ns)
 
     def controller_us(self, t_ns: int) -> int:
         """``t_ns`` as a controller's 32-bit microsecond clock since the first message."""

@@ -26,7 +26,13 @@ import numpy as np
 from ...model import RobotProfile, wheels_to_twist
 from ...units import RPM_TO_RAD_S, rpm_to_mps
 from ..simulated import ControllerModel
-from .convert import ns_to_stamp, stamp_to_ns, wheel_rpm_to_joint_velocity, yaw_to_quaternion
+from .convert import (
+    heard_command,
+    ns_to_stamp,
+    stamp_to_ns,
+    wheel_rpm_to_joint_velocity,
+    yaw_to_quaternion,
+)
 from .node import Ros2Node, valid_sample
 
 #: Joint names published by default (wheels 1 FL, 2 FR, 3 RL, 4 RR).
@@ -115,8 +121,6 @@ class SimulatedRos2Robot:
     def _take_commands(self, wait_s: float) -> None:
         from cyclonedds.util import duration
 
-        from ...importers.rosbag import twist_to_commands
-
         samples = self.cmd_reader.take(64)
         if not samples and wait_s > 0:
             self._waitset.wait(duration(seconds=wait_s))
@@ -126,13 +130,10 @@ class SimulatedRos2Robot:
                 continue
             if self.stamped and self._stale(sample.header.stamp):
                 continue
-            tw = sample.twist if self.stamped else sample
-            v = (tw.linear.x, tw.linear.y, tw.angular.z)
-            if not all(math.isfinite(x) for x in v):
+            v, cmd = heard_command(sample, self.stamped, self.robot.wheel_radius_m, self._theta)
+            if cmd is None:
                 self.log(f"refused a command that is not finite: {v}")
                 continue
-            cmd = twist_to_commands([v[0]], [v[1]], [v[2]], self.robot.wheel_radius_m,
-                                    self._theta)[0]
             self._theta = float(cmd[2])
             self.model.set_command(self._arrival_tick(sample), cmd)
             self.commands_received += 1

@@ -35,7 +35,7 @@ from ...importers.rosbag import wheel_joints as wheel_joints_of
 from ...model.robot import RobotProfile
 from ..protocol import PROTOCOL_VERSION, Command, Hello, HelloAck, Message, Stop, Telemetry
 from ..transport import PoseReading, Transport
-from .convert import RobotClock, command_to_twist_si, joint_wheel_rpm, ns_to_stamp, stamp_to_ns
+from .convert import RobotClock, command_to_twist_si, joint_wheel_rpm, ns_to_stamp
 from .node import Ros2Node, command_type, ros2_messages, valid_sample
 
 #: The reference timeout announced for a ROS 2 robot [ms]: ros2_control's default
@@ -184,9 +184,7 @@ class Ros2Transport(Transport):
                             f"{timeout_s:g} s")
         self._detect_joints(samples, sorted(names))
         wheel = self._wheel_samples(samples)
-        times = [self.clock.time_ns(stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec),
-                                    js.sample_info.source_timestamp, recv)
-                 for js, recv in wheel]
+        times = [self.clock.time_of(js, recv) for js, recv in wheel]
         span_s = (times[-1] - times[0]) * 1e-9
         self.rate_hz = (len(times) - 1) / span_s if len(times) > 1 and span_s > 0 else 0.0
         if not self.rate_hz > 0:
@@ -257,8 +255,7 @@ class Ros2Transport(Transport):
             if not set(self.joints) <= set(js.name):
                 self.ignored_joint_states += 1  # another publisher's joints (an arm, casters)
                 continue
-            t_ns = self.clock.time_ns(stamp_to_ns(js.header.stamp.sec, js.header.stamp.nanosec),
-                                      js.sample_info.source_timestamp, recv_ns)
+            t_ns = self.clock.time_of(js, recv_ns)
             wheels = joint_wheel_rpm(js.name, js.velocity, self.joints, self.signs)
             self._rx_seq = (self._rx_seq + 1) % self.seq_modulus
             self._queue.append(Telemetry(self.clock.controller_us(t_ns),
