@@ -146,7 +146,9 @@ def test_a_host_that_paused_its_command_stream_is_host_stall(pty_pair, scripted,
             time.sleep(0.2)
 
     t, cmd = _stream(1.0)
-    res, _, side = _run(p, host_serial, tmp_path, t, cmd, progress=progress)
+    config = SessionConfig(connect_timeout_s=1.0, link_timeout_s=0.3, tail_s=0.05,
+                           host_stall_share=0.5)
+    res, _, side = _run(p, host_serial, tmp_path, t, cmd, progress=progress, config=config)
     _ends_as(res, side, "host_stall")
     assert "paused" in res.message and side["run_checks"]["widest_command_gap_s"] > 0.125
     assert res.commands_sent == t.size

@@ -22,10 +22,7 @@ from mecanum_hil.link.simulated import ControllerModel, SimulatedController
 from mecanum_hil.model import Calibration, RobotProfile
 
 ROBOT = RobotProfile()
-# a loaded test machine stalls its host now and then: these tests are of other behaviour,
-# and the host_stall rule has its own (test_link_run_checks.py)
-FAST = SessionConfig(connect_timeout_s=1.0, link_timeout_s=0.3, tail_s=0.05,
-                     host_stall_share=math.inf)
+FAST = SessionConfig(connect_timeout_s=1.0, link_timeout_s=0.3, tail_s=0.05)
 
 
 def _stream(duration_s=0.4, rate_hz=100.0, n_rpm=30.0):
