@@ -23,7 +23,7 @@ def command(
         metavar="DIR")] = None,
     candidates: Annotated[str | None, typer.Option(
         "--candidates", help="Comma-separated effects to consider (default: the whole library: "
-                             "dead_time, saturation, rate_limit, deadband, wheel_gain, "
+                             "dead_time, saturation, windup, rate_limit, deadband, wheel_gain, "
                              "controller_period, drive_lag, breakaway, braking_limit, fast_decay, "
                              "slip).")
     ] = None,

@@ -65,7 +65,7 @@ class CoefficientRanges:
                 f"{calibration.source}: domain randomisation needs 95 % intervals of A, B or C "
                 "([ci95], written by `mecanum-hil fit`); this calibration has none. Fit one, or "
                 "pass coefficient_ranges={'A': (lo, hi), ...}")
-        saturating = math.isfinite(calibration.effects.top_speed_rpm)
+        saturating = math.isfinite(calibration.effects.output_limit_rpm)
         floors = (0.0, 1e-9 if saturating else 0.0, 1e-9)
         low, high = [], []
         for name, value, floor in zip(_NAMES, calibration.coefficients, floors, strict=True):

@@ -56,7 +56,7 @@ PARAMETER_NAMES: tuple[str, ...] = (
     "gains[0]", "gains[1]", "gains[2]", "gains[3]",
     "efficiency[0]", "efficiency[1]", "efficiency[2]",
     "controller_period_s", "drive_lag_s", "breakaway_rpm_per_s", "braking_limit_rpm_per_s",
-    "coast_decel_rpm_per_s", "no_load_rpm",
+    "coast_decel_rpm_per_s", "no_load_rpm", "windup_top_speed_rpm",
 )
 
 _INDEXED = re.compile(r"^(gains|efficiency)\[(\d)\]$")
@@ -83,6 +83,7 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "braking_limit_rpm_per_s": (1e-6, math.inf),
     "coast_decel_rpm_per_s": (0.0, math.inf),
     "no_load_rpm": (1.0, math.inf),
+    "windup_top_speed_rpm": (1e-6, math.inf),
 }
 
 # Typical magnitude below which a finite-difference step stops shrinking with the value.
@@ -765,7 +766,9 @@ def _data_start_values(data: Sequence[_Prepared]) -> dict[str, float]:
         d = np.abs(measured_differences(p.wheel_rpm, p.t_s))
         slopes.append(d[np.isfinite(d)])
     slope = float(np.percentile(np.concatenate(slopes), 95)) if any(s.size for s in slopes) else 1.0
-    return {"top_speed_rpm": max(1.25 * peak, 1.0), "rate_limit_rpm_per_s": max(slope, 1.0)}
+    top = max(1.25 * peak, 1.0)
+    return {"top_speed_rpm": top, "windup_top_speed_rpm": top,
+            "rate_limit_rpm_per_s": max(slope, 1.0)}
 
 
 def _local_minima(sse: np.ndarray, count: int) -> np.ndarray:

@@ -91,7 +91,7 @@ def _drive_at_rest(per, a, A, C, u, z, h, dl):
 
 
 @njit(cache=True, inline="always")
-def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
+def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, wu, y, z, hold, dl, q):
     """The part of a piece in which the drive cannot slow wheel ``i`` as fast as the loop asks.
 
     A wheel whose acceleration towards rest, ``-(c - B y) sign(y)`` with drive output ``c``,
@@ -101,7 +101,8 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
     (controller period, no lag), where that deceleration falls at ``B brake``; to first order in
     the piece otherwise (the drive's rate of change at the phase's start). Advances ``y``,
     ``z``, ``dl`` and ``q`` over the phase; returns its length [s] (0 when the limit is not
-    reached). Called only with a finite ``brake``.
+    reached). Called only with a finite ``brake``. ``wu``: the output limit ``dmax`` has no
+    anti-windup (the integrator integrates while clamped).
     """
     yi = y[i]
     if yi == 0.0:
@@ -138,7 +139,7 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q):
         at_rest = False
     y_new = 0.0 if at_rest else yi - sg * brake * t_l
     q[i] += (yi - 0.5 * sg * brake * t_l) * t_l
-    if per <= 0 and (not clipped or (cin > 0) != (u - yi > 0)):
+    if per <= 0 and (wu or not clipped or (cin > 0) != (u - yi > 0)):
         z[i] += (u - yi) * t_l + 0.5 * sg * brake * t_l * t_l
     if a < np.inf:
         dl[i] = cin + (dl[i] - cin) * math.exp(-a * t_l)
@@ -209,7 +210,8 @@ def _fast_decay_move(yi, c, rem, B, u0, iy0, brk):
 
 
 @njit(cache=True, inline="always")
-def _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, u0, iy0, y, z, hold, dl, q):
+def _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, wu, u0, iy0, y, z, hold, dl,
+                      q):
     """Advance wheel ``i`` over ``rem`` seconds through a fast-decay (coasting) PWM drive.
 
     The loop's output ``c`` [rpm/s] (held, lagged or the continuous PI's, limited to ``dmax``)
@@ -246,16 +248,16 @@ def _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, u0, iy0, y, z, hold
         dl[i] = cin + (dl[i] - cin) * ea
     y_new, area = _fast_decay_move(yi, c, rem, B, u0, iy0, brk)
     q[i] += area
-    # anti-windup on the controller's output, as the other paths
-    if per <= 0 and (not clipped or (cin > 0) != (u - yi > 0)):
+    # anti-windup on the controller's output (unless ``wu``), as the other paths
+    if per <= 0 and (wu or not clipped or (cin > 0) != (u - yi > 0)):
         zi += u * rem - area
     y[i] = y_new
     z[i] = zi
 
 
 @njit(cache=True, inline="always")
-def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, u0, iy0, y, z, hold, dl, tab,
-                 q, eb, g, ea):
+def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, wu, u0, iy0, y, z, hold, dl,
+                 tab, q, eb, g, ea):
     """Advance wheel ``i`` over ``ts`` seconds on the path of the drive's own dynamics.
 
     Between controller ticks (``per > 0``) the held output drives the motor exactly; a
@@ -269,11 +271,12 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, u0, iy0, y, z, hol
     :func:`_fast_decay_piece`) the wheel moves by that once it has left rest (never with a
     braking limit: the two are not in one model). Accumulates the integral of the
     speed over the piece into ``q[i]``. ``eb, g, ea``: :func:`_lag_factors` of ``ts`` (when the
-    path needs them).
+    path needs them). ``wu``: the output limit ``dmax`` has no anti-windup.
     """
     rem = ts
     if brake < np.inf:
-        rem = ts - _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, y, z, hold, dl, q)
+        rem = ts - _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, wu, y, z, hold, dl,
+                                  q)
         if rem <= 1e-12:
             return
     yi = y[i]
@@ -320,7 +323,8 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, u0, iy0, y, z, hol
                 return
     # moving
     if u0 < np.inf:
-        _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, u0, iy0, y, z, hold, dl, q)
+        _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, wu, u0, iy0, y, z, hold, dl,
+                          q)
         return
     if rem != ts:
         eb, g, ea = _lag_factors(B, a, rem)
@@ -330,7 +334,9 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, u0, iy0, y, z, hol
         if c > dmax or c < -dmax:
             sg = 1.0 if c > 0 else -1.0
             y_new, _ = _lag_pair(yi, 0.0, sg * dmax, B, np.inf, rem, eb, g, ea)
-            if sg * (u - yi) < 0:
+            if wu:  # no anti-windup: the integrator follows the error while clamped
+                zi += (u - 0.5 * (yi + y_new)) * rem
+            elif sg * (u - yi) < 0:
                 zi += (u - yi) * rem
         else:
             if rem != tab[10]:
@@ -349,7 +355,7 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, u0, iy0, y, z, hol
             clipped = c > dmax or c < -dmax
             c = min(max(c, -dmax), dmax)
         y_new, dl[i] = _lag_pair(yi, dl[i], c, B, a, rem, eb, g, ea)
-        if per <= 0 and (not clipped or (c > 0) != (u - yi > 0)):
+        if per <= 0 and (wu or not clipped or (c > 0) != (u - yi > 0)):
             zi += (u - 0.5 * (yi + y_new)) * rem
     q[i] += 0.5 * (yi + y_new) * rem
     _stick(i, y_new, yi, brk, per, a, A, C, u, zi, hold, dl, y, z)
@@ -372,8 +378,9 @@ def _discretise_into(A, B, C, h, out):
 
 
 @njit(cache=True, inline="always")
-def _controller_tick(u, per, A, C, dmax, y, z, hold):
-    # the sampled PI: integral summed over the period, output held until the next tick
+def _controller_tick(u, per, A, C, dmax, wu, y, z, hold):
+    # the sampled PI: integral summed over the period, output held until the next tick; with
+    # ``wu`` (no anti-windup) the integral is summed while the output is clamped too
     for i in range(4):
         e = u[i] - y[i]
         zn = z[i] + e * per
@@ -381,7 +388,7 @@ def _controller_tick(u, per, A, C, dmax, y, z, hold):
         if c > dmax or c < -dmax:
             sg = 1.0 if c > 0 else -1.0
             c = sg * dmax
-            if sg * e < 0:  # anti-windup: integrate only while the error pulls out
+            if wu or sg * e < 0:  # anti-windup: integrate only while the error pulls out
                 z[i] = zn
         else:
             z[i] = zn
@@ -473,13 +480,14 @@ def _ramp_setpoints(tgt, ue, ub, ramping, rl, hs):
 
 @njit(cache=True, inline="always")
 def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A, B, C,
-                         drive_max, top, active):
+                         drive_max, top, wu, active):
     """Advance the four wheels over one sub-step on the closed-form path.
 
     ``coef``: the sub-step's row of the kernel's ``table`` (its exact discretisation). A wheel
     whose drive is at the saturation limit moves exactly towards ``top`` [rpm] instead, its
-    integrator frozen while the error pushes further (anti-windup). Writes the integral of each
-    wheel's speed over the sub-step into ``q`` [rpm s]. Wheels not ``active`` stay as they are.
+    integrator frozen while the error pushes further (anti-windup), or, with ``wu``, integrating
+    the error all along (no anti-windup). Writes the integral of each wheel's speed over the
+    sub-step into ``q`` [rpm s]. Wheels not ``active`` stay as they are.
     """
     a11 = coef[0]
     a12 = coef[1]
@@ -510,8 +518,9 @@ def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A,
                 else:
                     y[i] = yi
                     q[i] = yi * hs
-                # anti-windup: integrate only while the error pulls out
-                if sg * (u - yi) < 0:
+                if wu:  # no anti-windup: the exact integral of the error over the sub-step
+                    z[i] = zi + u * hs - q[i]
+                elif sg * (u - yi) < 0:  # anti-windup: integrate only while the error pulls out
                     z[i] = zi + (u - yi) * hs
                 continue
         q[i] = cq1 * yi + cq2 * zi + dq * u
@@ -521,7 +530,8 @@ def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A,
 
 @njit(cache=True, inline="always")
 def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                            saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax, active):
+                            saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax, wu,
+                            active):
     """Advance the four wheels over one sub-step on the path of the drive's own dynamics.
 
     The sub-step is cut into pieces that end at the controller's ticks (period ``per`` [s]),
@@ -540,7 +550,7 @@ def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tic
     rem = hs
     while rem > 1e-12:
         if per > 0 and until_tick <= 1e-12:
-            _controller_tick(ub, per, A, C, dmax, y, z, hold)
+            _controller_tick(ub, per, A, C, dmax, wu, y, z, hold)
             until_tick = per
         piece = min(rem, until_tick) if per > 0 else rem
         if u0 == np.inf and (per > 0 or a_lag < np.inf or saturating):
@@ -549,8 +559,8 @@ def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tic
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
             if active[i]:
-                _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, u0, iy0,
-                             y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
+                _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, wu, u0,
+                             iy0, y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
             until_tick -= piece
@@ -602,11 +612,12 @@ def simulate_kernel(
     deadband, top_speed, rate_limit : (N,) float64
         Effect parameters (0, inf and inf when absent); ``rate_limit`` in [rpm/s].
     gains : (N, 4) float64;  efficiency : (N, 3) float64
-    dyn : (N, 6) float64
+    dyn : (N, 7) float64
         The drive's own dynamics: ``controller_period_s`` [s], ``drive_lag_s`` [s],
         ``breakaway_rpm_per_s`` [rpm/s] (0 when absent), ``braking_limit_rpm_per_s`` [rpm/s]
         (inf when absent), the fast-decay drive's ``coast_decel_rpm_per_s`` [rpm/s] and
-        ``no_load_rpm`` [rpm] (inf when absent).
+        ``no_load_rpm`` [rpm] (inf when absent), and 1 where the output limit ``top_speed``
+        has no anti-windup (``windup``), else 0.
     state : (N, 21) float64
         Initial wheel state (see ``STATE_WIDTH``).
     pose0 : (N, 3) float64
@@ -645,6 +656,7 @@ def simulate_kernel(
         brake = dyn[r, 3]
         u0 = dyn[r, 4]
         iy0 = 1.0 / dyn[r, 5]
+        wu = dyn[r, 6] > 0.0
         dynamics = per > 0 or lag > 0 or brk > 0 or brake < np.inf or u0 < np.inf
         X = pose0[r, 0]
         Y = pose0[r, 1]
@@ -685,10 +697,10 @@ def simulate_kernel(
                 if dynamics:
                     until_tick = _drive_dynamics_substep(
                         tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                        saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax, active)
+                        saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax, wu, active)
                 else:
                     _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating,
-                                         A, B, C, drive_max, top, active)
+                                         A, B, C, drive_max, top, wu, active)
                 if with_pose:
                     X, Y, phi, cph, sph = _advance_pose(q, ex, ey, ez, k, lin, X, Y, phi, cph,
                                                         sph)

@@ -43,6 +43,12 @@ File layout::
     [effects.braking_limit]
     braking_limit_rpm_per_s = 2000.0
 
+or, in place of ``saturation`` (the two are not in one model), a clamped output that keeps
+integrating::
+
+    [effects.windup]
+    windup_top_speed_rpm = 400.0
+
 or, in place of ``braking_limit`` (the two are not in one model), a fast-decay drive::
 
     [effects.fast_decay]
@@ -90,7 +96,11 @@ class Effects:
     by ``u0 + B |y|``) and falls with speed as the back-EMF rises, to nothing at
     ``no_load_rpm`` (``Y0``): ``s y' = max(s c + u0, 0) (1 - |y| / Y0) - u0 - B |y|``, ``s``
     the sign of the motion. ``Y0`` infinite is a braking limit of ``u0 + B |y|``; the two
-    effects are not used together. ``slip`` scales the body
+    effects are not used together. ``windup`` limits the drive output as ``saturation`` does,
+    to ``B * windup_top_speed_rpm``, but the integrator keeps integrating the error while the
+    output is clamped (a firmware PI that clamps its duty without anti-windup): after a large
+    step the wheel overshoots until the integral has unwound. It is not used together with
+    ``saturation``. ``slip`` scales the body
     twist ``(vx, vy, wz)`` by ``efficiency`` before the pose is integrated; it does not change
     wheel speeds.
 
@@ -125,6 +135,9 @@ class Effects:
     no_load_rpm : float
         Fast-decay drive: the speed at which the full push falls to nothing (back-EMF) [rpm];
         ``inf`` when absent or without that droop.
+    windup_top_speed_rpm : float
+        Wheel speed the clamped drive output can hold at most, with the integrator still
+        integrating while clamped [rpm]; ``inf`` when absent.
     """
 
     dead_time_s: float = 0.0
@@ -139,6 +152,7 @@ class Effects:
     braking_limit_rpm_per_s: float = math.inf
     coast_decel_rpm_per_s: float = math.inf
     no_load_rpm: float = math.inf
+    windup_top_speed_rpm: float = math.inf
 
     def __post_init__(self) -> None:
         # 0 would hold a turning wheel at its speed for ever, a negative limit or NaN is no limit
@@ -155,6 +169,12 @@ class Effects:
             raise ConfigError("fast_decay and braking_limit are not used together: a fast-decay "
                               "drive already coasts (its braking limit is coast_decel_rpm_per_s "
                               "+ B |y|)")
+        if not self.windup_top_speed_rpm > 0:
+            raise ConfigError("windup_top_speed_rpm must be > 0 (inf when absent), got "
+                              f"{self.windup_top_speed_rpm!r}")
+        if self.windup and math.isfinite(self.top_speed_rpm):
+            raise ConfigError("saturation and windup are not used together: both limit the "
+                              "drive output, with and without anti-windup")
 
     def active(self) -> dict[str, dict[str, Any]]:
         """The effects that are present, by name, with their parameters."""
@@ -172,7 +192,18 @@ class Effects:
     def nonlinear(self) -> bool:
         """Whether an effect needs the sub-stepped (not closed-form) simulation."""
         return (math.isfinite(self.top_speed_rpm) or math.isfinite(self.rate_limit_rpm_per_s)
-                or self.drive_dynamics)
+                or self.windup or self.drive_dynamics)
+
+    @property
+    def windup(self) -> bool:
+        """Whether the drive output is clamped without anti-windup."""
+        return math.isfinite(self.windup_top_speed_rpm)
+
+    @property
+    def output_limit_rpm(self) -> float:
+        """The top speed the limited drive output holds, with or without anti-windup [rpm];
+        ``inf`` without either."""
+        return min(self.top_speed_rpm, self.windup_top_speed_rpm)
 
     @property
     def fast_decay(self) -> bool:
@@ -239,12 +270,20 @@ EFFECTS: dict[str, EffectSpec] = {
         "fast-decay PWM: the drive pushes only along the motion, less as the speed nears "
         "no_load_rpm [rpm], and coasts (friction coast_decel_rpm_per_s [rpm/s]) instead of "
         "braking"),
+    "windup": EffectSpec(
+        "windup", ("windup_top_speed_rpm",), {"windup_top_speed_rpm": math.inf},
+        "drive output clamped without anti-windup: the integrator keeps integrating while "
+        "clamped, so the wheel overshoots after large steps; the clamp holds a top wheel "
+        "speed [rpm]"),
 }
 
 #: Effects that are not in one model together: a fast-decay drive already coasts (its braking
-#: limit is ``coast_decel_rpm_per_s + B |y|``).
+#: limit is ``coast_decel_rpm_per_s + B |y|``), and a drive output is limited either with
+#: anti-windup (``saturation``) or without (``windup``).
 EXCLUDES: dict[str, tuple[str, ...]] = {"fast_decay": ("braking_limit",),
-                                        "braking_limit": ("fast_decay",)}
+                                        "braking_limit": ("fast_decay",),
+                                        "saturation": ("windup",),
+                                        "windup": ("saturation",)}
 
 
 @dataclass(frozen=True)
@@ -384,6 +423,9 @@ def _read_effects(reader: TableReader | None) -> Effects:
             values["coast_decel_rpm_per_s"] = sub.number("coast_decel_rpm_per_s", minimum=0.0)
             values["no_load_rpm"] = sub.number("no_load_rpm", math.inf, minimum=0,
                                                strict_minimum=True)
+        elif name == "windup":
+            values["windup_top_speed_rpm"] = sub.number("windup_top_speed_rpm", minimum=0,
+                                                        strict_minimum=True)
     try:
         return Effects(**values)
     except ConfigError as err:  # effects that are not in one model: name the file's tables

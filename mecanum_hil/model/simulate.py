@@ -521,8 +521,9 @@ def _robots_and_commands(commands, t: np.ndarray, calibration):
     if len(calibs) != n_rob or cmd.shape[0] != n_rob:
         raise ConfigError(f"{cmd.shape[0]} command streams but {len(calibs)} calibrations")
     for c in calibs:
-        if math.isfinite(c.effects.top_speed_rpm) and c.B <= 0:
-            raise ConfigError(f"{c.source}: the saturation effect needs B > 0")
+        if math.isfinite(c.effects.output_limit_rpm) and c.B <= 0:
+            raise ConfigError(f"{c.source}: a drive output limit (saturation, windup) needs "
+                              "B > 0")
     return cmd, calibs, shared
 
 

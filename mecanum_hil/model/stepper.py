@@ -56,21 +56,22 @@ def effect_arrays(effects: Sequence[Effects]) -> tuple[np.ndarray, ...]:
     Returns
     -------
     tuple of ndarray
-        ``deadband (N,)`` [rpm], ``gains (N, 4)`` [-], ``top_speed (N,)`` [rpm],
-        ``rate_limit (N,)`` [rpm/s], ``efficiency (N, 3)`` [-], ``drive (N, 6)`` (controller
-        period [s], drive lag [s], breakaway [rpm/s], braking limit [rpm/s], the fast-decay
-        drive's coasting deceleration [rpm/s] and no-load speed [rpm]), in the kernel's
-        argument order.
+        ``deadband (N,)`` [rpm], ``gains (N, 4)`` [-], ``top_speed (N,)`` [rpm] (the output
+        limit of ``saturation`` or ``windup``), ``rate_limit (N,)`` [rpm/s], ``efficiency (N,
+        3)`` [-], ``drive (N, 7)`` (controller period [s], drive lag [s], breakaway [rpm/s],
+        braking limit [rpm/s], the fast-decay drive's coasting deceleration [rpm/s] and
+        no-load speed [rpm], 1 where the output limit has no anti-windup, else 0), in the
+        kernel's argument order.
     """
     return (
         np.array([e.deadband_rpm for e in effects], dtype=float),
         np.array([e.gains for e in effects], dtype=float),
-        np.array([e.top_speed_rpm for e in effects], dtype=float),
+        np.array([e.output_limit_rpm for e in effects], dtype=float),
         np.array([e.rate_limit_rpm_per_s for e in effects], dtype=float),
         np.array([e.efficiency for e in effects], dtype=float),
         np.array([(e.controller_period_s, e.drive_lag_s, e.breakaway_rpm_per_s,
-                   e.braking_limit_rpm_per_s, e.coast_decel_rpm_per_s, e.no_load_rpm)
-                  for e in effects], dtype=float).reshape(-1, 6),
+                   e.braking_limit_rpm_per_s, e.coast_decel_rpm_per_s, e.no_load_rpm,
+                   float(e.windup)) for e in effects], dtype=float).reshape(-1, 7),
     )
 
 
@@ -212,7 +213,7 @@ class BatchStepper:
         self._effect_args = tuple(
             np.ascontiguousarray(np.broadcast_to(a, (n, *a.shape[1:])))
             for a in effect_arrays([self.effects]))
-        self._saturating = math.isfinite(self.effects.top_speed_rpm)
+        self._saturating = math.isfinite(self.effects.output_limit_rpm)
         self.coefficients = np.empty((n, 3))
         self._tables = np.empty((n, pieces, TABLE_WIDTH))
         self.set_coefficients(np.array(calibration.coefficients))
@@ -252,7 +253,8 @@ class BatchStepper:
         for A, B, C in np.unique(rows.reshape(-1, 3), axis=0):
             check_coefficients(A, B, C, "coefficients")
             if self._saturating and B <= 0:
-                raise ConfigError("coefficients: the saturation effect needs B > 0")
+                raise ConfigError("coefficients: a drive output limit (saturation, windup) "
+                                  "needs B > 0")
         self.coefficients[idx] = rows
         self._tables[idx] = step_tables(rows, self.plan.substep_s).reshape(
             self._tables[idx].shape)

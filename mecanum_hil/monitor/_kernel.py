@@ -57,7 +57,8 @@ P_SAFETY = 42  # noise estimate margin [standard errors]
 P_PER, P_LAG, P_BRK = 43, 44, 45  # the drive's own dynamics (0 when absent)
 P_BRAKE = 46  # the braking limit [rpm/s] (inf when absent)
 P_U0, P_Y0 = 47, 48  # fast-decay drive: coasting deceleration [rpm/s], no-load speed [rpm]
-P_WIDTH = 49
+P_WINDUP = 49  # 1 where the output limit P_TOP has no anti-windup (``windup``), else 0
+P_WIDTH = 50
 
 # --- float state ``fs`` ------------------------------------------------------------------------
 S_Y, S_Z, S_UE, S_TGT = 0, 4, 8, 12  # 4 values each
@@ -161,8 +162,10 @@ def _advance_piece(pp, fs, h, tab, q):
                             q[i] = ys * hs + (yi - ys) * (1.0 - tab[9]) / B
                         else:
                             q[i] = yi * hs
-                        # anti-windup, as in the simulator
-                        if sg * (u - yi) < 0:
+                        # anti-windup or none, as in the simulator
+                        if pp[P_WINDUP] > 0:
+                            fs[S_Z + i] = zi + u * hs - q[i]
+                        elif sg * (u - yi) < 0:
                             fs[S_Z + i] = zi + (u - yi) * hs
                         continue
                 q[i] = tab[6] * yi + tab[7] * zi + tab[8] * u
@@ -197,6 +200,7 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
     u0 = pp[P_U0]
     iy0 = 1.0 / pp[P_Y0]
     dmax = drive_max if saturating else np.inf
+    wu = pp[P_WINDUP] > 0
     rl = pp[P_RL]
     ub = np.empty(4)
     for i in range(4):
@@ -218,7 +222,7 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
     rem = hs
     while rem > 1e-12:
         if per > 0 and fs[S_UNTIL] <= 1e-12:
-            _controller_tick(ub, per, A, C, dmax, y, z, hold)
+            _controller_tick(ub, per, A, C, dmax, wu, y, z, hold)
             fs[S_UNTIL] = per
         piece = min(rem, fs[S_UNTIL]) if per > 0 else rem
         if u0 == np.inf and (per > 0 or a_lag < np.inf or saturating):
@@ -226,8 +230,8 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
         else:  # the closed-form PI path and a fast-decay drive need none
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
-            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, u0, iy0, y, z,
-                         hold, dl, tab, q, eb_p, g_p, ea_p)
+            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, wu, u0, iy0, y,
+                         z, hold, dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
             fs[S_UNTIL] -= piece

@@ -60,6 +60,8 @@ HIDDEN = {
     "dead_time": (Effects(dead_time_s=0.045),
                   {"dead_time_s": (0.045 + LINK_LATENCY_S, 0.003)}),
     "saturation": (Effects(top_speed_rpm=110.0), {"top_speed_rpm": (110.0, 1.0)}),
+    # the same clamp without anti-windup: named as such, not as saturation
+    "windup": (Effects(windup_top_speed_rpm=110.0), {"windup_top_speed_rpm": (110.0, 1.0)}),
     "rate_limit": (Effects(rate_limit_rpm_per_s=150.0),
                    {"rate_limit_rpm_per_s": (150.0, 5.0)}),
     "deadband": (Effects(deadband_rpm=6.0), {"deadband_rpm": (6.0, 0.3)}),

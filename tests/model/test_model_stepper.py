@@ -21,6 +21,9 @@ EFFECTS = {
                               braking_limit_rpm_per_s=700.0, dead_time_s=0.02),
     "fast_decay": Effects(coast_decel_rpm_per_s=600.0, no_load_rpm=150.0,
                           controller_period_s=0.006, dead_time_s=0.02),
+    "windup": Effects(windup_top_speed_rpm=60.0, dead_time_s=0.013, rate_limit_rpm_per_s=900.0),
+    "windup_drive": Effects(windup_top_speed_rpm=60.0, controller_period_s=0.006,
+                            drive_lag_s=0.01),
 }
 
 

@@ -50,6 +50,10 @@ EFFECT_CASES = {
     "fast_decay_all": Effects(coast_decel_rpm_per_s=600.0, no_load_rpm=150.0,
                               controller_period_s=0.006, breakaway_rpm_per_s=300.0,
                               drive_lag_s=0.015, dead_time_s=0.02, top_speed_rpm=70.0),
+    "windup": Effects(windup_top_speed_rpm=70.0),
+    "windup_all": Effects(windup_top_speed_rpm=70.0, controller_period_s=0.006,
+                          breakaway_rpm_per_s=300.0, drive_lag_s=0.015, dead_time_s=0.02,
+                          braking_limit_rpm_per_s=800.0),
 }
 
 

@@ -26,8 +26,8 @@ from ..regimes import measured_differences
 from .heldout import in_sample_ms
 from .localise import _Evaluator
 
-CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "rate_limit", "deadband", "wheel_gain",
-                               "controller_period", "drive_lag", "breakaway",
+CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "windup", "rate_limit", "deadband",
+                               "wheel_gain", "controller_period", "drive_lag", "breakaway",
                                "braking_limit", "fast_decay", "slip")
 
 
@@ -183,7 +183,7 @@ COARSE_EVALUATIONS = 3
 MULTI_START: dict[str, tuple[float, ...]] = {"breakaway": (1.0, 2.0), "drive_lag": (1.0, 3.0)}
 #: Effects whose search also restarts A, B, C from the engine's coarse grid (with the effect
 #: held at its start): a ceiling moves the best coefficients far from a fit without it.
-GRID_RESTART: tuple[str, ...] = ("saturation",)
+GRID_RESTART: tuple[str, ...] = ("saturation", "windup")
 
 
 #: A fast-decay drive's no-load speed starts at this multiple of the fastest measured speed.
@@ -243,6 +243,9 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
     if effect == "saturation":
         peak = _peak_rpm(recs)
         return {"top_speed_rpm": 1.02 * peak}
+    if effect == "windup":
+        # the clamped output holds the wheel below its top speed: an overshoot's peak too
+        return {"windup_top_speed_rpm": 1.02 * _peak_rpm(recs)}
     if effect == "wheel_gain":
         # steady-state ratio of measured speed to target, per wheel
         num, den = np.zeros(4), np.zeros(4)
@@ -294,6 +297,8 @@ def _corner_starts(effect: str, ev: _Evaluator) -> list[dict[str, float]]:
     (:func:`_searched`): a ceiling at the fastest smoothed measured speed itself."""
     if effect == "saturation":
         return [{"top_speed_rpm": _peak_rpm(ev.recs)}]
+    if effect == "windup":
+        return [{"windup_top_speed_rpm": _peak_rpm(ev.recs)}]
     return []
 
 
@@ -315,9 +320,10 @@ def _candidate_bounds(effect: str, guess: Mapping[str, float],
     up to a quarter of the recordings' median duration (at most 0.5 s)."""
     if effect == "dead_time":
         return {"dead_time_s": (0.0, min(0.5, 0.25 * duration_s))}
-    if effect == "saturation":
-        g = guess["top_speed_rpm"]
-        return {"top_speed_rpm": (0.2 * g, 3.0 * g)}
+    if effect in ("saturation", "windup"):
+        name = effect_parameters(effect)[0]
+        g = guess[name]
+        return {name: (0.2 * g, 3.0 * g)}
     if effect == "rate_limit":
         g = guess["rate_limit_rpm_per_s"]
         return {"rate_limit_rpm_per_s": (min(1.0, 0.05 * g), 20.0 * g)}
@@ -723,8 +729,8 @@ def _least_values(effect: str, bounds: Mapping[str, tuple[float, float]]
         lo, hi = bounds.get(n, (-math.inf, math.inf))
         if n.startswith(("gains", "efficiency")):
             v = 1.0
-        elif n in ("top_speed_rpm", "rate_limit_rpm_per_s", "braking_limit_rpm_per_s",
-                   "coast_decel_rpm_per_s", "no_load_rpm"):
+        elif n in ("top_speed_rpm", "windup_top_speed_rpm", "rate_limit_rpm_per_s",
+                   "braking_limit_rpm_per_s", "coast_decel_rpm_per_s", "no_load_rpm"):
             v = hi
         else:
             v = 0.0

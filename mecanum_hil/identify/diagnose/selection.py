@@ -730,8 +730,9 @@ HELPER_LATE_S = 1.0
 
 #: Seconds each candidate took on ``controllerDelayImpact1ms`` (docs/benchmarks/diagnose.md,
 #: per round): the order of the first round's jobs, costliest first, before any is timed.
-_COST_PRIOR = {"saturation": 1.0, "fast_decay": 0.9, "controller_period": 0.8, "drive_lag": 0.5,
-               "rate_limit": 0.25, "braking_limit": 0.25, "breakaway": 0.2, "dead_time": 0.1}
+_COST_PRIOR = {"saturation": 1.0, "windup": 1.0, "fast_decay": 0.9, "controller_period": 0.8,
+               "drive_lag": 0.5, "rate_limit": 0.25, "braking_limit": 0.25, "breakaway": 0.2,
+               "dead_time": 0.1}
 
 
 def _timed_candidate(ev: _Evaluator, effect: str, current: Calibration, free: Sequence[str],
