@@ -581,7 +581,13 @@ def _rounds_on_channel(ctx: _Context, model: _Model, channel: str, pool: list[st
                     "candidate can explain a significant part")
             model.rejected = ()
             return
-        scores, fits, held = _score_candidates(ctx, model, pool, channel, noise, scale2, s0, f0)
+        first = [c for c in pool if FOLLOW_UP.get(c) not in pool]
+        scores, fits, held = _score_candidates(ctx, model, first, channel, noise, scale2, s0,
+                                               f0)
+        later = [c for c in pool if c not in first and _shows(scores, FOLLOW_UP[c])]
+        if later:
+            more = _score_candidates(ctx, model, later, channel, noise, scale2, s0, f0)
+            scores, fits, held = scores + more[0], {**fits, **more[1]}, {**held, **more[2]}
         ok = _qualifying(scores, f0)
         if not ok:
             model.rejected = tuple(scores)
@@ -593,6 +599,19 @@ def _rounds_on_channel(ctx: _Context, model: _Model, channel: str, pool: list[st
             continue
         _add_winner(ctx, model, channel, win, fits[win.effect], held[win.effect], scores)
         pool = compatible([c for c in pool if c != win.effect], [win.effect])
+
+
+#: Candidates tried only in a round where another's fit changes the model at all: a drive
+#: output clamped without anti-windup differs from one with it only where the clamp holds,
+#: so ``windup`` is fitted where the fit of ``saturation`` finds a clamp that binds (lowers
+#: the in-sample error at all). Trying it in every round would cost every diagnosis a
+#: candidate as dear as ``saturation``.
+FOLLOW_UP: dict[str, str] = {"windup": "saturation"}
+
+
+def _shows(scores: Sequence[CandidateScore], effect: str) -> bool:
+    """Whether ``effect``'s candidate lowers the in-sample error at all."""
+    return any(s.effect == effect and s.in_sample > 0.0 for s in scores)
 
 
 def _score_current(ctx: _Context, model: _Model, channel: str, scale2: float
