@@ -1,6 +1,6 @@
 """``mecanum-hil diagnose``: name the physical effects the model lacks, add them, show the gap."""
 
-
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -70,11 +70,13 @@ def command(
     if json_out:
         typer.echo(json.dumps(diag.to_json()))
         return
-    named = ", ".join(f"{s.effect} {s.parameters} ({100 * diag.share(s):.0f} % of the gap)"
+    named = ", ".join(f"{s.effect} {s.parameters} ({_percent(diag.share(s))} of the gap)"
                       for s in diag.steps) or "nothing missing"
     typer.echo(f"named: {named}")
     for s in diag.steps:
-        if s.equivalent is not None:
+        if s.equivalent_problem is not None:
+            typer.echo(f"drive_lag: no equivalent model: degenerate ({s.equivalent_problem})")
+        elif s.equivalent is not None:
             q = s.equivalent
             typer.echo(f"drive_lag: equally, a lag of {q['drive_lag_s']:.4g} s with A = "
                        f"{q['A']:.4g}, B = {q['B']:.4g}, C = {q['C']:.4g} (the same wheel "
@@ -94,6 +96,11 @@ def command(
         typer.echo(f"wrote {out}")
     if report is not None:
         typer.echo(f"wrote {report / 'report.md'}")
+
+
+def _percent(share: float) -> str:
+    """A share [-] as a whole percentage, "n/a" when it cannot be computed."""
+    return f"{100 * share:.0f} %" if math.isfinite(share) else "n/a"
 
 
 def _progress_on_stderr(line: str) -> None:

@@ -95,8 +95,9 @@ def command(
         doc = {
             "A": c.A, "B": c.B, "C": c.C,
             "rmse_rpm": num(res.rmse_rpm), "fit_percent": num(res.fit_percent),
-            "ci95": {k: [num(res.ci95[k][0]), num(res.ci95[k][1])] if k in res.ci95
-                     else None for k in ("A", "B", "C")},
+            # an interval the data cannot bound (NaN) is null, as one not computed
+            "ci95": {k: [res.ci95[k][0], res.ci95[k][1]] if k in res.ci95
+                     and all(map(math.isfinite, res.ci95[k])) else None for k in ("A", "B", "C")},
             "method": res.method,
         }
         typer.echo(json.dumps(doc))
@@ -104,7 +105,9 @@ def command(
     c = res.calibration
     for k in ("A", "B", "C"):
         lo, hi = res.ci95.get(k, (math.nan, math.nan))
-        typer.echo(f"{k} = {getattr(c, k):.6g}   (95 % interval {lo:.6g} .. {hi:.6g})")
+        interval = f"95 % interval {lo:.6g} .. {hi:.6g}" if math.isfinite(lo + hi) else \
+            "unidentifiable: the data cannot bound it"
+        typer.echo(f"{k} = {getattr(c, k):.6g}   ({interval})")
     typer.echo(f"fit {res.fit_percent:.2f} %, RMSE {res.rmse_rpm:.4g} rpm over {res.n_samples} "
                f"wheel samples ({res.method})")
     typer.echo(f"wrote {output.calibration_path}")

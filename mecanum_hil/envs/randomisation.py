@@ -4,7 +4,9 @@
 environment draws each of ``A``, ``B``, ``C`` independently and uniformly from its interval
 (clipped to the physical region ``A >= 0``, ``B >= 0``, ``C > 0``; ``B > 0`` when the
 ``saturation`` effect is present), so a controller trained on it must cope with every model the
-data cannot rule out. A coefficient without an interval keeps its fitted value. A calibration with
+data cannot rule out. A coefficient without an interval keeps its fitted value. A coefficient
+the data cannot bound (``unidentifiable`` in ``[ci95]``) is refused: no interval can be drawn
+from, and its fitted value is no better than any other. A calibration with
 no interval for any of them (the shipped ``paper.toml``: the paper gives none) is refused with a
 :class:`~mecanum_hil.errors.ConfigError` rather than randomised by an invented spread; pass
 ``coefficient_ranges`` to give intervals yourself. Intervals ``[ci95]`` holds for the effects'
@@ -51,11 +53,17 @@ class CoefficientRanges:
         Raises
         ------
         ConfigError
-            If no coefficient has an interval, or an interval is empty after clipping to the
-            physical region.
+            If no coefficient has an interval, one is unidentifiable (and not overridden), or
+            an interval is empty after clipping to the physical region.
         """
         given = dict(calibration.ci95)
         given.update(overrides or {})
+        loose = [name for name in _NAMES if name in given and given[name] is None]
+        if loose:
+            raise ConfigError(
+                f"{calibration.source}: the data cannot bound {', '.join(loose)} (unidentifiable "
+                "in [ci95]): no interval to draw from. Fit on recordings with a transient, or "
+                "pass coefficient_ranges={'" + loose[0] + "': (lo, hi), ...}")
         unknown = sorted(set(overrides or {}) - set(_NAMES))
         if unknown:
             raise ConfigError(f"coefficient_ranges: unknown coefficient(s) {', '.join(unknown)} "

@@ -48,10 +48,12 @@ def _named(err: Exception, path: Path, name: str) -> str:
     return text if name in text else f"{name}: {text}"
 
 
-def _coefficients(cal, ci95: dict[str, tuple[float, float]]) -> dict[str, Any]:
+def _coefficients(cal, ci95: dict[str, tuple[float, float] | None]) -> dict[str, Any]:
+    """The coefficients and their intervals as row fields; NaN where there is no interval
+    (none computed, or the data cannot bound it)."""
     row: dict[str, Any] = {}
     for k in COEFFICIENTS:
-        lo, hi = ci95.get(k, (math.nan, math.nan))
+        lo, hi = ci95.get(k) or (math.nan, math.nan)
         row[k] = float(getattr(cal, k))
         row[f"{k}_lo"] = float(lo)
         row[f"{k}_hi"] = float(hi)
@@ -94,8 +96,7 @@ def run_diagnose(recordings: Sequence[Any], names: Sequence[str], robot, calibra
     diag = diagnose(list(recordings), fitted, robot, names=list(names),
                     candidates=tuple(candidates) if candidates else CANDIDATES, jobs=1)
     final = diag.calibration
-    row = _coefficients(final, {k: tuple(v) for k, v in dict(final.ci95).items()
-                                if k in COEFFICIENTS})
+    row = _coefficients(final, dict(final.ci95))
     row.update(rmse_rpm=float(diag.rmse_final), rmse_initial_rpm=float(diag.rmse_initial),
                effects=list(diag.effects), unexplained=bool(diag.unexplained),
                details={"diagnosis": diag.to_json(), "fitted": {k: float(getattr(fitted, k))
@@ -134,8 +135,7 @@ def run_shadow(recordings: Sequence[Any], names: Sequence[str], robot, calibrati
             with_alarms.append(name)
             t = res.first_alarm_t_s
             first = t if first is None else min(first, t)
-    row = _coefficients(calibration, {k: tuple(v) for k, v in dict(calibration.ci95).items()
-                                      if k in COEFFICIENTS})
+    row = _coefficients(calibration, dict(calibration.ci95))
     row.update(alarms=alarms, alarm_inputs=with_alarms,
                first_alarm_t_s=math.nan if first is None else float(first),
                effects=sorted(calibration.effects.active()), details={"replays": per})

@@ -35,7 +35,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ConfigError, FitError
 from ..io.recording import Recording
-from ..model.calibration import Calibration, Effects
+from ..model.calibration import Calibration, Effects, check_model_coefficients, coefficient_problem
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
 from ..model.simulate import simulate_batch, steady_state, unchanging
@@ -123,6 +123,10 @@ STALL_MIN_EVALUATIONS = 40
 
 #: Largest condition number of the column-scaled Jacobian for which intervals are trusted.
 MAX_CONDITION = 1e8
+#: The data do not bound a parameter whose 95 % half-width exceeds this many times its
+#: magnitude (:func:`bounded_interval`): the interval then reaches far past the parameter's
+#: bound, and the data cannot tell the value from that bound (a dead time of 0.5 +- 4672 s).
+UNBOUNDED_FACTOR = 10.0
 
 
 def _check_name(name: str) -> None:
@@ -164,7 +168,8 @@ def parameter_value(calibration: Calibration, name: str) -> float:
     return float(getattr(calibration.effects, name))
 
 
-def with_parameters(calibration: Calibration, values: Mapping[str, float]) -> Calibration:
+def with_parameters(calibration: Calibration, values: Mapping[str, float],
+                    what: str | None = None) -> Calibration:
     """Substitute named parameters (coefficients or effect parameters) into a calibration.
 
     Parameters
@@ -173,6 +178,8 @@ def with_parameters(calibration: Calibration, values: Mapping[str, float]) -> Ca
         The calibration to start from; parameters not named keep their values.
     values : Mapping[str, float]
         Name (one of :data:`PARAMETER_NAMES`) -> value, in the parameter's unit.
+    what : str, optional
+        Names the new model in an error (default: "the model with new values of A, B, ...").
 
     Returns
     -------
@@ -185,7 +192,7 @@ def with_parameters(calibration: Calibration, values: Mapping[str, float]) -> Ca
     FitError
         For an unknown name.
     ConfigError
-        For coefficients of an unstable model.
+        For coefficients of an unstable model; the message starts with ``what``.
     """
     if not values:
         return calibration
@@ -207,6 +214,10 @@ def with_parameters(calibration: Calibration, values: Mapping[str, float]) -> Ca
             effects[name] = v
     for field_name, seq in indexed.items():
         effects[field_name] = tuple(seq)
+    if coeffs:
+        check_model_coefficients(
+            *(coeffs.get(n, getattr(calibration, n)) for n in _COEFFICIENTS),
+            what or f"the model with new values of {', '.join(values)}")
     eff = replace(calibration.effects, **effects) if effects else calibration.effects
     return replace(calibration, **coeffs, effects=eff, ci95={}, info={})
 
@@ -217,6 +228,14 @@ def toml_key(name: str) -> str:
     return f"{m.group(1)}_{m.group(2)}" if m else name
 
 
+def calibration_intervals(ci95: Mapping[str, tuple[float, float]]
+                          ) -> dict[str, tuple[float, float] | None]:
+    """Engine intervals (NaN where unidentifiable) as :attr:`Calibration.ci95` holds them:
+    bare TOML keys (:func:`toml_key`), ``None`` for an unidentifiable parameter."""
+    return {toml_key(k): (float(v[0]), float(v[1])) if all(map(math.isfinite, v)) else None
+            for k, v in ci95.items()}
+
+
 @dataclass(frozen=True)
 class FitResult:
     """Outcome of a fit.
@@ -225,11 +244,13 @@ class FitResult:
     ----------
     calibration : Calibration
         The input calibration with the fitted values substituted and ``ci95`` (bare TOML keys, see
-        :func:`toml_key`) and ``info`` (metrics, method, data sources) filled in.
+        :func:`toml_key`; ``None`` where unidentifiable) and ``info`` (metrics, method, data
+        sources) filled in.
     parameters : dict[str, float]
         Fitted free parameters, in their units.
     ci95 : dict[str, tuple[float, float]]
-        95 % confidence intervals of the free parameters (NaN when not identifiable).
+        95 % confidence intervals of the free parameters, clipped to their admissible ranges;
+        ``(nan, nan)`` where the data cannot bound the parameter (:func:`bounded_interval`).
     rmse_rpm : float
         Root mean square wheel-speed error over all measured wheel samples used [rpm].
     fit_percent : float
@@ -697,8 +718,17 @@ class _Problem:
             if len(self._effects) >= 64:
                 self._effects.clear()
             self._effects[key] = effects
-        return replace(self.calibration, **{n: values[i] for n, i in self._coefficients},
-                       effects=effects, ci95={}, info={})
+        coefficients = {n: values[i] for n, i in self._coefficients}
+        try:
+            return replace(self.calibration, **coefficients, effects=effects, ci95={}, info={})
+        except ConfigError:
+            # said as the point's problem (the caller says it is the fit's), not the
+            # calibration's in memory
+            A, B, C = (coefficients.get(n, getattr(self.calibration, n)) for n in _COEFFICIENTS)
+            problem = coefficient_problem(A, B, C)
+            if problem is None:
+                raise
+            raise ConfigError(problem) from None
 
     def steps(self, x: np.ndarray) -> np.ndarray:
         floor = np.array([_FD_FLOOR.get(n, 1.0) for n in self.free])
@@ -871,6 +901,51 @@ def _starts(data, calibration, robot, free, x0, lower, upper) -> list[dict[str, 
             for s in starts]
 
 
+def bounded_interval(name: str, value: float, lo: float, hi: float
+                     ) -> tuple[float, float] | None:
+    """A 95 % interval as it is reported: clipped to the parameter's admissible range
+    (:data:`DEFAULT_BOUNDS`), or None where the data cannot bound the parameter.
+
+    The data cannot bound it when the interval is not finite (the data do not depend on the
+    parameter, the parameters are not jointly identifiable, too few residuals), when its
+    half-width ``h`` (the larger distance from ``value`` to an end) is at least the width of a
+    finite admissible range (``dead_time_s``: 5 s), or when ``h`` exceeds
+    :data:`UNBOUNDED_FACTOR` times the value's magnitude, at least the parameter's typical
+    scale (0.01 s for ``dead_time_s``, ``drive_lag_s`` and ``controller_period_s``, 1 in the
+    parameter's unit otherwise).
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`PARAMETER_NAMES`.
+    value : float
+        The fitted value, in the parameter's unit.
+    lo, hi : float
+        The interval as computed (``value -+ h`` for a Wald interval; a grid's span).
+    """
+    if unbounded(name, value, lo, hi) is not None:
+        return None
+    low, high = DEFAULT_BOUNDS[name]
+    return (max(lo, low), min(hi, high))
+
+
+def unbounded(name: str, value: float, lo: float, hi: float) -> str | None:
+    """Why the data cannot bound parameter ``name`` with 95 % interval ``[lo, hi]`` around
+    ``value`` (the rule of :func:`bounded_interval`); None when they bound it."""
+    low, high = DEFAULT_BOUNDS[name]
+    if not (math.isfinite(value) and math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        return "its 95 % interval is not finite"
+    half = max(value - lo, hi - value)
+    if math.isfinite(high - low) and half >= high - low:
+        return (f"its 95 % half-width {half:.4g} is at least its whole admissible range "
+                f"{low:g}..{high:g}")
+    scale = max(abs(value), _FD_FLOOR.get(name, 1.0))
+    if half > UNBOUNDED_FACTOR * scale:
+        return (f"its 95 % half-width {half:.4g} exceeds {UNBOUNDED_FACTOR:g} times its "
+                f"magnitude {scale:.4g}")
+    return None
+
+
 def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free: Sequence[str],
                on_bound: np.ndarray):
     """95 % Wald intervals from the Jacobian; warnings for parameters the data cannot pin down."""
@@ -902,7 +977,14 @@ def _intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free:
         if d:
             warnings.append(f"{name} is not identifiable: the data do not depend on it")
     for i, name in enumerate(free):
-        if not on_bound[i] and math.isfinite(half[i]) and half[i] > max(abs(x[i]), 1e-12):
+        if not math.isfinite(half[i]):
+            continue
+        why = unbounded(name, x[i], x[i] - half[i], x[i] + half[i])
+        if why is not None:
+            warnings.append(
+                f"{name} is not identifiable from these data: {why}, so no interval is given "
+                "(the data may lack a transient, or a change of command)")
+        elif not on_bound[i] and half[i] > max(abs(x[i]), 1e-12):
             warnings.append(
                 f"{name} is poorly identified: 95 % interval +-{half[i]:.4g} exceeds its value "
                 f"{x[i]:.4g} (the data may lack a transient, e.g. a step too short)")
@@ -960,12 +1042,13 @@ def finish(data, calibration, robot, free, x, method, *, J=None, r=None, pose_we
                             "edge of the allowed range, and its interval (which assumes an "
                             f"interior optimum) is only indicative{why}")
     params = {n: float(v) for n, v in zip(free, x, strict=True)}
-    cal = with_parameters(calibration, params)
+    cal = with_parameters(calibration, params, "the fitted model")
     # without pose channels the search's last residual is the wheels' at x: no new simulation
     # (contiguous, as a fresh simulation's: the sums then run in the same order)
     sse, rmse, fit_pct, n, per = _metrics(data, cal, robot,
                                           np.ascontiguousarray(r) if pose_weight == 0 else None)
-    ci = {n: (float(x[i] - half[i]), float(x[i] + half[i])) for i, n in enumerate(free)}
+    ci = {n: bounded_interval(n, float(x[i]), float(x[i] - half[i]), float(x[i] + half[i]))
+          or (math.nan, math.nan) for i, n in enumerate(free)}
     info: dict[str, Any] = {
         "method": method,
         "rmse_rpm": rmse,
@@ -982,8 +1065,7 @@ def finish(data, calibration, robot, free, x, method, *, J=None, r=None, pose_we
     info.update(info_extra or {})
     if warnings:
         info["warnings"] = list(warnings)
-    cal = replace(cal, ci95={toml_key(k): v for k, v in ci.items() if all(map(math.isfinite, v))},
-                  info=info)
+    cal = replace(cal, ci95=calibration_intervals(ci), info=info)
     return FitResult(cal, params, ci, rmse, fit_pct, sse, n, method, tuple(warnings))
 
 

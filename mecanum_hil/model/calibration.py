@@ -16,9 +16,10 @@ File layout::
     B = 16.1          # [1/s]
     C = 303.0         # [1/s^2]
 
-    [ci95]            # optional, written by fit: 95 % intervals
+    [ci95]            # optional, written by fit and diagnose: 95 % intervals
     A = [lo, hi]
     ...
+    unidentifiable = ["dead_time_s"]   # fitted, but the data cannot bound them: no interval
 
     [fit]             # optional, free-form metrics and provenance (rmse_rpm, fit_percent, ...)
 
@@ -300,8 +301,10 @@ class Calibration:
         ``K Ki`` [1/s^2].
     effects : Effects
         Physical effects beyond the linear model.
-    ci95 : Mapping[str, tuple[float, float]]
-        95 % confidence intervals of coefficients, when fitted.
+    ci95 : Mapping[str, tuple[float, float] or None]
+        95 % confidence intervals of fitted parameters, by bare TOML key (``A``,
+        ``dead_time_s``, ``gains_1``); ``None`` for a parameter that was fitted but whose
+        interval the data cannot bound (unidentifiable).
     info : Mapping[str, Any]
         Fit metrics and provenance (``[fit]`` table of the file).
     source : str
@@ -312,24 +315,37 @@ class Calibration:
     B: float = 16.1
     C: float = 303.0
     effects: Effects = field(default_factory=Effects)
-    ci95: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    ci95: Mapping[str, tuple[float, float] | None] = field(default_factory=dict)
     info: Mapping[str, Any] = field(default_factory=dict)
     source: str = "<defaults>"
 
     def __post_init__(self) -> None:
-        check_coefficients(self.A, self.B, self.C, self.source)
+        # a file's coefficients are checked as it is read (load_calibration, whose errors
+        # name the file and key); one that fails here was made in memory, and its values are
+        # not the file's
+        check_model_coefficients(self.A, self.B, self.C, "a calibration made in memory")
 
     @property
     def coefficients(self) -> tuple[float, float, float]:
         """``(A, B, C)``."""
         return (self.A, self.B, self.C)
 
-    def with_coefficients(self, A: float, B: float, C: float) -> Calibration:
-        """A copy with new coefficients (intervals and metrics dropped)."""
-        return replace(self, A=float(A), B=float(B), C=float(C), ci95={}, info={})
+    def with_coefficients(self, A: float, B: float, C: float,
+                          what: str = "the new coefficients") -> Calibration:
+        """A copy with new coefficients (intervals and metrics dropped).
+
+        Raises
+        ------
+        ConfigError
+            When they are not a stable, physical model; the message names ``what``.
+        """
+        A, B, C = float(A), float(B), float(C)
+        check_model_coefficients(A, B, C, what)
+        return replace(self, A=A, B=B, C=C, ci95={}, info={})
 
 
-def exchange_drive_lag(calibration: Calibration) -> Calibration | None:
+def exchange_drive_lag(calibration: Calibration,
+                       what: str = "the drive_lag exchange of the model") -> Calibration | None:
     """The calibration with the drive lag and the motor's time constant exchanged.
 
     With a drive lag ``tau`` the motor sees ``a / ((s + a)(s + B)) c`` of the controller output
@@ -341,20 +357,39 @@ def exchange_drive_lag(calibration: Calibration) -> Calibration | None:
     which acts on the lagged drive, and a braking limit or a fast-decay drive, which act on
     the motor's acceleration, can.
 
+    Parameters
+    ----------
+    calibration : Calibration
+    what : str
+        Names the twin in an error (e.g. "the drive_lag exchange of the fitted model").
+
     Returns
     -------
     Calibration or None
         The twin (intervals and metrics dropped); ``None`` without a drive lag, with ``B <= 0``
         or with breakaway, a braking limit or a fast-decay drive (no exact twin).
+
+    Raises
+    ------
+    ConfigError
+        When the twin is degenerate, no calibration a file can hold: its drive lag ``1 / B``
+        beyond :data:`MAX_DRIVE_LAG_S` (``B`` near zero), or its coefficients not finite,
+        beyond :data:`MAX_COEFFICIENT` or unstable. The message starts with ``what``.
     """
     fx = calibration.effects
     tau, B = fx.drive_lag_s, calibration.B
     if not (tau > 0 and B > 0) or fx.breakaway_rpm_per_s > 0 or \
             math.isfinite(fx.braking_limit_rpm_per_s) or fx.fast_decay:
         return None
-    k = 1.0 / (tau * B)
-    twin = calibration.with_coefficients(calibration.A * k, 1.0 / tau, calibration.C * k)
-    return replace(twin, effects=replace(fx, drive_lag_s=1.0 / B))
+    lag = 1.0 / B
+    if not lag <= MAX_DRIVE_LAG_S:
+        raise ConfigError(f"{what}: its drive_lag_s = 1 / B = {lag:g} s exceeds "
+                          f"{MAX_DRIVE_LAG_S:g} s (B = {B:g} 1/s is near zero)")
+    # a float product overflows to inf (then refused below), a quotient by 0 would raise
+    prod = tau * B
+    k = 1.0 / prod if prod > 0 else math.inf
+    twin = calibration.with_coefficients(calibration.A * k, 1.0 / tau, calibration.C * k, what)
+    return replace(twin, effects=replace(fx, drive_lag_s=lag))
 
 
 #: The largest A, B [1/s] and C [1/s^2] a model may have: a time constant of a picosecond, far
@@ -363,27 +398,54 @@ def exchange_drive_lag(calibration: Calibration) -> Calibration | None:
 MAX_COEFFICIENT = 1e12
 
 
-def check_coefficients(A: float, B: float, C: float, source: str = "<coefficients>") -> None:
-    """Refuse coefficients of an unstable or unphysical wheel model.
+#: The longest drive lag a calibration file may hold [s] (and the fit's bound).
+MAX_DRIVE_LAG_S = 5.0
+
+
+def coefficient_problem(A: float, B: float, C: float, *, keys: bool = False) -> str | None:
+    """What makes ``A``, ``B``, ``C`` no stable, physical wheel model; None when they are one.
 
     The characteristic polynomial ``s^2 + (A + B) s + C`` is stable iff ``A + B > 0`` and
     ``C > 0``; ``A = K Kp`` and ``B`` are also non-negative for a real PI drive; none may
-    exceed :data:`MAX_COEFFICIENT`.
+    exceed :data:`MAX_COEFFICIENT`. The text names the coefficients (``A must be ...``), or with
+    ``keys`` a file's keys (``key 'motor.A' must be ...``).
     """
-    for name, value in (("A", A), ("B", B), ("C", C)):
+    def name(k: str) -> str:
+        return f"key 'motor.{k}'" if keys else k
+
+    for k, value in (("A", A), ("B", B), ("C", C)):
         if not math.isfinite(value):
-            raise ConfigError(f"{source}: key 'motor.{name}' must be finite, got {value!r}")
+            return f"{name(k)} must be finite, got {value!r}"
         if value > MAX_COEFFICIENT:
-            raise ConfigError(f"{source}: key 'motor.{name}' must be at most "
-                              f"{MAX_COEFFICIENT:g} (no drive is that fast), got {value:g}")
+            return (f"{name(k)} must be at most {MAX_COEFFICIENT:g} (no drive is that fast), "
+                    f"got {value:g}")
     if A < 0:
-        raise ConfigError(f"{source}: key 'motor.A' must be >= 0, got {A:g}")
+        return f"{name('A')} must be >= 0, got {A:g}"
     if B < 0:
-        raise ConfigError(f"{source}: key 'motor.B' must be >= 0, got {B:g}")
+        return f"{name('B')} must be >= 0, got {B:g}"
     if C <= 0:
-        raise ConfigError(f"{source}: key 'motor.C' must be > 0 (stable model), got {C:g}")
+        return f"{name('C')} must be > 0 (stable model), got {C:g}"
     if A + B <= 0:
-        raise ConfigError(f"{source}: keys 'motor.A' + 'motor.B' must be > 0 (stable model)")
+        return ("keys 'motor.A' + 'motor.B' must be > 0 (stable model)" if keys
+                else "A + B must be > 0 (stable model)")
+    return None
+
+
+def check_coefficients(A: float, B: float, C: float, source: str = "<coefficients>") -> None:
+    """Refuse a file's coefficients of an unstable or unphysical wheel model
+    (:func:`coefficient_problem`); the error names the file ``source`` and its keys."""
+    problem = coefficient_problem(A, B, C, keys=True)
+    if problem is not None:
+        raise ConfigError(f"{source}: {problem}")
+
+
+def check_model_coefficients(A: float, B: float, C: float, what: str) -> None:
+    """Refuse coefficients made in memory (fitted, exchanged, given to a stepper) of an unstable
+    or unphysical wheel model (:func:`coefficient_problem`); the error starts with ``what``,
+    the model's name ("the drive_lag exchange of the fitted model"), never a file's."""
+    problem = coefficient_problem(A, B, C)
+    if problem is not None:
+        raise ConfigError(f"{what}: {problem}")
 
 
 def _read_effects(reader: TableReader | None) -> Effects:
@@ -413,7 +475,8 @@ def _read_effects(reader: TableReader | None) -> Effects:
             values["controller_period_s"] = sub.number("controller_period_s", minimum=0.0,
                                                        maximum=1.0)
         elif name == "drive_lag":
-            values["drive_lag_s"] = sub.number("drive_lag_s", minimum=0.0, maximum=5.0)
+            values["drive_lag_s"] = sub.number("drive_lag_s", minimum=0.0,
+                                               maximum=MAX_DRIVE_LAG_S)
         elif name == "breakaway":
             values["breakaway_rpm_per_s"] = sub.number("breakaway_rpm_per_s", minimum=0.0)
         elif name == "braking_limit":
@@ -445,12 +508,8 @@ def load_calibration(name_or_path: str | Path = DEFAULT_CALIBRATION) -> Calibrat
     doc.reject_unknown({"motor", "ci95", "fit", "effects", "notes"})
     motor = doc.sub("motor")
     motor.reject_unknown({"A", "B", "C"})
-    ci95: dict[str, tuple[float, float]] = {}
     ci = doc.sub("ci95", required=False)
-    if ci is not None:
-        for key in ci.table:
-            lo, hi = ci.numbers(key, 2)
-            ci95[key] = (lo, hi)
+    ci95 = _read_intervals(ci) if ci is not None else {}
     info = dict(doc.table.get("fit", {}))
     effects = _read_effects(doc.sub("effects", required=False))
     A = motor.number("A")
@@ -458,6 +517,29 @@ def load_calibration(name_or_path: str | Path = DEFAULT_CALIBRATION) -> Calibrat
     C = motor.number("C")
     check_coefficients(A, B, C, src)
     return Calibration(A=A, B=B, C=C, effects=effects, ci95=ci95, info=info, source=src)
+
+
+#: The key of ``[ci95]`` that lists the parameters the data cannot bound.
+UNIDENTIFIABLE_KEY = "unidentifiable"
+
+
+def _read_intervals(ci: TableReader) -> dict[str, tuple[float, float] | None]:
+    """``[ci95]``: ``key = [lo, hi]`` per parameter, and ``unidentifiable = [...]`` naming the
+    parameters without one (read as ``None``)."""
+    out: dict[str, tuple[float, float] | None] = {}
+    for key in ci.table:
+        if key != UNIDENTIFIABLE_KEY:
+            lo, hi = ci.numbers(key, 2)
+            out[key] = (lo, hi)
+    names = ci.table.get(UNIDENTIFIABLE_KEY, [])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise ci.fail(UNIDENTIFIABLE_KEY, f"must be a list of parameter names, got {names!r}")
+    for name in names:
+        if name in out:
+            raise ci.fail(UNIDENTIFIABLE_KEY, f"names {name!r}, which has an interval "
+                          f"(or is named twice)")
+        out[name] = None
+    return out
 
 
 def calibration_to_toml(cal: Calibration, header: str = "") -> str:
@@ -473,7 +555,11 @@ def calibration_to_toml(cal: Calibration, header: str = "") -> str:
     ]
     if cal.ci95:
         lines += ["", "[ci95]"]
-        lines += [f"{k} = {toml_value(list(v))}" for k, v in cal.ci95.items()]
+        lines += [f"{k} = {toml_value(list(v))}" for k, v in cal.ci95.items() if v is not None]
+        loose = [k for k, v in cal.ci95.items() if v is None]
+        if loose:
+            lines.append(f"{UNIDENTIFIABLE_KEY} = {toml_value(loose)}   # the data cannot "
+                         "bound these")
     if cal.info:
         lines += ["", "[fit]"]
         lines += [f"{k} = {toml_value(v)}" for k, v in cal.info.items()]

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from .calibration import Calibration, Effects, check_coefficients
+from .calibration import Calibration, Effects, check_model_coefficients
 from .discretise import discretise_many, discretise_step  # noqa: F401 (re-exported)
 from .kinematics import DEFAULT_POSE
 from .motor import TABLE_WIDTH
@@ -251,7 +251,7 @@ class BatchStepper:
         if rows.size == 0:
             return
         for A, B, C in np.unique(rows.reshape(-1, 3), axis=0):
-            check_coefficients(A, B, C, "coefficients")
+            check_model_coefficients(A, B, C, "coefficients")
             if self._saturating and B <= 0:
                 raise ConfigError("coefficients: a drive output limit (saturation, windup) "
                                   "needs B > 0")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import warnings
+from dataclasses import replace
 
 import gymnasium as gym
 import numpy as np
@@ -159,6 +160,16 @@ def test_randomising_a_calibration_without_intervals_is_refused():
     _, info = env.reset(seed=0)
     assert info["coefficients"][:2].tolist() == [14.7, 16.1]
     assert 250.0 <= info["coefficients"][2] <= 350.0
+
+
+def test_randomising_a_coefficient_the_data_cannot_bound_is_refused(tmp_path):
+    # no interval to draw from, and the fitted value is no better than any other
+    loose = save_calibration(replace(DIAGNOSED, ci95={**DIAGNOSED.ci95, "B": None}),
+                             tmp_path / "loose.toml")
+    with pytest.raises(ConfigError, match=r"cannot bound B \(unidentifiable"):
+        MecanumHILEnv(loose, randomize=True)
+    env = MecanumHILEnv(loose, randomize=True, coefficient_ranges={"B": (13.0, 15.0)})
+    assert 13.0 <= env.reset(seed=0)[1]["coefficients"][1] <= 15.0
 
 
 def test_success_terminates_with_the_bonus():

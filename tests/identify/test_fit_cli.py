@@ -97,6 +97,28 @@ def test_bad_input_is_one_line_and_writes_nothing(step_csv, tmp_path, run):
     assert not (tmp_path / "blind.toml").exists()
 
 
+def test_coefficients_the_data_cannot_bound_are_null_in_json_and_listed_in_toml(tmp_path, run):
+    # a step sampled every 2 s: every sample is settled, so the model's level (the target,
+    # with integral action) fits them whatever A, B and C are
+    t = np.array([0.0, 2.0, 4.0, 6.0])
+    cmd = np.tile([60.0, 0.0, 90.0], (4, 1))
+    w = np.tile([0.0, 60.1, 59.9, 60.0], (4, 1)).T + np.array([0, 0.1, -0.1, 0.05])
+    rec = write_recording(Recording(t, cmd, w, np.full((4, 3), np.nan)),
+                          tmp_path / "settled.csv")
+    out = tmp_path / "cal.toml"
+    code, stdout, stderr = run("fit", rec, "--out", out, "--no-report", "--json")
+    assert code == 0, stderr
+    doc = json.loads(stdout)
+    assert doc["ci95"] == {"A": None, "B": None, "C": None}
+    assert "A is not identifiable from these data" in stderr
+    text = out.read_text()
+    assert 'unidentifiable = ["A", "B", "C"]' in text and "\nA = [" not in text
+    assert load_calibration(out).ci95 == {"A": None, "B": None, "C": None}
+    code, stdout, _ = run("fit", rec, "--out", tmp_path / "again.toml", "--no-report")
+    assert code == 0 and "A = " in stdout
+    assert "(unidentifiable: the data cannot bound it)" in stdout and "nan" not in stdout
+
+
 def test_real_micromouse_step_responses(shared_real_data, tmp_path):
     robot = RobotProfile()
     figures = {}

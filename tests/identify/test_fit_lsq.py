@@ -8,6 +8,7 @@ import pytest
 from mecanum_hil.errors import FitError
 from mecanum_hil.identify.fit import (
     PARAMETER_NAMES,
+    bounded_interval,
     fit,
     fit_parameters,
     parameter_value,
@@ -15,7 +16,16 @@ from mecanum_hil.identify.fit import (
     with_parameters,
 )
 from mecanum_hil.io.recording import Recording
-from mecanum_hil.model import Calibration, Effects, RobotProfile, simulate, uniform_time
+from mecanum_hil.model import (
+    Calibration,
+    Effects,
+    RobotProfile,
+    load_calibration,
+    save_calibration,
+    simulate,
+    uniform_time,
+)
+from mecanum_hil.model.kinematics import command_to_wheels
 
 ROBOT = RobotProfile()
 TRUE = Calibration(A=27.0, B=8.5, C=610.0)  # not the paper's 14.7, 16.1, 303
@@ -136,6 +146,42 @@ def test_a_step_too_sparse_to_show_its_transient_is_flagged():
     rec = Recording(t, cmd, w, np.full((4, 3), np.nan))
     res = fit([rec], ROBOT)
     assert any("identif" in w for w in res.warnings), res.warnings
+    # and no interval is given for what the data cannot bound
+    assert all(math.isnan(v) for k in "ABC" for v in res.ci95[k]), res.ci95
+    assert res.calibration.ci95 == {"A": None, "B": None, "C": None}
+
+
+def test_a_dead_time_without_a_change_of_command_is_unidentifiable(tmp_path):
+    # the robot at its steady speed under one command from the first sample (the model starts
+    # in steady state there): no wheel speed depends on the dead time
+    t, cmd = step(60.0, 2.0, 100.0)
+    targets = command_to_wheels(cmd[:, 0], cmd[:, 1], cmd[:, 2], ROBOT.k)
+    w = targets + np.random.default_rng(8).normal(0.0, 0.5, targets.shape)
+    rec = Recording(t, cmd, w, np.full((t.size, 3), np.nan))
+    res = fit_parameters([rec], Calibration(), ROBOT, ["dead_time_s"])
+    assert all(math.isnan(v) for v in res.ci95["dead_time_s"]), res.ci95
+    assert any(w.startswith("dead_time_s is not identifiable") for w in res.warnings)
+    assert res.calibration.ci95 == {"dead_time_s": None}
+    path = save_calibration(res.calibration, tmp_path / "cal.toml")
+    assert 'unidentifiable = ["dead_time_s"]' in path.read_text()
+    assert load_calibration(path).ci95 == {"dead_time_s": None}
+
+
+@pytest.mark.parametrize(("name", "value", "half", "written"), [
+    # what a real diagnosis wrote as [-4672, 4673] s
+    ("dead_time_s", 0.5, 4672.5, None),
+    # a half-width at least the admissible range (0..5 s), though under 10 x the value
+    ("drive_lag_s", 0.6, 5.0, None),
+    ("A", 14.0, 150.0, None),  # more than 10 x the value
+    ("C", 300.0, math.nan, None),  # not computed (a zero or near-singular direction)
+    ("dead_time_s", 0.02, 0.03, (0.0, 0.05)),  # clipped at the admissible 0
+    ("A", 14.0, 100.0, (0.0, 114.0)),
+    ("dead_time_s", 0.0, 0.002, (0.0, 0.002)),  # on its bound, the data bound it above
+    ("no_load_rpm", 1.5, 2.0, (1.0, 3.5)),  # the admissible range starts at 1 rpm
+])
+def test_an_interval_is_clipped_to_the_admissible_range_or_unidentifiable(name, value, half,
+                                                                           written):
+    assert bounded_interval(name, value, value - half, value + half) == written
 
 
 def test_residuals_are_measured_minus_model_with_nan_where_not_measured():

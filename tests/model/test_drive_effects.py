@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mecanum_hil.errors import ConfigError
 from mecanum_hil.model import Calibration, Effects
 from mecanum_hil.model.calibration import exchange_drive_lag, load_calibration, save_calibration
 from mecanum_hil.model.simulate import simulate, uniform_time
@@ -237,6 +238,23 @@ def test_drive_lag_and_motor_pole_are_interchangeable(effects):
     b = simulate(cmd, T, twin).wheel_rpm[0]
     assert np.abs(a - b).max() < 1e-6 * np.abs(a).max()
     assert exchange_drive_lag(twin).effects.drive_lag_s == pytest.approx(effects.drive_lag_s)
+
+
+@pytest.mark.parametrize(("B", "lag", "says"), [
+    # B near zero: the twin's lag 1 / B and its A, C times 1 / (tau B) are absurd
+    (1e-20, 0.02, "drive_lag_s = 1 / B = 1e+20 s exceeds 5 s"),
+    # a lag of a picosecond: the twin's B = 1 / tau and A, C overflow the model's range
+    (0.5, 1e-12, "A must be at most 1e+12"),
+])
+def test_a_degenerate_twin_is_refused_with_its_name_not_the_file(tmp_path, B, lag, says):
+    path = save_calibration(Calibration(B=B, effects=Effects(drive_lag_s=lag)),
+                            tmp_path / "user.toml")
+    cal = load_calibration(path)  # a valid model: only its exchange is degenerate
+    with pytest.raises(ConfigError) as err:
+        exchange_drive_lag(cal, "the drive_lag exchange of the fitted model")
+    text = str(err.value)
+    assert text.startswith("the drive_lag exchange of the fitted model: ") and says in text
+    assert "user.toml" not in text and "motor." not in text
 
 
 def test_breakaway_tells_the_lag_from_the_motor_pole():

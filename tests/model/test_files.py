@@ -64,6 +64,10 @@ def test_calibration_round_trip_with_effects(tmp_path):
         # a coefficient whose discretised model overflows (C = 1e300 simulated empty values)
         ("[motor]\nA = 1\nB = 2\nC = 1e300\n", "key 'motor.C' must be at most 1e+12"),
         ("[motor]\nA = 1e13\nB = 2\nC = 3\n", "key 'motor.A' must be at most 1e+12"),
+        ("[motor]\nA = 1\nB = 2\nC = 3\n[ci95]\nunidentifiable = 'A'\n",
+         "key 'ci95.unidentifiable' must be a list of parameter names"),
+        ("[motor]\nA = 1\nB = 2\nC = 3\n[ci95]\nA = [0.5, 1.5]\nunidentifiable = ['A']\n",
+         "key 'ci95.unidentifiable' names 'A', which has an interval"),
     ],
 )
 def test_bad_calibration_names_file_and_key(tmp_path, text, fragment):
@@ -72,6 +76,32 @@ def test_bad_calibration_names_file_and_key(tmp_path, text, fragment):
     with pytest.raises(ConfigError) as err:
         load_calibration(p)
     assert fragment in str(err.value) and str(p) in str(err.value)
+
+
+def test_an_unidentifiable_interval_is_listed_by_name_and_reads_back(tmp_path):
+    # TOML has no null: a parameter the data cannot bound has no interval key, and its name
+    # is in [ci95]'s unidentifiable list
+    cal = Calibration(ci95={"A": (12.0, 13.0), "dead_time_s": None, "gains_1": None})
+    path = save_calibration(cal, tmp_path / "cal.toml")
+    text = path.read_text()
+    assert 'unidentifiable = ["dead_time_s", "gains_1"]' in text
+    assert "dead_time_s = " not in text
+    assert load_calibration(path).ci95 == {"A": (12.0, 13.0), "dead_time_s": None,
+                                           "gains_1": None}
+
+
+def test_a_calibration_made_in_memory_is_refused_without_naming_a_file(tmp_path):
+    # the file's values are fine; the model made from them in memory is not: the error must
+    # not send the user to the file
+    path = save_calibration(Calibration(), tmp_path / "mine.toml")
+    cal = load_calibration(path)
+    with pytest.raises(ConfigError) as err:
+        replace(cal, A=4.8e22)
+    assert "mine.toml" not in str(err.value) and "motor.A" not in str(err.value)
+    assert "A must be at most 1e+12" in str(err.value)
+    with pytest.raises(ConfigError) as err:
+        cal.with_coefficients(14.7, -1.0, 303.0, "the refitted model")
+    assert str(err.value) == "the refitted model: B must be >= 0, got -1"
 
 
 def test_a_calibration_saved_with_a_bom_is_read_and_one_not_in_utf8_is_one_error(tmp_path):

@@ -358,7 +358,8 @@ class CandidateScore:
     parameters : dict
         Its fitted parameters (as in :class:`~mecanum_hil.model.Effects`).
     ci95 : dict of str to (float, float)
-        95 % intervals of its parameters (engine names).
+        95 % intervals of its parameters (engine names), clipped to their admissible ranges;
+        ``(nan, nan)`` where the data cannot bound the parameter.
     fit_rmse, heldout_rmse : float
         In-sample and held-out RMS residual of the scored channel [rpm or rpm equivalent].
     explained : float

@@ -22,6 +22,7 @@ from ...io.recording import Recording
 from ...model.calibration import EFFECTS, Effects, save_calibration
 from ...model.robot import RobotProfile
 from ...prediction import predict
+from ..fit import UNBOUNDED_FACTOR
 from ..regimes import pose_residual, rmse
 from .candidates import effect_parameters
 from .localise import STRUCTURE_RATIO, STRUCTURE_RHO, Finding, initial_pose_at_rest
@@ -186,7 +187,12 @@ def _fmt(v: float, digits: int = 4) -> str:
 
 
 def _equivalent_lines(step) -> list[str]:
-    """The drive lag's twin, which wheel speeds cannot tell from it."""
+    """The drive lag's twin, which wheel speeds cannot tell from it, or why it is left out."""
+    problem = step.equivalent_problem
+    if problem is not None:
+        return [f"No equivalent model: degenerate ({problem}). Exchanging the lag and the "
+                "motor's time constant gives no model a calibration can hold, so none is "
+                "given.", ""]
     q = step.equivalent
     if q is None:
         return []
@@ -202,9 +208,13 @@ def _param_lines(step) -> list[str]:
     for name in effect_parameters(step.effect):
         base, _, idx = name.partition("[")
         value = step.parameters.get(base)
-        v = value[int(idx[:-1])] if idx else value
+        v = (value[int(idx[:-1])] if idx else value) if value is not None else math.nan
         lo, hi = step.ci95.get(name, (math.nan, math.nan))
-        out.append(f"| `{name}` | {_fmt(float(v), 5)} | [{_fmt(lo, 5)}, {_fmt(hi, 5)}] |")
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            interval = "unidentifiable" if name in step.ci95 else "n/a"
+        else:
+            interval = f"[{_fmt(lo, 5)}, {_fmt(hi, 5)}]"
+        out.append(f"| `{name}` | {_fmt(float(v), 5)} | {interval} |")
     return out
 
 
@@ -283,6 +293,7 @@ def _step_lines(d: Diagnosis, k: int, step: DiagnoseStep, recordings: Sequence[R
     spec = EFFECTS[step.effect]
     md = [f"## Step {k}: {step.effect}", "", f"*{spec.description}*", "",
           "| parameter | value | 95 % interval |", "|---|---|---|", *_param_lines(step), "",
+          *_unidentifiable_lines(step),
           *_equivalent_lines(step), *_candidate_table(step), "",
           *_rmse_table(names, step), "",
           f"Share of the gap over the noise floor this step removed: "
@@ -295,6 +306,15 @@ def _step_lines(d: Diagnosis, k: int, step: DiagnoseStep, recordings: Sequence[R
     if step.warnings:
         md += ["", "Fit warnings: " + "; ".join(step.warnings)]
     return md + _step_plot_lines(k, step, recordings, names, robot, out)
+
+
+def _unidentifiable_lines(step: DiagnoseStep) -> list[str]:
+    """A note under the parameter table when an interval is unidentifiable."""
+    if not any(not all(map(math.isfinite, v)) for v in step.ci95.values()):
+        return []
+    return ["Unidentifiable: the data cannot bound the parameter (its 95 % interval is not "
+            "finite, or its half-width is at least its whole admissible range or exceeds "
+            f"{UNBOUNDED_FACTOR:g} times its magnitude; docs/fit.md).", ""]
 
 
 def _candidate_table(step: DiagnoseStep) -> list[str]:
@@ -332,11 +352,17 @@ def _step_plot_lines(k: int, step: DiagnoseStep, recordings: Sequence[Recording]
     else:
         gain = [b - a for b, a in zip(step.rmse_before_per_recording,
                                       step.rmse_after_per_recording, strict=True)]
-    i = int(np.nanargmax(gain))
+    i = _largest(gain)
     png = plot_comparison(recordings[i], {"old model": old[i], f"with {step.effect}": new[i]},
                           out / f"step{k}-{step.effect}.png",
                           f"step {k}: {step.effect} on {names[i]}")
     return ["", f"Where the gap shrank most ({names[i]}):", "", f"![step {k}]({png.name})", ""]
+
+
+def _largest(values: Sequence[float]) -> int:
+    """The index of the largest finite value; 0 when none is finite (nothing to choose by)."""
+    v = np.asarray(values, dtype=float)
+    return int(np.nanargmax(v)) if np.isfinite(v).any() else 0
 
 
 def _finding_lines(f: Finding) -> list[str]:
@@ -376,7 +402,7 @@ def _unexplained_lines(d: Diagnosis, recordings: Sequence[Recording], names: Seq
     """The unexplained residual: where it is largest, and the final model plotted on the
     recording it fits worst."""
     final = [predict(r, d.calibration, robot) for r in recordings]
-    worst = int(np.nanargmax([rs.rmse_rpm for rs in d.localisation_final.recordings]))
+    worst = _largest([rs.rmse_rpm for rs in d.localisation_final.recordings])
     png = plot_comparison(recordings[worst], {"final model": final[worst]},
                           out / "unexplained.png", f"unexplained residual on {names[worst]}")
     return ["", "**Unexplained:** structured residual remains that no effect of the library "

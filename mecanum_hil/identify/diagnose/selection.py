@@ -20,10 +20,11 @@ from ...model.calibration import EFFECTS, Calibration, exchange_drive_lag
 from ...model.robot import RobotProfile
 from ...prediction import require_commands
 from ..fit import (
+    bounded_interval,
+    calibration_intervals,
     fit_parameters,
     one_blas_thread,
     parameter_value,
-    toml_key,
     with_parameters,
 )
 from ..regimes import Localisation, localise, pooled_noise_sd
@@ -86,7 +87,9 @@ class DiagnoseStep:
     parameters : dict
         As in :class:`~mecanum_hil.model.Effects` (lists for ``gains`` and ``efficiency``).
     ci95 : dict of str to (float, float)
-        95 % intervals of the effect's parameters (engine names such as ``gains[1]``).
+        95 % intervals of the effect's parameters (engine names such as ``gains[1]``), clipped
+        to their admissible ranges; ``(nan, nan)`` where the data cannot bound the parameter
+        (:func:`honest_interval`).
     rmse_before, rmse_after : float
         Wheel RMSE over all samples, before and after (in sample) [rpm].
     rmse_before_per_recording, rmse_after_per_recording : tuple of float
@@ -122,13 +125,28 @@ class DiagnoseStep:
         """For ``drive_lag``: the other model that gives exactly the same wheel speeds, the lag
         and the motor's time constant exchanged (:func:`~mecanum_hil.model.calibration.
         exchange_drive_lag`): ``drive_lag_s`` [s], ``A``, ``B`` [1/s], ``C`` [1/s^2]. Wheel
-        speeds cannot tell the two apart; ``None`` for other effects or without a twin."""
+        speeds cannot tell the two apart. ``None`` for other effects, without a twin, or when
+        the twin is degenerate (:attr:`equivalent_problem` says why)."""
+        return self._exchange()[0]
+
+    @property
+    def equivalent_problem(self) -> str | None:
+        """Why the drive lag's exchanged twin is degenerate (``B`` near zero makes its lag and
+        its rescaled ``A`` and ``C`` absurd); None when it is a valid model or there is none."""
+        return self._exchange()[1]
+
+    def _exchange(self) -> tuple[dict[str, float] | None, str | None]:
         if self.effect != "drive_lag":
-            return None
-        twin = exchange_drive_lag(self.calibration_after)
+            return None, None
+        try:
+            twin = exchange_drive_lag(self.calibration_after,
+                                      "the drive_lag exchange of the fitted model")
+        except ConfigError as err:
+            return None, str(err)
         if twin is None:
-            return None
-        return {"drive_lag_s": twin.effects.drive_lag_s, "A": twin.A, "B": twin.B, "C": twin.C}
+            return None, None
+        return {"drive_lag_s": twin.effects.drive_lag_s, "A": twin.A, "B": twin.B,
+                "C": twin.C}, None
 
 
 @dataclass(frozen=True)
@@ -232,8 +250,8 @@ class Diagnosis:
             return {"position_m": num(v[0]), "heading_deg": num(v[1])}
 
         def step(s: DiagnoseStep) -> dict[str, Any]:
-            out = {"effect": s.effect, "parameters": s.parameters,
-                   "rmse_before": s.rmse_before, "rmse_after": s.rmse_after,
+            out = {"effect": s.effect, "parameters": _json_parameters(s.parameters),
+                   "rmse_before": num(s.rmse_before), "rmse_after": num(s.rmse_after),
                    "share": num(self.share(s)),
                    "pose_rmse_before": pose(_pose_pair(s.pose_rmse_before)),
                    "pose_rmse_after": pose(_pose_pair(s.pose_rmse_after))}
@@ -244,20 +262,30 @@ class Diagnosis:
         return {
             "effects": [step(s) for s in self.steps] + [
                 {"effect": f.effect, "parameters": {k: num(v) for k, v in f.parameters.items()},
-                 "rmse_before": self.rmse_final, "rmse_after": self.rmse_final, "share": None,
+                 "rmse_before": num(self.rmse_final), "rmse_after": num(self.rmse_final),
+                 "share": None,
                  "pose_rmse_before": pose(self.pose_rmse_final),
                  "pose_rmse_after": pose(self.pose_rmse_final)} for f in self.findings],
             "unexplained": bool(self.unexplained),
-            "rmse_initial": self.rmse_initial,
-            "rmse_final": self.rmse_final,
-            "rmse_baseline": self.rmse_baseline,
-            "noise_rpm": self.noise_rpm,
+            "rmse_initial": num(self.rmse_initial),
+            "rmse_final": num(self.rmse_final),
+            "rmse_baseline": num(self.rmse_baseline),
+            "noise_rpm": num(self.noise_rpm),
             "rmse_reference": num(self.rmse_reference),
             "explained_share": num(self.explained_share),
             "pose_rmse_before": pose(self.pose_rmse_initial),
             "pose_rmse_after": pose(self.pose_rmse_final),
             "residual": self.shape.to_json() if self.shape is not None else None,
         }
+
+
+def _json_parameters(parameters: dict[str, Any]) -> dict[str, Any]:
+    """An effect's parameters for JSON: a number that is not finite as None (lists kept)."""
+    def num(v):
+        return float(v) if math.isfinite(v) else None
+
+    return {k: [num(x) for x in v] if isinstance(v, list | tuple) else num(v)
+            for k, v in parameters.items()}
 
 
 def _pose_pair(p: Sequence[float]) -> tuple[float, float]:
@@ -784,7 +812,8 @@ def _score_candidate(ev: _Evaluator, effect: str, current: Calibration, free: li
         score = CandidateScore(effect, {}, {}, math.nan, math.nan, -math.inf, -math.inf,
                                note=str(err), in_sample=-math.inf)
         return score, None, None, f"  {effect:11s} failed: {err}"
-    ci = {n: f.ci95[n] for n in (*effect_parameters(effect),) if n in f.ci95}
+    ci = {n: honest_interval(f.calibration, n, f.ci95[n])
+          for n in effect_parameters(effect) if n in f.ci95}
     if f.absent:
         score = CandidateScore(effect, {}, {}, math.sqrt(f1 * scale2), math.nan, math.nan,
                                math.nan,
@@ -914,14 +943,25 @@ def _compare_with_reference(ctx: _Context, baseline: Calibration, rmse_final: fl
 
 
 def _final_calibration(model: _Model, rmse_final: float, unexplained: bool) -> Calibration:
-    """The extended calibration: the final model with its 95 % intervals and how it was made."""
+    """The extended calibration: the final model with its 95 % intervals (None where the data
+    cannot bound a parameter) and how it was made."""
     info = dict(model.current.info)
     info.update({"method": "diagnose", "effects_added": [s.effect for s in model.steps],
                  "rmse_rpm": rmse_final, "unexplained": unexplained})
-    cis = dict(model.ci95)
-    return replace(model.current, info=info, ci95={
-        toml_key(k): (float(v[0]), float(v[1])) for k, v in cis.items()
-        if all(map(math.isfinite, v))}, source="<diagnose>")
+    cis = {k: honest_interval(model.current, k, v) for k, v in model.ci95.items()}
+    return replace(model.current, info=info, ci95=calibration_intervals(cis),
+                   source="<diagnose>")
+
+
+def honest_interval(cal: Calibration, name: str, interval: tuple[float, float]
+                    ) -> tuple[float, float]:
+    """A 95 % interval of parameter ``name`` of ``cal`` as reported
+    (:func:`~mecanum_hil.identify.fit.bounded_interval`: clipped to the admissible range), or
+    ``(nan, nan)`` where the data cannot bound it. The engine's intervals already are; a
+    grid's span (deadband, controller period) is judged the same way."""
+    lo, hi = (float(v) for v in interval)
+    out = bounded_interval(name, parameter_value(cal, name), lo, hi)
+    return out if out is not None else (math.nan, math.nan)
 
 
 def _findings(cal: Calibration, recs: Sequence[Recording], robot: RobotProfile,
