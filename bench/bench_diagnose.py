@@ -10,7 +10,7 @@ ceiling (saturation 110 rpm):
   the other recordings for each left-out one), for the model without and with the named
   effect: their values and the cost ratio.
 
-Issue 12's targets (``--issue12``): a single 2-s recording diagnoses in under 10 s and a
+The timing targets (``--targets``): a single 2-s recording diagnoses in under 10 s and a
 12-recording campaign in under 60 s. Measured in one run, each beside a ``fit`` of the same
 data as the baseline: the 2-s recording is a 200 rpm step at 500 Hz from the simulated model with
 a hidden breakaway and per-wheel gains (and, when ``../shared/data/real/micromouse`` is there,
@@ -20,7 +20,7 @@ side by side with the load average (the machine is shared), and the real recordi
 diagnosed as a user runs them, one fresh ``mecanum-hil diagnose`` process each (imports and
 loading the compiled kernels included).
 
-Run: ``python bench/bench_diagnose.py [--quick] [--issue12] [--jobs N]`` (``--quick``: fewer
+Run: ``python bench/bench_diagnose.py [--quick] [--targets] [--jobs N]`` (``--quick``: fewer
 recordings; ``--jobs``: processes for diagnose's candidates, default its own choice).
 CPU time is this process's: a helper process's (``--jobs 2``) is not in it.
 """
@@ -101,9 +101,10 @@ def _cli_diagnose(csv, robot_toml, jobs: int | None = None) -> tuple[float, floa
     return wall, cpu
 
 
-def issue12(jobs: int | None = None) -> None:
-    """The two timing targets of issue 12, each with a fit of the same data as the baseline;
-    ``jobs`` as ``diagnose`` takes it (default: its own choice by the load)."""
+def timing_targets(jobs: int | None = None) -> None:
+    """The two timing targets (one 2-s recording < 10 s, 12 recordings < 60 s), each with a
+    fit of the same data as the baseline; ``jobs`` as ``diagnose`` takes it (default: its own
+    choice by the load)."""
     from pathlib import Path
 
     from mecanum_hil.io.recording import Recording, read_recording
@@ -156,12 +157,13 @@ def issue12(jobs: int | None = None) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--issue12", action="store_true")
+    ap.add_argument("--targets", action="store_true",
+                    help="the timing targets: one 2-s recording < 10 s, 12 recordings < 60 s")
     ap.add_argument("--jobs", type=int, default=None,
                     help="diagnose's --jobs (default: its own choice by the load)")
     args = ap.parse_args()
-    if args.issue12:
-        issue12(args.jobs)
+    if args.targets:
+        timing_targets(args.jobs)
         return
     robot = RobotProfile()
     steps = (4.0, 30.0, 120.0) if args.quick else (4.0, 8.0, 30.0, 100.0, 120.0)

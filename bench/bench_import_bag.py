@@ -1,5 +1,5 @@
-"""Benchmark of ``mecanum-hil import`` on a long ROS 2 bag (issue 14: 1 hour of 100 Hz joint
-states imported in under 30 s).
+"""Benchmark of ``mecanum-hil import`` on a long ROS 2 bag (the target: 1 hour of 100 Hz
+joint states imported in under 30 s).
 
 The bag is written with the rosbags writer from a simulated drive: ``/joint_states`` at 100 Hz
 (four wheels, header stamps), ``/cmd_vel`` (TwistStamped) at 20 Hz and ``/odom`` at 50 Hz.

@@ -1,6 +1,6 @@
 """Benchmark of the robot link: 500 Hz commands and 1 kHz telemetry over a pseudo-terminal.
 
-``python bench/bench_link.py`` runs 10 s; ``--duration 60`` is the issue's full run (the
+``python bench/bench_link.py`` runs 10 s; ``--duration 60`` is the full run (the
 figure recorded in docs/benchmarks/link.md). ``sim-robot --serial --telemetry-rate 1000`` runs
 in another process; ``record``'s session drives it at 500 Hz. Printed: frames sent, received
 and lost (must be 0), the PING round trip and command-to-acknowledgement latency percentiles,

@@ -1,4 +1,4 @@
-"""Benchmark of the batch simulator (issue 2).
+"""Benchmark of the batch simulator.
 
 4096 robots x 10 s at 1 kHz, each with its own piecewise-constant command stream (a new random
 command every second). Prints robot-steps per second of ``simulate_batch`` and the ratio against

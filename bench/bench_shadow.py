@@ -10,7 +10,7 @@ Run as ``python bench/bench_shadow.py [--quick]``. Prints
    wheel at 100 Hz and 1 kHz, several noise seeds, and the CUSUM's misses (> 0.3 s);
 3. false alarms over 10 simulated minutes of nominal driving with noise (several seeds, both
    rates), against a single-sample threshold detector on the same normalised residuals
-   (|z| > 5, which the issue rules out) as the baseline.
+   (|z| > 5, too many false alarms to use) as the baseline.
 """
 
 from __future__ import annotations

@@ -68,7 +68,7 @@ def load_average() -> str:
         return "?"
 
 
-#: The filming conditions of issue 13, one at a time and together (renderer knobs).
+#: The filming conditions measure-video must handle, one at a time and together (renderer knobs).
 CONDITIONS = {
     "clean": {"noise_std": 2.0},
     "fender": {"noise_std": 3.0, "fender": 0.35},
@@ -82,7 +82,7 @@ CONDITIONS = {
 
 
 def score(res, meas) -> dict:
-    """Acceptance figures of issue 13 for wheel 1 against the renderer's truth."""
+    """Acceptance figures of measure-video for wheel 1 against the renderer's truth."""
     got = meas.recording.wheel_rpm[:, 0]
     truth = res.wheel_rpm[:, 0]
     vis = res.marker_visible[:, 0]

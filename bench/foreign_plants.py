@@ -1,4 +1,4 @@
-"""Issue 18 on logs from robots whose physics is NOT the project's model.
+"""Lab logs judged step by step, from robots whose physics is NOT the project's model.
 
 The lab logs of tests/identify/test_real_logs.py and bench/staircase_steps.py are made with the
 project's own simulator, so ``import -> fit -> diagnose -> simulate`` reproducing them proves
@@ -456,7 +456,7 @@ def run_loop(d: Path, log: Log, extra_cal: Path | None = None) -> dict:
 
 
 def judge(d: Path, log: Log, res: dict) -> dict:
-    """The issue's per-step criteria (tests/identify/test_real_logs.py, check_every_step)."""
+    """The per-step criteria (tests/identify/test_real_logs.py, check_every_step)."""
     from mecanum_hil.identify.regimes import wheel_targets
     from mecanum_hil.identify.steps import step_table
     from mecanum_hil.io.recording import read_recording

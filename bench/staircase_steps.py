@@ -8,7 +8,7 @@ battery voltage at 29.1 rad/s, logged at 1 kHz as whitespace text with a `%` hea
 
 Run: ``.venv/bin/python bench/staircase_steps.py [OUT_DIR]`` (default ``docs/img``). Writes
 ``diagnose-staircase-steps.png`` (the report's per-step plot) there and prints the effects
-named, the wheel RMSE of fit alone and diagnosed, the worst step against the issue's
+named, the wheel RMSE of fit alone and diagnosed, the worst step against the per-step
 tolerances and the per-step table of wheel 1 (markdown).
 """
 

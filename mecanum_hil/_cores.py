@@ -13,7 +13,7 @@ import time
 #: i.e. a 1-minute load average of the other jobs up to 0.5 on two cores. Measured for
 #: measure-video: with another job busy on the second core (load 1) decoding beside was 0-10 %
 #: slower than in turns; asking for a whole idle core (load 0.00) left an idle desktop's 0.1 in
-#: turns (review, 2026-11-23). diagnose's helper process follows the same rule.
+#: turns. diagnose's helper process follows the same rule.
 SPARE_CORE = 0.5
 
 #: This process's share of the load average as last computed, with the wall and CPU clocks

@@ -4,7 +4,7 @@ The package's inner loops (``model/_kernels.py``, ``model/discretise.py``,
 ``monitor/_kernel.py``, ``identify/grid.py``, ``envs/_kernels.py``) are plain Python written in
 the subset numba compiles. Importing numba and loading the first compiled function from its
 on-disk cache costs about 0.6 s of CPU on the project's 2-core machine (0.25 s import, 0.35 s
-for LLVM's start-up on the first call, measured 2026-11-23), far more than a 2-s recording
+for LLVM's start-up on the first call), far more than a 2-s recording
 takes to simulate in the interpreter. So ``@njit`` here records the function and compiles
 nothing:
 
@@ -30,7 +30,7 @@ from collections.abc import Callable
 from typing import Any
 
 #: Robot-steps (sub-steps) a process may run interpreted before :func:`pick` compiles: about
-#: 0.3 s of the simulator in the interpreter (25 us per robot-step on the linear path, 2026-11-23),
+#: 0.3 s of the simulator in the interpreter (25 us per robot-step on the linear path),
 #: half of what loading numba costs; a 10-s recording at 1 kHz still runs without numba.
 INTERPRETED_BUDGET = 12_000
 

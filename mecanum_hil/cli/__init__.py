@@ -72,7 +72,7 @@ def build_app(names=None, *, listing: bool = False) -> typer.Typer:
         no_args_is_help=True,
         add_completion=False,
         pretty_exceptions_enable=False,
-        # plain click help: rich's formatter costs ~70 ms of start-up on every --help (issue 19)
+        # plain click help: rich's formatter costs ~70 ms of start-up on every --help
         rich_markup_mode=None,
         context_settings={"help_option_names": ["-h", "--help"]},
     )
@@ -276,7 +276,7 @@ def run() -> None:
     ``diagnose``, ``fit`` and ``simulate`` (:data:`_QUICK_EXIT`) end with ``os._exit`` once
     the exit handlers have run (a diagnosis's helper process closed) and the output is
     flushed: the interpreter's own teardown of numba's compiled code took 0.3 s after the
-    last line of every such command (docs/benchmarks/diagnose.md, session 23). Each writes
+    last line of every such command (docs/benchmarks/diagnose.md). Each writes
     its files through ``with`` blocks closed before it returns, so nothing is left for the
     teardown to flush. Other commands (``record``, ``shadow`` ...) end the ordinary way.
     """

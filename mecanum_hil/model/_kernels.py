@@ -8,7 +8,7 @@ are exact to rounding.
 
 The steps of :func:`simulate_kernel` are helpers numba inlines into it (``inline="always"``):
 each is called per wheel and substep, and a call that is not inlined counts references on its
-array arguments, shared by the robots' threads. Measured 2026-11-23 on the 2-core machine, 256
+array arguments, shared by the robots' threads. Measured on the 2-core machine, 256
 robots x 5 s at 1 kHz: inlined, 26 / 22 / 13 M robot-steps/s (linear / saturation, rate limit
 and deadband / the drive's own dynamics), 18.8 / 18.1 / 11.3 for the one long function before;
 with no helper inlined 20 / 18 / 3.9, with only ``_drive_piece`` not inlined 5.4 on the drive.

@@ -16,7 +16,7 @@ with ``Ad``, ``Bd`` in closed form, vectorised (:func:`zoh_tables`), and the gua
 wheel speeds equal the batch simulator's to rounding (tests/model/test_linear.py); there is no
 dead time, deadband, gain or drive limit here: callers use it for the paper's model only.
 
-Costs (2026-11-23, one core): stepping, about 8 us per time step for a handful of sets, plus
+Costs (one core): stepping, about 8 us per time step for a handful of sets, plus
 about 10 ns per set and step; the scan, 2-5x less for up to :data:`SCAN_MAX_SERIES` sets x
 series (573 steps of 4 sets x 4 wheels: 2.4-2.8 ms against 10-12 ms on a slow day).
 :func:`work_units` charges the stepping cost either way (an upper bound) and turns it into the
@@ -206,7 +206,7 @@ def wheel_speeds(coefficients, h_s, h_idx, targets_rpm, y0_rpm=None, z0_rpm_s=No
         y, z, start = y1[:, :, -1], z1[:, :, -1], stop
 
 
-#: Sets x series up to which :func:`wheel_speeds` scans: measured (573 samples, 2026-11-23) 4x
+#: Sets x series up to which :func:`wheel_speeds` scans: measured (573 samples) 4x
 #: faster at 16, even at 64, 2.5x slower at 256 (the scan does log2(T) times the arithmetic).
 SCAN_MAX_SERIES = 32
 #: Steps per scan: its temporaries are about ten arrays of this x sets x series.

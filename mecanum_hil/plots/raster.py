@@ -2,7 +2,7 @@
 
 ``mecanum-hil fit`` writes its report PNG on every run, and a user runs it dozens of times an
 afternoon. matplotlib's import alone costs ~0.45 s on a 2-core machine, more than the rest of
-the command (issue 19); Pillow, which matplotlib itself depends on, loads in ~0.02 s. This
+the command; Pillow, which matplotlib itself depends on, loads in ~0.02 s. This
 module draws what that report needs and nothing else: panels of measured dots and model lines
 against time, with ticks, grid, axis labels, titles and a legend, anti-aliased by drawing at
 twice the size and reducing. Every other plot of the package stays matplotlib

@@ -17,7 +17,7 @@ from ..io.recording import Recording, empty_like_times
 
 #: Breakpoints ``(times [s], speeds [rpm])`` of each scenario; linear in between.
 SCENARIOS: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = {
-    # At rest for 1 s, then 12 rpm/s up to 60 rpm (the first case), held.
+    # At rest for 1 s, then 12 rpm/s up to 60 rpm (a slow start measure-video must follow), held.
     "slow-start": ((0.0, 1.0, 6.0, 10.0), (0.0, 0.0, 60.0, 60.0)),
     # Up, a stop, a restart backwards.
     "stop-restart": ((0.0, 1.0, 4.0, 5.0, 7.0, 8.0, 10.0, 12.0),

@@ -66,7 +66,7 @@ def test_errors_are_one_line_and_non_zero(tmp_path, args, fragment):
 
 @pytest.mark.parametrize("source", ["profile", "commands"])
 def test_commands_beyond_the_limit_warn_and_simulate(tmp_path, source):
-    """The limit protects a robot from what is sent to it; a simulation sends nothing (issue 19)."""
+    """The limit protects a robot from what is sent to it; a simulation sends nothing."""
     (tmp_path / "limit.toml").write_text(
         '[[segments]]\nkind = "step"\nduration_s = 1.0\nn_rpm = 150.0\n')
     args = ["--profile", "limit.toml"]

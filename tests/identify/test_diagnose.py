@@ -71,7 +71,7 @@ HIDDEN = {
 }
 
 
-# the drive's own dynamics (issue 12): controller period within 1 ms, lag, breakaway and braking
+# the drive's own dynamics: controller period within 1 ms, lag, breakaway and braking
 # limit 20 %.
 # (A 20 ms period on the paper's slow loop is fitted to the noise floor by a 20 ms dead time as
 # well: the two cannot be told apart there; at 50 ms the held output's steps show.)
@@ -111,7 +111,7 @@ def test_names_and_recovers_each_hidden_effect(effect, tmp_path):
         before = math.hypot(*step.pose_rmse_before[:2])
         after = math.hypot(*step.pose_rmse_after[:2])
         assert after <= 0.5 * before
-        # and the JSON reports it (issue 12): position [m] and heading [deg]
+        # and the JSON reports it: position [m] and heading [deg]
         entry = d.to_json()["effects"][0]
         assert entry["pose_rmse_after"]["position_m"] <= 0.5 * entry["pose_rmse_before"][
             "position_m"]
@@ -160,7 +160,7 @@ def test_two_hidden_effects_are_both_named(tmp_path):
     assert d.calibration.effects.dead_time_s == pytest.approx(0.035 + LINK_LATENCY_S, abs=0.003)
     assert d.calibration.effects.top_speed_rpm == pytest.approx(110.0, abs=1.5)
     assert d.rmse_final <= 0.5 * d.rmse_initial
-    # the JSON document of the issues, key for key
+    # the JSON document of docs/diagnose.md, key for key
     doc = d.to_json()
     assert list(doc) == ["effects", "unexplained", "rmse_initial", "rmse_final",
                          "rmse_baseline", "noise_rpm", "rmse_reference", "explained_share",
@@ -288,8 +288,8 @@ def test_a_ceiling_is_named_from_the_corner_fit_lands_in(tmp_path):
     # ceiling and a noisy encoder (2 rpm): fit lands in its C -> 0 corner, whose lower
     # steady-state gain mimics the ceiling. The ceiling's start 2 % above the fastest smoothed
     # speed (120.8 rpm here) lay above the target: the grid restart from the corner offered
-    # only corners, where the ceiling never engages, and diagnose named nothing (the demo did
-    # so once in CI, session 20). It is also held at that speed itself now.
+    # only corners, where the ceiling never engages, and diagnose named nothing (the demo
+    # did so once in CI). It is also held at that speed itself now.
     from mecanum_hil.identify.diagnose.candidates import degenerate
     from mecanum_hil.profiles import resolve_profile
 

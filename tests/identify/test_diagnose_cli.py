@@ -27,7 +27,7 @@ PROFILES = [step(60.0, duration_s=1.5, rest_s=0.3, stop_s=1.0),
             ramp(130.0, 20.0, hold_s=0.5, rest_s=0.3, stop_s=1.0)]
 
 
-#: The keys of ``diagnose --json`` (issues 7 and 12), in order.
+#: The keys of ``diagnose --json`` (docs/diagnose.md), in order.
 JSON_KEYS = ["effects", "unexplained", "rmse_initial", "rmse_final", "rmse_baseline",
              "noise_rpm", "rmse_reference", "explained_share", "pose_rmse_before",
              "pose_rmse_after", "residual"]
@@ -191,7 +191,8 @@ def _onset_s(t, w, t_step, target):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["testPid7", "testPid8", "controllerDelayImpact1ms"])
 def test_real_micromouse_recording_alone(shared_real_data, name):
-    """Issue 12's acceptance on each real recording alone (figures in docs/diagnose.md)."""
+    """diagnose on each real recording alone: its wheel RMSE at least 30 % below fit's
+    (figures in docs/diagnose.md)."""
     from mecanum_hil.model import load_robot_profile
     from mecanum_hil.prediction import predict
 
@@ -213,7 +214,7 @@ def test_real_micromouse_recording_alone(shared_real_data, name):
     def rmse(a):
         return float(np.sqrt(np.nanmean((rec.wheel_rpm - a.wheel_rpm) ** 2)))
 
-    # at least 30 % below fit alone on each (the issue's bar)
+    # at least 30 % below fit alone on each
     assert rmse(diagnosed) <= 0.7 * rmse(alone)
     if name == "testPid7":
         # wheel gains and a fast-decay drive (docs/diagnose.md): the final model does better

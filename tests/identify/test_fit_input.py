@@ -1,7 +1,7 @@
-"""fit refuses data it cannot trust: a model worse than the mean (issue 5, bad input), a
+"""fit refuses data it cannot trust: a model worse than the mean (bad input), a
 recording in motion at its start for the paper's grid — a clear error, exit 1, and no
-calibration written; lsq starts a recording in motion in steady state at its measured speeds
-(issue 12), and a frozen reading at the start is not motion."""
+calibration written; lsq starts a recording in motion in steady state at its measured speeds,
+and a frozen reading at the start is not motion."""
 
 import subprocess
 import sys

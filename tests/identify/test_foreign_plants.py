@@ -1,9 +1,11 @@
-"""Issue 18 on robots whose physics is not the project's model (bench/foreign_plants.py).
+"""Lab logs judged step by step, from robots whose physics is not the project's model
+(bench/foreign_plants.py).
 
 The logs come from an independent plant (a brushed DC motor with inductance, Coulomb friction
 and cogging, a duty clipped at the battery, a discrete firmware loop reading encoder counts),
 written as labs write them, then ``import -> fit -> diagnose -> simulate`` as a user runs them.
-Every step must be reproduced as the issue asks, and the effects present named.
+Every step must be reproduced as tests/identify/test_real_logs.py asks, and the effects present
+named.
 
 - (a) a small fast motor at 1 kHz whose high steps run into the battery: its ceiling used to be
   named or not depending on a third of a second's shift of the host's stamps;

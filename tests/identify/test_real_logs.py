@@ -1,9 +1,9 @@
-"""Issue 18, items 3-5: lab logs as they come, judged step by step.
+"""Lab logs as they come, judged step by step.
 
 Synthetic lab logs (numpy truth from the project's simulator with effects, plus noise and
 quantisation; never the shared real data) are written as labs write them, imported with a
 MAP.toml, then ``fit`` -> ``diagnose`` -> ``simulate`` as a user runs them. Every step of each
-log must be reproduced (the issue's "Done when"): time to 50 % of each step within max(20 % of
+log must be reproduced: time to 50 % of each step within max(20 % of
 the measured time, 2 samples), its level within max(3 % of its target, 1.5 noise levels), the
 wheel RMSE 30 % below ``fit`` alone unless that is already within 1.5 x the noise, and the
 known effects named where present (deadband, the missing integral action, the battery ceiling).
@@ -85,7 +85,7 @@ def run_loop(tmp: Path, log: Path, map_text: str):
 
 
 def check_every_step(tmp: Path, measured, preds, doc, noise_rpm: float, n_steps: int):
-    """The issue's per-step criteria, and the report's per-step table and plot."""
+    """Every step reproduced (the criteria above), and the report's per-step table and plot."""
     robot = load_robot_profile(tmp / "robot.toml")
     rows = step_table(measured.t_s, wheel_targets(measured, robot),
                       {"measured": measured.wheel_rpm,

@@ -1,6 +1,6 @@
 """``export REC.csv --out RUN.mcap``: read back with the ``mcap`` reader (every channel has a
 schema, message counts equal the rows, timestamps monotonic) and imported back into the same
-recording (issue 14)."""
+recording."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """CAN logs in: candump, ASC and BLF files written with python-can's writers from a simulated
-Mecanum run, decoded with drivers/mecanum_hil.dbc or a user's DBC and mapping (issue 14)."""
+Mecanum run, decoded with drivers/mecanum_hil.dbc or a user's DBC and mapping."""
 
 from __future__ import annotations
 

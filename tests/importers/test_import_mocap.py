@@ -1,4 +1,4 @@
-"""Motion capture into the pose columns (issue 20): Motive's CSV export and the plain layout,
+"""Motion capture into the pose columns: Motive's CSV export and the plain layout,
 written here from a known path, import exactly; a recording is filled on its own times."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """ROS bags in: rosbag2 (sqlite3, MCAP) and ROS 1 bags written with the rosbags writers from a
-simulated Mecanum run with known commands and wheel speeds (issue 14)."""
+simulated Mecanum run with known commands and wheel speeds."""
 
 from __future__ import annotations
 

@@ -310,7 +310,7 @@ def test_the_column_wise_writer_writes_the_same_text(tmp_path):
     np.testing.assert_allclose(back.t_s, rec.t_s, atol=1e-9)
 
 
-# -- real files as loggers leave them (review of issue 18) --------------------------------------
+# -- real files as loggers leave them -----------------------------------------------------------
 
 NAMED_MS_MAP = """
 [time]

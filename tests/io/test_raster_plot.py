@@ -41,7 +41,7 @@ def test_nice_ticks_of_an_empty_span():
 
 
 def test_values_near_the_float_limit_are_drawn(tmp_path):
-    """A diverged model's huge but finite values (review 2026-11-23: a traceback before)."""
+    """A diverged model's huge but finite values are drawn, not a traceback."""
     t = np.linspace(0.0, 1.0, 50)
     for dots in (False, True):
         panel = Panel((Series(t, np.sin(7 * t) * 1.7e308, COLOURS[0], "a", dots=dots),), "x")
@@ -94,7 +94,7 @@ def test_unwritable_path_is_one_clear_error(tmp_path):
 
 def test_fit_with_its_report_loads_neither_matplotlib_nor_pydantic(tmp_path):
     """fit writes its report on every run: matplotlib's import alone would double its time,
-    and typer >= 0.29 brings pydantic into every command (issue 19)."""
+    and typer >= 0.29 brings pydantic into every command."""
     # the modules are listed by an exit handler: fit ends with os._exit once its handlers ran
     # (mecanum_hil/cli: run), and the exit code is checked below
     code = (

@@ -1,5 +1,5 @@
-"""One test per numbered finding of issue 16 (the protocol as a firmware engineer read it left
-a 100 kg robot unsafe); each failed on the code before the fix. A few more live beside the
+"""One test per numbered finding of a firmware engineer's review of the protocol (as it was, it
+left a 100 kg robot unsafe); each failed on the code before the fix. A few more live beside the
 code they exercise: finding 6's HELLO body and float32 overflow in test_link_protocol.py, the
 watchdog bit in test_link_sim.py, the telemetry rates in test_link_properties.py."""
 

@@ -36,7 +36,7 @@ def _rows(rec, event):
 
 
 def _garbage(i: int) -> bytes:
-    """Damage of every kind the issue lists, one kind per telemetry sample."""
+    """Damage of six kinds, one kind per telemetry sample."""
     good = proto.pack_frame(proto.Telemetry(1, (9.0,) * 4, 0, 0, 1))
     kind = i % 6
     if kind == 0:

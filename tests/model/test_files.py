@@ -1,4 +1,4 @@
-"""Robot profiles, calibrations and command profiles as files (issue 2)."""
+"""Robot profiles, calibrations and command profiles as files."""
 
 import json
 import math

@@ -1,4 +1,4 @@
-"""The pinned kinematic conventions (issue 2)."""
+"""The pinned kinematic conventions."""
 
 import numpy as np
 import pytest
@@ -32,7 +32,7 @@ def test_k_of_the_paper_robot():
         (100, 0, 270, (-100, -100, -100, -100)),
     ],
 )
-def test_issue_checks(n, omega, theta, expected):
+def test_worked_commands_give_the_pinned_wheel_speeds(n, omega, theta, expected):
     np.testing.assert_allclose(command_to_wheels(n, omega, theta, K), expected, atol=0.005)
 
 

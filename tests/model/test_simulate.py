@@ -1,4 +1,4 @@
-"""The simulator: exactness, the issue's checks, batch = single, effects (issue 2)."""
+"""The simulator: exactness, worked runs (distance, turn, circle), batch = single, effects."""
 
 from dataclasses import replace
 

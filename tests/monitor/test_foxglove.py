@@ -1,5 +1,5 @@
 """The Foxglove live view: a WebSocket client subscribes and receives wheel speeds (measured and
-predicted) and the shadow monitor's alarm as a ``foxglove.Log`` message (issue 14)."""
+predicted) and the shadow monitor's alarm as a ``foxglove.Log`` message."""
 
 from __future__ import annotations
 

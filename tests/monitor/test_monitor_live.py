@@ -87,7 +87,7 @@ def test_record_shadow_stops_the_run_when_the_sim_robot_stalls_a_wheel(tmp_path)
     assert abs(again.alarms[0].t_s - alarms[0]["t_s"]) <= 0.05
 
 
-# The issue's other two faults through the same path: a wheel's gain dropping by 20 %, and a
+# Two more faults through the same path: a wheel's gain dropping by 20 %, and a
 # dead time appearing (visible only when the command changes after it: the profile steps from
 # 30 to 60 rpm at 4.0 s, 1.5 s after the fault).
 PROFILE_STEP_AFTER_FAULT = PROFILE_TOML + """

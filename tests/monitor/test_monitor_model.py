@@ -37,7 +37,7 @@ EFFECT_CASES = {
     "rate_limit": Effects(rate_limit_rpm_per_s=300.0),
     "all": Effects(dead_time_s=0.05, top_speed_rpm=70.0, rate_limit_rpm_per_s=300.0,
                    deadband_rpm=5.0, gains=(1.0, 0.8, 1.1, 1.0), efficiency=(0.9, 0.8, 0.95)),
-    # the drive's own dynamics (issue 12): shadow plays the model simulate plays
+    # the drive's own dynamics: shadow plays the model simulate plays
     "controller_period": Effects(controller_period_s=0.007),
     "drive_lag": Effects(drive_lag_s=0.03),
     "breakaway": Effects(breakaway_rpm_per_s=2500.0),

@@ -1,4 +1,4 @@
-"""The package's import graph points down and has no circles (issue 19).
+"""The package's import graph points down and has no circles.
 
 Layers, top to bottom: cli -> demo -> monitor/identify/fleet -> link/vision/importers/policy
 (where data enters) -> envs -> model (with prediction, profiles) -> io (with plots) ->

@@ -1,4 +1,4 @@
-"""Every command imports only what it uses, when it uses it (issue 19).
+"""Every command imports only what it uses, when it uses it.
 
 Each command's module is imported in a fresh interpreter; none of the heavy libraries may be
 loaded by that import alone (they are imported inside the functions that need them), so
@@ -57,7 +57,7 @@ def test_the_all_extra_holds_every_extra():
 def test_command_annotations_are_evaluated_once_at_import():
     """typer reads every command's options from its annotations on each run; as strings
     (``from __future__ import annotations``) each would be evaluated twice a run, 0.15 s of
-    ``--help``'s 0.22 s on the 2-core machine (issue 19). The cli modules keep them objects."""
+    ``--help``'s 0.22 s on the 2-core machine. The cli modules keep them objects."""
     for path in sorted(CLI.glob("*.py")):
         assert "from __future__ import annotations" not in path.read_text(), path.name
 
@@ -66,7 +66,7 @@ def test_command_annotations_are_evaluated_once_at_import():
 def test_the_root_listing_says_what_the_whole_app_says(args, capsys):
     """Without a command named, main builds each command as its name and help alone (typer
     reading 19 signatures was a tenth of ``--help``): the same text and exit code as the app
-    with every command (issue 19)."""
+    with every command."""
     from mecanum_hil import cli
 
     code = cli.main(args)

@@ -1,4 +1,4 @@
-"""measure-pose against the overhead renderer's truth (issue 20): accuracy, gaps, the CLI."""
+"""measure-pose against the overhead renderer's truth: accuracy, gaps, the CLI."""
 
 from __future__ import annotations
 

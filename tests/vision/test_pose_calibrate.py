@@ -1,4 +1,4 @@
-"""calibrate-camera on rendered views of a ChArUco board with a known lens (issue 20)."""
+"""calibrate-camera on rendered views of a ChArUco board with a known lens."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Slip seen only by an overhead camera (issue 20).
+"""Slip seen only by an overhead camera.
 
 Slip is hidden in the simulated controller; recordings forward, sideways and turning (each at
 two speeds) get their pose only from rendered overhead videos through ``measure-pose``;

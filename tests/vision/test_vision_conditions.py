@@ -1,4 +1,4 @@
-"""Real filming conditions (issue 13): a wheel starting at rest, a fender and cards hiding the
+"""Real filming conditions: a wheel starting at rest, a fender and cards hiding the
 marker, a camera that shakes and drifts, aliasing, flicker and a marker colour that shifts.
 
 Every case renders a video file with known truth (speeds, the marker's share in view, the
@@ -28,7 +28,7 @@ ALL = {"noise_std": 3.0, "exposure": 0.5, "fender": 0.35, "shake_px": 1.5, "drif
 
 
 def score(res, meas) -> dict:
-    """The issue's acceptance figures for wheel 1 against the renderer's truth."""
+    """The acceptance figures for wheel 1 against the renderer's truth."""
     got = meas.recording.wheel_rpm[:, 0]
     truth = res.wheel_rpm[:, 0]
     vis = res.marker_visible[:, 0]
@@ -114,7 +114,7 @@ def test_gaps_bridged_from_the_speed_either_side_and_long_ones_reported(tmp_path
                        RenderSettings(320, 240, fps=30.0, noise_std=2.0, fender=0.35,
                                       occlusions_s=((7.0, 8.6),)))
     # The fender hides the marker for seconds while the wheel starts slowly, the card for
-    # 1.6 s: 43 % found (below the --min-found of 50 % that was the default before issue 13).
+    # 1.6 s: 43 % found (below a --min-found of 50 %).
     meas = measure_video(res.path, MeasureOptions(min_found=0.3))
     w = meas.summary["wheels"][0]
     turns = meas.recording.extra_numeric("wheel1_turns")

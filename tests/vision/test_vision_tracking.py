@@ -1,4 +1,4 @@
-"""The per-frame shortcuts of measure-video measure what the long way does (speed work, issue 13):
+"""The per-frame shortcuts of measure-video measure what the long way does:
 the hub from its edges, the marker followed in a window, frames handed over in runs."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Two decoders, each on every other part of a video (issue 13's speed): the frames, their
+"""Two decoders, each on every other part of a video (for speed): the frames, their
 order, their times and the measurement are those of decoding in one piece; where the
 decoders disagree, or the video ends early or is longer than its header says, the result
 is still the same."""

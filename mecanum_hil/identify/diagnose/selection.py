@@ -67,7 +67,7 @@ MIN_EXCESS = 0.02
 #: ... and lower the in-sample mean square itself by at least this fraction: below it the change
 #: is smaller than the uncertainty of the noise estimate the scores are divided by (about
 #: sqrt(2 / N) of the variance: 1.3 % for 12 000 samples), and invisible in any plot (a wheel
-#: gain of 1.00005 after a ceiling had brought a staircase to its noise floor, issue 18).
+#: gain of 1.00005 after a ceiling had brought a staircase to its noise floor).
 MIN_DROP = 0.01
 #: Rounds in which a longer search, not the winning effect, earned the gain (the model is then
 #: refitted and the round repeated) before the selection stops trying.
@@ -242,7 +242,7 @@ class Diagnosis:
         return [s.effect for s in self.steps] + [f.effect for f in self.findings]
 
     def to_json(self) -> dict[str, Any]:
-        """The ``--json`` document (keys of issues 7 and 12; ``docs/diagnose.md``)."""
+        """The ``--json`` document (its keys are listed in ``docs/diagnose.md``)."""
         def num(v: float):
             return float(v) if math.isfinite(v) else None
 
@@ -847,7 +847,7 @@ def _qualifying(scores: Sequence[CandidateScore], f0: float) -> list[CandidateSc
     # misspecified model is itself noisy, and a candidate that fits no better than
     # the baseline must not win on that noise
     # kept when it lowers the held-out score significantly and explains a real part
-    # of the in-sample excess: a partial explanation stays (issue 12) and the rest is
+    # of the in-sample excess: a partial explanation stays and the rest is
     # reported as the residual's shape
     return [s for s in scores if s.explained > 0.0
             and s.in_sample >= MIN_EXPLAINED and s.relative >= MIN_RELATIVE
