@@ -1,5 +1,5 @@
 """What diagnose finds on the paper-like campaign for each hidden effect (the table of
-docs/diagnose.md "What it finds").
+docs/benchmarks/diagnose-accuracy.md, "Hidden effects in a simulated campaign").
 
 Every campaign is recorded from the simulated controller (in simulated time) whose effects file
 hides the effect; A, B, C are fitted with ``fit`` as a user would, then ``diagnose`` runs without

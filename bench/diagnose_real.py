@@ -1,5 +1,6 @@
-"""The real-data figures of docs/diagnose.md: fit -> diagnose -> simulate on each shared
-micromouse recording alone, as a user runs them, with the acceptance figures.
+"""The real-data figures of docs/benchmarks/diagnose-micromouse.md: fit -> diagnose ->
+simulate on each shared micromouse recording alone, as a user runs them, with the acceptance
+figures.
 
 Run: ``.venv/bin/python bench/diagnose_real.py [DATA_DIR] [OUT_DIR]`` (defaults
 ``../shared/data/real/micromouse`` and ``docs/img``). Writes, per recording, the fitted and the

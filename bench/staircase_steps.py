@@ -1,5 +1,6 @@
-"""The staircase of docs/diagnose.md ("A staircase log, step by step"): a synthetic lab log,
-imported with a map, then fit -> diagnose -> simulate as a user runs them, judged step by step.
+"""The staircase of docs/benchmarks/diagnose-accuracy.md ("A staircase log, step by step"):
+a synthetic lab log, imported with a map, then fit -> diagnose -> simulate as a user runs them,
+judged step by step.
 
 The log: a small fast motor (PI loop, at the target in about 10 ms) whose drive runs into its
 battery voltage at 29.1 rad/s, logged at 1 kHz as whitespace text with a `%` header (time in s,

@@ -464,7 +464,7 @@ def one_blas_thread():
 
     A fit's linear algebra is many small products of a tall Jacobian; OpenBLAS spreads each
     over its threads, whose waiting spins take the cores the simulator needs: on the 2-core
-    machine of ``docs/diagnose.md`` (Timings) a campaign's diagnosis took 2.7 x the CPU time
+    machine of ``docs/benchmarks/diagnose.md`` a campaign's diagnosis took 2.7 x the CPU time
     with OpenBLAS's default threads. One thread also makes the sums' order, and so the fitted
     values, the same on every machine.
     """

@@ -124,7 +124,7 @@ def test_demo_runs_the_whole_loop(tmp_path):
     # over a few ms since the ramp limit's start is read off the measured slopes); nothing
     # else, and nothing longer than a loaded link's latency. (A CI run named a braking limit
     # near the loop's own deceleration, a late stop's stand-in: one that delays the model's
-    # slowdowns on the recordings by less than two samples is not named, docs/diagnose.md.)
+    # slowdowns on the recordings by less than two samples is not named, docs/diagnose-method.md.)
     # Their parameters are not identifiable from these steps (a CI run named a 62 ms drive lag
     # with A, B, C 35 times the paper's: the same step response to 2 ms): the diagnosed
     # model's response below the ceiling is what must stay the robot's.

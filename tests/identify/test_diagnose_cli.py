@@ -192,7 +192,7 @@ def _onset_s(t, w, t_step, target):
 @pytest.mark.parametrize("name", ["testPid7", "testPid8", "controllerDelayImpact1ms"])
 def test_real_micromouse_recording_alone(shared_real_data, name):
     """diagnose on each real recording alone: its wheel RMSE at least 30 % below fit's
-    (figures in docs/diagnose.md)."""
+    (figures in docs/benchmarks/diagnose-micromouse.md)."""
     from mecanum_hil.model import load_robot_profile
     from mecanum_hil.prediction import predict
 
@@ -217,10 +217,10 @@ def test_real_micromouse_recording_alone(shared_real_data, name):
     # at least 30 % below fit alone on each
     assert rmse(diagnosed) <= 0.7 * rmse(alone)
     if name == "testPid7":
-        # wheel gains and a fast-decay drive (docs/diagnose.md): the final model does better
-        # than the generic linear reference of higher order, and the drive's friction and
-        # no-load speed are those the logged duty says (about 2950 rpm/s at zero duty, 544-905
-        # rpm)
+        # wheel gains and a fast-decay drive (docs/benchmarks/diagnose-micromouse.md): the final
+        # model does better than the generic linear reference of higher order, and the drive's
+        # friction and no-load speed are those the logged duty says (about 2950 rpm/s at zero
+        # duty, 544-905 rpm)
         assert "fast_decay" in d.effects
         assert d.explained_share >= 1.0
         fx = d.calibration.effects

@@ -1,7 +1,7 @@
 """Diagnose: find where model and robot disagree, name the missing physical effects, keep what
 helps, and say how much of the gap is explainable at all.
 
-The method, one file per step (``docs/diagnose.md`` has the details and the reasons):
+The method, one file per step (``docs/diagnose-method.md`` has the details and the reasons):
 
 1. :mod:`.localise` -- the model on every recording (:class:`_Evaluator`), the residual
    broken down by recording, wheel and regime (:mod:`mecanum_hil.identify.regimes`), the noise
