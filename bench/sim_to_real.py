@@ -1,5 +1,5 @@
 """Train on the model, run on the robot: the sim-to-real gap of the paper's model, the fit and
-the diagnosed model (the table and the path plot of docs/rl.md).
+the diagnosed model (the table of docs/benchmarks/rl.md, the path plot of docs/rl.md).
 
 The "robot" is the simulated controller (``sim-robot``'s firmware and robot) with a hidden truth
 in an effects file: a drive ceiling well below the profile's 130 rpm limit (saturation at

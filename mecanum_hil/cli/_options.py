@@ -49,7 +49,7 @@ ChannelOpt = Annotated[str | None, typer.Option(
     "--channel", help="python-can channel (can0, /dev/ttyACM0, ...).")]
 BitrateOpt = Annotated[int | None, typer.Option(
     "--bitrate", help="Bit rate [bit/s]: CAN bus rate, or serial baud rate.")]
-# The ROS 2 link's options (record, shadow --transport ros2; docs/ros2.md).
+# The ROS 2 link's options (record, shadow --transport ros2; docs/ros2-live.md).
 CmdTopicOpt = Annotated[str, typer.Option(
     "--cmd-topic", help="ROS 2: command topic (geometry_msgs Twist or TwistStamped).")]
 CmdTypeOpt = Annotated[str, typer.Option(

@@ -30,7 +30,7 @@ def command(
     out: Annotated[Path, typer.Option("--out", "-o", help="Folder for the recordings.")],
     effects: Annotated[Path | None, typer.Option(
         "--effects", help="The simulated controller's effects file: the hidden truth "
-        "(tables effects.*, unmodelled.*, noise, faults; docs/link.md).",
+        "(tables effects.*, unmodelled.*, noise, faults; docs/link-sim.md).",
         metavar="FX.toml")] = None,
     calibration: CalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",

@@ -23,7 +23,7 @@ def command(
         "--format", "-f", help="auto (detect by content) or a format name: text, ...")] = "auto",
     map_path: Annotated[Path | None, typer.Option(
         "--map", help="MAP.toml: which source column is which recording column, in which unit "
-        "(docs/formats.md).", metavar="MAP.toml")] = None,
+        "(docs/formats-import.md).", metavar="MAP.toml")] = None,
     dry_run: Annotated[bool, typer.Option(
         "--dry-run", help="Print the first rows as they would be written; write nothing.")] = False,
     cmd_topic: Annotated[str | None, typer.Option(

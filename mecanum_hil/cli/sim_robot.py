@@ -52,7 +52,7 @@ def command(
     robot: RobotOpt = "tdam-stm",
     effects: Annotated[Path | None, typer.Option(
         "--effects", help="TOML file of extra effects, noise and timed faults "
-                          "(docs/link.md).")] = None,
+                          "(docs/link-sim.md).")] = None,
     telemetry_rate_hz: Annotated[float, typer.Option(
         "--telemetry-rate", help="Telemetry rate [Hz]: 0 sends none, else 1 Hz up to the "
                                  "internal rate, a whole divisor of it within 1%.")] = 100.0,

@@ -68,7 +68,7 @@ class MocapMap:
 
 
 def load_mocap_map(path: Path | None) -> MocapMap:
-    """The ``[mocap]`` table of ``MAP.toml`` (docs/formats.md); defaults without a map."""
+    """The ``[mocap]`` table of ``MAP.toml`` (docs/formats-import.md); defaults without a map."""
     if path is None:
         return MocapMap()
     doc = load_toml(path)

@@ -1,6 +1,6 @@
 """Format ``text``: delimited or whitespace-separated numeric logs, mapped by a MAP.toml.
 
-The map (schema pinned in docs/formats.md, section "import") says which source column is which
+The map (schema pinned in docs/formats-import.md) says which source column is which
 recording column, in which unit and with which sign; the layout (delimiter, header row, comment
 lines) is detected unless the map's ``[file]`` table states it. Parsing is numpy's C reader over
 the whole file (no per-row Python), so an hour at 1 kHz imports in seconds (bench/bench_import.py).
@@ -267,7 +267,7 @@ def _column(spec: Any, key: str, units, where: str, default_unit: str | None = N
 
 @dataclass(frozen=True)
 class TextMap:
-    """A parsed MAP.toml (see docs/formats.md)."""
+    """A parsed MAP.toml (see docs/formats-import.md)."""
 
     file: dict
     time: Column | None
@@ -612,11 +612,11 @@ def _kinematic_k(m: TextMap) -> float:
 # --- read --------------------------------------------------------------------------------------
 
 def read(path: Path, *, map_path: Path | None = None) -> ImportResult:
-    """Import a text log with a MAP.toml (docs/formats.md, "import")."""
+    """Import a text log with a MAP.toml (docs/formats-import.md)."""
     path = Path(path)
     if map_path is None:
         raise ConfigError("format 'text' needs --map MAP.toml (which column is which; "
-                          "docs/formats.md)")
+                          "docs/formats-import.md)")
     m = load_map(map_path)
     tab = _MappedTable.load(path, m, str(map_path))
     notes: list[str] = []

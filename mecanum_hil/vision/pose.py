@@ -118,7 +118,7 @@ def make_detector(dictionary: str, refinement: str = "apriltag"):
     params = cv2.aruco.DetectorParameters()
     if refinement == "apriltag":
         # on rendered markers with a known truth, SUBPIX's corners sat 0.15 px off tangentially
-        # (all the same way round: a 0.2 deg heading bias), AprilTag's 0.01 px (docs/vision.md)
+        # (all the same way round: a 0.2 deg heading bias), AprilTag's 0.01 px (docs/vision-pose.md)
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
     elif refinement == "subpix":
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX

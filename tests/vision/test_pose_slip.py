@@ -37,7 +37,7 @@ omega_dps = 0.0
 # Each kind of motion twice (two speeds): diagnose compares models on recordings they were not
 # fitted to (leave one recording out); a recording that alone moves along one axis leaves that
 # axis's efficiency unknown when it is left out (with one recording per kind, slip was named
-# for one set of renders and not for another: docs/vision.md).
+# for one set of renders and not for another: docs/vision-pose.md).
 MOTIONS = {"forward-40": "n_rpm = 40.0\ntheta_deg = 90.0",
            "forward-80": "n_rpm = 80.0\ntheta_deg = 90.0",
            "sideways-40": "n_rpm = 40.0\ntheta_deg = 180.0",
