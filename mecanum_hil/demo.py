@@ -453,17 +453,31 @@ def _write_report(out: Path, res: dict, clock: _Clock) -> Path:
     """``REPORT.md``: each stage in a sentence with its picture, then the summary table."""
     cal = load_calibration(res["calibration"])
     d = res["diagnose"]["diagnosis"]
-    shadow, pose, plots = res["shadow"], res["pose"], res["plots"]
-    names = res["names"]
-    named = ", ".join(f"{s.effect} ({_params_text(s.parameters)})" for s in d.steps) or "nothing"
-    alarms = shadow["alarms"]
-    first = alarms[0] if alarms else None
+    lines = [*_report_intro(out, res, clock), *_report_fit_diagnose(out, res, cal, d),
+             *_report_shadow_pose(out, res), *_report_summary(res, cal, d)]
+    path = out / "REPORT.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def _first_alarm(shadow: dict):
+    """The shadow run's first alarm, or None."""
+    return shadow["alarms"][0] if shadow["alarms"] else None
+
+
+def _pose_named(pose: dict) -> tuple[str, tuple]:
+    """The effects the pose stage's diagnosis named ("nothing" for none) and its fitted
+    efficiency (vx, vy, wz) [-]."""
     pd = pose["diagnosis"]
-    eff = pd.calibration.effects.efficiency
-    pnamed = ", ".join(s.effect for s in pd.steps) or "nothing"
-    times = clock.times
-    took = ", ".join(f"{k} {v:.0f} s" for k, v in times.items())
-    lines = [
+    return ", ".join(s.effect for s in pd.steps) or "nothing", pd.calibration.effects.efficiency
+
+
+def _report_intro(out: Path, res: dict, clock: _Clock) -> list[str]:
+    """The report's title, what the demo took [s], and its stages 1 to 3 (model, record,
+    video)."""
+    names, plots = res["names"], res["plots"]
+    took = ", ".join(f"{k} {v:.0f} s" for k, v in clock.times.items())
+    return [
         "# mecanum-hil demo",
         "",
         "The whole loop on the simulated robot. Its hidden truth (`robot/truth.toml`, read only "
@@ -495,13 +509,20 @@ def _write_report(out: Path, res: dict, clock: _Clock) -> Path:
         "",
         f"![video]({_rel(out, plots['video'])})",
         "",
+    ]
+
+
+def _report_fit_diagnose(out: Path, res: dict, cal, d) -> list[str]:
+    """The report's stages 4 and 5: the linear fit ``cal`` and the diagnosis ``d``."""
+    named = ", ".join(f"{s.effect} ({_params_text(s.parameters)})" for s in d.steps) or "nothing"
+    lines = [
         "## 4. fit",
         "",
         f"The paper's linear model fitted to the recordings: A = {cal.A:.4g}, "
         f"B = {cal.B:.4g}, C = {cal.C:.4g} (fit {cal.info.get('fit_percent', float('nan')):.1f} "
         "%). It cannot follow the ceiling, so it settles short of the turn's level: a gap.",
         "",
-        f"![fit]({_rel(out, plots['fit'])})",
+        f"![fit]({_rel(out, res['plots']['fit'])})",
         "",
         "## 5. diagnose",
         "",
@@ -511,7 +532,16 @@ def _write_report(out: Path, res: dict, clock: _Clock) -> Path:
     ]
     if res["diagnose"].get("plot") is not None:
         lines += [f"![diagnose]({_rel(out, res['diagnose']['plot'])})", ""]
-    lines += [
+    return lines
+
+
+def _report_shadow_pose(out: Path, res: dict) -> list[str]:
+    """The report's stages 6 and 7: the shadow run with its injected fault, and the pose
+    measured from video."""
+    shadow, pose = res["shadow"], res["pose"]
+    first = _first_alarm(shadow)
+    pnamed, eff = _pose_named(pose)
+    lines = [
         "## 6. shadow",
         "",
         "A live run with the diagnosed model beside the robot; wheel 2 drops to 80 % of its "
@@ -533,13 +563,21 @@ def _write_report(out: Path, res: dict, clock: _Clock) -> Path:
     ]
     for png in pose["plots"]:
         lines += [f"![pose]({_rel(out, png)})", ""]
-    lines += [
+    return lines
+
+
+def _report_summary(res: dict, cal, d) -> list[str]:
+    """The report's summary table, a row per stage."""
+    shadow = res["shadow"]
+    first = _first_alarm(shadow)
+    pnamed, eff = _pose_named(res["pose"])
+    return [
         "## Summary",
         "",
         "| stage | result | files |",
         "|---|---|---|",
         "| 1. model | the paper's experiments on the paper's model | `model/` |",
-        f"| 2. record | {len(names)} experiments over the serial protocol | `recorded/` |",
+        f"| 2. record | {len(res['names'])} experiments over the serial protocol | `recorded/` |",
         "| 3. video | a recording rendered and measured back | `video/` |",
         f"| 4. fit | A = {cal.A:.4g}, B = {cal.B:.4g}, C = {cal.C:.4g}, "
         f"fit {cal.info.get('fit_percent', float('nan')):.2f} % | `fit/` |",
@@ -552,9 +590,6 @@ def _write_report(out: Path, res: dict, clock: _Clock) -> Path:
         f"efficiency ({eff[0]:.3f}, {eff[1]:.3f}, {eff[2]:.3f}) | `pose/` |",
         "",
     ]
-    path = out / "REPORT.md"
-    path.write_text("\n".join(lines))
-    return path
 
 
 def _named(paths: list[Path], stem: str) -> Path:

@@ -263,13 +263,7 @@ def group_files(archive: Archive, group_by: str | None = None, period: str | Non
     list of Group
         Sorted by group, period (and file).
     """
-    if period is not None and period not in PERIODS:
-        raise ConfigError(f"--period must be day or week, got {period!r}")
-    if period is not None and period_level is not None:
-        raise ConfigError("give --period or --period-level, not both")
-    if period_level is not None and period_level < 0:
-        raise ConfigError(f"--period-level: 0 (the archive folder itself) or a path level "
-                          f"from 1, got {period_level}")
+    _check_period_options(period, period_level)
     how, which = parse_group_by(group_by)
     need_sidecars = how == "key" or period is not None
     sidecars = read_sidecars(archive, archive.files) if need_sidecars else {}
@@ -277,41 +271,8 @@ def group_files(archive: Archive, group_by: str | None = None, period: str | Non
     errors: dict[tuple[str, str], list[str]] = {}
     for f in archive.files:
         doc = sidecars.get(f.sidecar) if f.sidecar else None
-        problem = ""
-        if how == "level":
-            parts = f.rel.split("/")
-            if len(parts) <= int(which):
-                name = "(outside any robot folder)"
-                problem = (f"{f.rel}: not inside a level-{which} folder of the archive (each "
-                           f"robot's recordings go in its own folder)")
-            else:
-                name = parts[int(which) - 1]
-        else:
-            value = _dotted(doc, str(which)) if isinstance(doc, dict) else None
-            if value is None or isinstance(value, (dict, list)):
-                name = f"(no {which})"
-                why = doc if isinstance(doc, str) else \
-                    "no sidecar" if f.sidecar is None else f"its sidecar has no key {which!r}"
-                problem = f"{f.rel}: {why}"
-            else:
-                name = str(value)
-        if period is not None:
-            started = parse_time(doc.get("started_utc", "")) if isinstance(doc, dict) and \
-                doc.get("started_utc") else None
-            if started is not None:
-                f = ArchiveFile(f.path, f.rel, f.size_bytes, f.sidecar, started, "started_utc")
-            label = period_of(f.time_utc, period)
-        elif period_level == 0:
-            label = posixpath.basename(archive.root.rstrip("/")) or "unknown"
-        elif period_level is not None:
-            parts = f.rel.split("/")
-            if len(parts) > period_level:
-                label = parts[period_level - 1]
-            else:
-                label = "unknown"
-                problem = problem or f"{f.rel}: not inside a level-{period_level} folder"
-        else:
-            label = ""
+        name, problem = _group_name(f, doc, how, which)
+        f, label, problem = _period_label(f, doc, archive, period, period_level, problem)
         key = (name, label)
         buckets.setdefault(key, []).append(f)
         if problem:
@@ -325,6 +286,57 @@ def group_files(archive: Archive, group_by: str | None = None, period: str | Non
         else:
             groups.append(Group(key[0], key[1], files, err))
     return groups
+
+
+def _check_period_options(period: str | None, period_level: int | None) -> None:
+    """Refuse a period that is not one of :data:`PERIODS`, both options, or a negative
+    level."""
+    if period is not None and period not in PERIODS:
+        raise ConfigError(f"--period must be day or week, got {period!r}")
+    if period is not None and period_level is not None:
+        raise ConfigError("give --period or --period-level, not both")
+    if period_level is not None and period_level < 0:
+        raise ConfigError(f"--period-level: 0 (the archive folder itself) or a path level "
+                          f"from 1, got {period_level}")
+
+
+def _group_name(f: ArchiveFile, doc, how: str, which: int | str) -> tuple[str, str]:
+    """The group (robot) of file ``f`` by path level or sidecar key (``doc``: its sidecar, an
+    error text, or None), and the problem that made it a placeholder ("" for none)."""
+    if how == "level":
+        parts = f.rel.split("/")
+        if len(parts) <= int(which):
+            return ("(outside any robot folder)",
+                    f"{f.rel}: not inside a level-{which} folder of the archive (each "
+                    f"robot's recordings go in its own folder)")
+        return parts[int(which) - 1], ""
+    value = _dotted(doc, str(which)) if isinstance(doc, dict) else None
+    if value is None or isinstance(value, (dict, list)):
+        why = doc if isinstance(doc, str) else \
+            "no sidecar" if f.sidecar is None else f"its sidecar has no key {which!r}"
+        return f"(no {which})", f"{f.rel}: {why}"
+    return str(value), ""
+
+
+def _period_label(f: ArchiveFile, doc, archive: Archive, period: str | None,
+                  period_level: int | None, problem: str) -> tuple[ArchiveFile, str, str]:
+    """The period of file ``f`` ("" without one): by its time (the sidecar's ``started_utc``
+    replaces the file's time in the returned file) or by a path level's folder name; and
+    ``problem``, or a new one where ``f`` is not that deep."""
+    if period is not None:
+        started = parse_time(doc.get("started_utc", "")) if isinstance(doc, dict) and \
+            doc.get("started_utc") else None
+        if started is not None:
+            f = ArchiveFile(f.path, f.rel, f.size_bytes, f.sidecar, started, "started_utc")
+        return f, period_of(f.time_utc, period), problem
+    if period_level == 0:
+        return f, posixpath.basename(archive.root.rstrip("/")) or "unknown", problem
+    if period_level is not None:
+        parts = f.rel.split("/")
+        if len(parts) > period_level:
+            return f, parts[period_level - 1], problem
+        return f, "unknown", problem or f"{f.rel}: not inside a level-{period_level} folder"
+    return f, "", problem
 
 
 def describe(groups: Iterable[Group]) -> str:

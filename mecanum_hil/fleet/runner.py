@@ -473,40 +473,12 @@ def execute(client, specs: Sequence[GroupSpec], previous: Mapping[tuple[str, str
     """
     counts = Counts(total=len(specs))
     t0 = time.perf_counter()
-    futures = {}
-    for i, spec in enumerate(specs):
-        if spec.error:
-            continue  # found while planning: the row says so, no worker needed
-        # readable keys on the dashboard; the index and start time keep them unique
-        fut = client.submit(run_group, spec, pure=False,
-                            key=f"mecanum-hil-{spec.command}-{i}-" + _digest(
-                                f"{spec.group}\0{spec.period}\0{t0}".encode())[:12])
-        futures[fut] = spec
+    futures = _submit(client, specs, t0)
     rows: list[dict[str, Any]] = []
-    try:
-        jfile = journal.open("a", encoding="utf-8") if journal is not None else None
-    except OSError as err:
-        for fut in futures:
-            fut.cancel()
-        raise ConfigError(f"{journal}: cannot write the journal: {err.strerror or err}"
-                          ) from err
+    jfile = _open_journal(journal, futures)
 
     def finished(spec: GroupSpec, row: dict[str, Any]) -> None:
-        key = spec_key(spec.command, spec.group, spec.period, [rel for _, rel, _ in spec.files])
-        if row["status"] == "unchanged":
-            counts.unchanged += 1
-            row = dict(previous[key])
-        elif row["status"] == "failed":
-            counts.failed += 1
-            earlier = previous.get(key)
-            kept = bool(earlier) and earlier.get("status") in ("ok", "partial")
-            if failures is not None:
-                failures.append({**normalise(row), "kept_earlier": kept})
-            if kept:
-                row = _kept_earlier(earlier, row)
-        else:
-            counts.done += 1
-        row = normalise(row)
+        row = _settled_row(spec, row, previous, counts, failures)
         rows.append(row)
         if jfile is not None:
             jfile.write(json.dumps(row) + "\n")
@@ -529,11 +501,7 @@ def execute(client, specs: Sequence[GroupSpec], previous: Mapping[tuple[str, str
                 try:
                     row = fut.result()
                 except Exception as err:  # the task itself died: only this group fails
-                    row = normalise({"group": spec.group, "period": spec.period,
-                                     "command": spec.command, "status": "failed",
-                                     "n_inputs": len(spec.files),
-                                     "inputs": [rel for _, rel, _ in spec.files],
-                                     "error": f"task failed: {type(err).__name__}: {err}"})
+                    row = _task_died(spec, err)
                 finished(spec, row)
     finally:
         if jfile is not None:
@@ -541,6 +509,66 @@ def execute(client, specs: Sequence[GroupSpec], previous: Mapping[tuple[str, str
         for fut in futures:
             fut.cancel()
     return rows, counts, time.perf_counter() - t0
+
+
+def _submit(client, specs: Sequence[GroupSpec], t0: float) -> dict:
+    """Submit a :func:`run_group` task per spec that planning found no error in; the futures,
+    each to its spec. ``t0`` [s, perf_counter] keeps the task keys unique."""
+    futures = {}
+    for i, spec in enumerate(specs):
+        if spec.error:
+            continue  # found while planning: the row says so, no worker needed
+        # readable keys on the dashboard; the index and start time keep them unique
+        fut = client.submit(run_group, spec, pure=False,
+                            key=f"mecanum-hil-{spec.command}-{i}-" + _digest(
+                                f"{spec.group}\0{spec.period}\0{t0}".encode())[:12])
+        futures[fut] = spec
+    return futures
+
+
+def _open_journal(journal: Path | None, futures: dict):
+    """The journal opened for appending (None without one); cancels ``futures`` and raises
+    :class:`ConfigError` when it cannot be written."""
+    try:
+        return journal.open("a", encoding="utf-8") if journal is not None else None
+    except OSError as err:
+        for fut in futures:
+            fut.cancel()
+        raise ConfigError(f"{journal}: cannot write the journal: {err.strerror or err}"
+                          ) from err
+
+
+def _settled_row(spec: GroupSpec, row: dict[str, Any],
+                 previous: Mapping[tuple[str, str, str], Any], counts: Counts,
+                 failures: list[dict[str, Any]] | None) -> dict[str, Any]:
+    """The row a finished group leaves in the table, counted in ``counts``: the previous row
+    when unchanged, the earlier ``ok``/``partial`` row (:func:`_kept_earlier`) when it failed
+    now (the failure also goes to ``failures``), else its own."""
+    key = spec_key(spec.command, spec.group, spec.period, [rel for _, rel, _ in spec.files])
+    if row["status"] == "unchanged":
+        counts.unchanged += 1
+        row = dict(previous[key])
+    elif row["status"] == "failed":
+        counts.failed += 1
+        earlier = previous.get(key)
+        kept = bool(earlier) and earlier.get("status") in ("ok", "partial")
+        if failures is not None:
+            failures.append({**normalise(row), "kept_earlier": kept})
+        if kept:
+            row = _kept_earlier(earlier, row)
+    else:
+        counts.done += 1
+    return normalise(row)
+
+
+def _task_died(spec: GroupSpec, err: Exception) -> dict[str, Any]:
+    """The failed row of a group whose task itself died (its worker lost, an error outside
+    the stage)."""
+    return normalise({"group": spec.group, "period": spec.period,
+                      "command": spec.command, "status": "failed",
+                      "n_inputs": len(spec.files),
+                      "inputs": [rel for _, rel, _ in spec.files],
+                      "error": f"task failed: {type(err).__name__}: {err}"})
 
 
 def run_batch(settings: BatchSettings, progress: Callable[[Counts], None] | None = None,

@@ -172,7 +172,26 @@ def _motive(path: Path, rows: list[list[str]], want: str | None, complete: bool 
     """Time [s], positions (N, 3), quaternions (N, 4: x, y, z, w), length scale [m per unit],
     the rigid body's name, notes. ``units`` (the map's) is needed when the header does not
     state the length unit."""
-    meta = rows[0]
+    scale = _motive_scale(path, rows[0], units, map_path)
+    header_at, label = _motive_header(path, rows)
+    cols, kinds = rows[header_at], rows[header_at - 1]
+    want, index = _motive_body_columns(path, cols, kinds, label, want)
+    notes: list[str] = []
+    data = [(k + 1, r) for k, r in enumerate(rows[header_at + 1:], start=header_at + 1)
+            if any(c.strip() for c in r)]
+    data = _drop_cut_last(data, len(cols), complete, notes)
+    t, pq = _motive_values(path, data, len(cols), [index[key] for key in _MOTIVE_NEED])
+    return t, pq[:, :3], pq[:, 3:], scale, want, notes
+
+
+#: A rigid body's columns in a Motive export, in the order of the pose: position, quaternion.
+_MOTIVE_NEED = [("Position", a) for a in "XYZ"] + [("Rotation", a) for a in "XYZW"]
+
+
+def _motive_scale(path: Path, meta: list[str], units: str | None,
+                  map_path: Path | None) -> float:
+    """The length scale [m per unit] of a Motive export from its first row ``meta`` (or the
+    map's ``units`` where it states none), after checking it holds global quaternions."""
     info = {meta[i].strip(): meta[i + 1].strip() for i in range(0, len(meta) - 1, 2)}
     if info.get("Rotation Type", "Quaternion").lower() != "quaternion":
         raise RecordingError(f"{path}: rotation type {info['Rotation Type']!r}; export with "
@@ -187,13 +206,17 @@ def _motive(path: Path, rows: list[list[str]], want: str | None, complete: bool 
         unit = info["Length Units"].lower()
         if unit not in _MOTIVE_UNITS:
             raise RecordingError(f"{path}: unknown length unit {info['Length Units']!r}")
-        scale = _MOTIVE_UNITS[unit]
-    elif units is None:
+        return _MOTIVE_UNITS[unit]
+    if units is None:
         raise RecordingError(f"{path}: the export does not state its length unit (no 'Length "
                              "Units' in its first row); give it in the map: [mocap] units = "
                              "\"m\", \"cm\" or \"mm\" (--map)")
-    else:
-        scale = _UNITS[units]
+    return _UNITS[units]
+
+
+def _motive_header(path: Path, rows: list[list[str]]) -> tuple[int, dict[str, list[str]]]:
+    """The index of the Frame row of a Motive export and its label rows (Type, Name, ID) by
+    name."""
     label = {}
     header_at = None
     for k, row in enumerate(rows[1:40], start=1):
@@ -205,14 +228,22 @@ def _motive(path: Path, rows: list[list[str]], want: str | None, complete: bool 
     if header_at is None or "Type" not in label or "Name" not in label:
         raise RecordingError(f"{path}: not a Motive CSV export with a header (the Type, Name "
                              "and Frame rows are missing)")
-    cols, kinds = rows[header_at], rows[header_at - 1]
+    return header_at, label
+
+
+def _cell(row: list[str], j: int) -> str:
+    """Field ``j`` of ``row``, stripped; "" past its end."""
+    return row[j].strip() if j < len(row) else ""
+
+
+def _motive_body_columns(path: Path, cols: list[str], kinds: list[str],
+                         label: dict[str, list[str]], want: str | None
+                         ) -> tuple[str, dict[tuple[str, str], int]]:
+    """The rigid body (``want``, or the only one) and its columns by (kind, axis), all of
+    :data:`_MOTIVE_NEED` present."""
     types, names = label["Type"], label["Name"]
-
-    def cell(row, j):
-        return row[j].strip() if j < len(row) else ""
-
-    bodies = sorted({cell(names, j) for j in range(2, len(cols))
-                     if cell(types, j) == "Rigid Body"})
+    bodies = sorted({_cell(names, j) for j in range(2, len(cols))
+                     if _cell(types, j) == "Rigid Body"})
     if not bodies:
         raise RecordingError(f"{path}: no rigid body in the export")
     if want is None:
@@ -224,31 +255,32 @@ def _motive(path: Path, rows: list[list[str]], want: str | None, complete: bool 
         raise RecordingError(f"{path}: no rigid body {want!r} (there are: {', '.join(bodies)})")
     index = {}
     for j in range(2, len(cols)):
-        if cell(types, j) == "Rigid Body" and cell(names, j) == want:
-            kind = cell(kinds, j)
+        if _cell(types, j) == "Rigid Body" and _cell(names, j) == want:
+            kind = _cell(kinds, j)
             if kind in ("Rotation", "Position"):
-                index[(kind, cell(cols, j))] = j
-    need = [("Position", a) for a in "XYZ"] + [("Rotation", a) for a in "XYZW"]
-    missing = [f"{k} {a}" for k, a in need if (k, a) not in index]
+                index[(kind, _cell(cols, j))] = j
+    missing = [f"{k} {a}" for k, a in _MOTIVE_NEED if (k, a) not in index]
     if missing:
         raise RecordingError(f"{path}: rigid body {want!r} lacks columns {', '.join(missing)}")
-    notes: list[str] = []
-    data = [(k + 1, r) for k, r in enumerate(rows[header_at + 1:], start=header_at + 1)
-            if any(c.strip() for c in r)]
-    data = _drop_cut_last(data, len(cols), complete, notes)
+    return want, index
+
+
+def _motive_values(path: Path, data: list[tuple[int, list[str]]], width: int,
+                   columns: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Time [s], shape (N,), and the pose columns ``columns`` (N, 7) of the numbered data
+    rows ``data`` of a header ``width`` fields wide."""
     t = np.empty(len(data))
     pq = np.empty((len(data), 7))
     for i, (line, r) in enumerate(data):
-        if len(r) < len(cols):
+        if len(r) < width:
             raise RecordingError(f"{path}, line {line}: {len(r)} fields, fewer than the "
-                                 f"header's {len(cols)}")
+                                 f"header's {width}")
         t[i] = _number(r[1], f"{path}, line {line}, column 'Time (Seconds)'")
-        for c, key in enumerate(need):
-            j = index[key]
+        for c, j in enumerate(columns):
             pq[i, c] = _number(r[j] if j < len(r) else "", f"{path}, line {line}, column {j + 1}")
     if np.isnan(t).any():
         raise RecordingError(f"{path}: a row without its time")
-    return t, pq[:, :3], pq[:, 3:], scale, want, notes
+    return t, pq
 
 
 def _plain(path: Path, rows: list[list[str]], complete: bool = True,

@@ -227,14 +227,36 @@ def read_recording(path: str | Path) -> Recording:
         changed), said in one line and kept in the metadata's ``time_repair``.
     """
     p = Path(path)
+    text, truncated = _drop_cut_last_line(_read_text(p))
+    rows = csv.reader(io.StringIO(text))
+    header = _read_header(p, rows)
+    extra_names = header[len(COLUMNS):]
+    arr, extra, lines = _read_rows(p, rows, len(header), extra_names, text)
+    refuse_absurd_values(arr, lambda i: f"{p}, line {lines[i]}")
+    metadata = _read_sidecar(p)
+    if truncated:
+        metadata = {**metadata, "truncated_last_line": truncated}
+    t, repair = _repaired_time(arr[:, 0], metadata,
+                               lambda i: f"{p}, line {lines[i]}, column 't_s'", str(p), text)
+    if repair is not None:
+        metadata = {**metadata, "time_repair": repair}
+    return Recording(t.copy(), arr[:, 1:4].copy(), arr[:, 4:8].copy(),
+                     arr[:, 8:11].copy(), dict(zip(extra_names, extra, strict=True)), metadata)
+
+
+def _read_text(p: Path) -> str:
+    """The text of the recording ``p`` (a UTF-8 byte-order mark dropped)."""
     try:
-        text = p.read_text(encoding="utf-8-sig")
+        return p.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise RecordingError(f"{p}: file not found") from None
     except (OSError, UnicodeDecodeError) as err:
         raise RecordingError(f"{p}: cannot read: {err}") from err
-    text, truncated = _drop_cut_last_line(text)
-    rows = csv.reader(io.StringIO(text))
+
+
+def _read_header(p: Path, rows) -> list[str]:
+    """The header row of the CSV reader ``rows`` (of file ``p``), stripped and checked: the
+    pinned :data:`COLUMNS` first, then extra columns, no name twice."""
     try:
         header = next(rows)
     except StopIteration:
@@ -253,6 +275,13 @@ def read_recording(path: str | Path) -> Recording:
     twice = sorted({n for n in extra_names if extra_names.count(n) > 1 or n in COLUMNS})
     if twice:
         raise RecordingError(f"{p}, line 1: duplicate column name(s): {', '.join(twice)}")
+    return header
+
+
+def _read_rows(p: Path, rows, n_fields: int, extra_names: list[str], text: str):
+    """The data rows after the header: the pinned columns as floats, shape (T, len(COLUMNS)),
+    each extra column's strings, and each row's line number in the file (blank rows
+    skipped). Without extra columns a plain numeric ``text`` is parsed in one pass."""
     values: list[list[float]] = []
     extra: list[list[str]] = [[] for _ in extra_names]
     lines: list[int] = []
@@ -266,9 +295,9 @@ def read_recording(path: str | Path) -> Recording:
         for line, row in enumerate(rows, start=2):
             if not row or all(not f.strip() for f in row):
                 continue
-            if len(row) != len(header):
+            if len(row) != n_fields:
                 raise RecordingError(
-                    f"{p}, line {line}: {len(row)} fields, header has {len(header)}")
+                    f"{p}, line {line}: {len(row)} fields, header has {n_fields}")
             nums = [_parse_float(row[i], f"{p}, line {line}, column '{COLUMNS[i]}'")
                     for i in range(len(COLUMNS))]
             if math.isnan(nums[0]):
@@ -279,25 +308,21 @@ def read_recording(path: str | Path) -> Recording:
                 extra[j].append(row[len(COLUMNS) + j])
     except csv.Error as err:
         raise RecordingError(f"{p}, line {line}: {err}") from err
-    arr = np.array(values, dtype=float).reshape(-1, len(COLUMNS))
-    refuse_absurd_values(arr, lambda i: f"{p}, line {lines[i]}")
-    metadata: dict[str, Any] = {}
+    return np.array(values, dtype=float).reshape(-1, len(COLUMNS)), extra, lines
+
+
+def _read_sidecar(p: Path) -> dict[str, Any]:
+    """The metadata of the JSON sidecar of recording ``p``; empty without one."""
     side = sidecar_path(p)
-    if side.exists():
-        try:
-            metadata = json.loads(side.read_text(encoding="utf-8-sig"))
-        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
-            raise RecordingError(f"{side}: bad JSON sidecar: {err}") from err
-        if not isinstance(metadata, dict):
-            raise RecordingError(f"{side}: the sidecar must hold a JSON object")
-    if truncated:
-        metadata = {**metadata, "truncated_last_line": truncated}
-    t, repair = _repaired_time(arr[:, 0], metadata,
-                               lambda i: f"{p}, line {lines[i]}, column 't_s'", str(p), text)
-    if repair is not None:
-        metadata = {**metadata, "time_repair": repair}
-    return Recording(t.copy(), arr[:, 1:4].copy(), arr[:, 4:8].copy(),
-                     arr[:, 8:11].copy(), dict(zip(extra_names, extra, strict=True)), metadata)
+    if not side.exists():
+        return {}
+    try:
+        metadata = json.loads(side.read_text(encoding="utf-8-sig"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise RecordingError(f"{side}: bad JSON sidecar: {err}") from err
+    if not isinstance(metadata, dict):
+        raise RecordingError(f"{side}: the sidecar must hold a JSON object")
+    return metadata
 
 
 def refuse_absurd_values(columns, row_name) -> None:

@@ -161,37 +161,18 @@ def repair_time(t_s, *, resolution_s: float | None = None, max_gap_s: float | No
         Time running back by more than the resolution, a gap over ``max_gap_s``, or a time that
         never advances.
     """
-    from ..errors import RecordingError
-
     if row_name is None:
         def row_name(i):
             return f"row {i + 1}"
     t = np.asarray(t_s, dtype=float).copy()
-    n = t.size
     res = detect_resolution(t) if resolution_s is None else float(resolution_s)
     summary: dict = {"resolution_s": res}
-    if n < 2:
+    if t.size < 2:
         return TimeRepair(t, "", summary, False)
-    d = np.diff(t)
-    period = float(np.median(d))
-    if not period > 0:
-        period = float(np.median(d[d > 0])) if (d > 0).any() else 0.0
-    if not period > 0:
-        if (d < 0).any():
-            i = int(np.argmax(d < 0)) + 1
-            raise_back(t, i, res, row_name, float(t[i - 1]))
-        raise RecordingError(f"{row_name(n - 1)}: time never advances ({t[0]:.6g} s throughout)")
+    period = _median_period(t, res, row_name)
     gap_limit = np.inf if max_gap_s is None else float(max_gap_s)
     t, n_wraps, modulus = _unwrap(t, res, period, gap_limit, wrap_s, row_name)
-    prev_max = np.maximum.accumulate(t)[:-1]
-    late = t[1:] < prev_max - res * (1 + 1e-6)
-    if late.any():
-        i = int(np.argmax(late)) + 1
-        raise_back(t, i, res, row_name, float(prev_max[i - 1]))
-    bad = np.zeros(n, bool)
-    bad[1:] = t[1:] <= prev_max
-    n_repeat = int(np.count_nonzero(np.diff(t)[bad[1:]] == 0))
-    n_back = int(np.count_nonzero(bad)) - n_repeat
+    bad, n_repeat, n_back = _stamps_behind(t, res, row_name)
     changed = bool(bad.any()) or n_wraps > 0
     if bad.any():
         t = _respace(t, period)
@@ -200,36 +181,93 @@ def repair_time(t_s, *, resolution_s: float | None = None, max_gap_s: float | No
     # stamps back within the resolution mean jitter, which can also make a step long
     slack = res if n_back else 0.0
     gaps = _gaps(t, period, slack) if regular else np.zeros(d.size, bool)
-    too_long = d > gap_limit
-    if too_long.any():
-        i = int(np.argmax(too_long)) + 1
-        raise RecordingError(f"{row_name(i)}: a gap of {d[i - 1]:.6g} s before this row is longer "
-                             f"than the limit of {gap_limit:.6g} s (max_gap_s)")
+    _check_gap_limit(d, gap_limit, row_name)
     missing = int(np.sum(np.rint(d[gaps] / period) - 1)) if gaps.any() else 0
     summary.update({"median_period_s": period, "repeated_stamps": n_repeat,
                     "stamps_back": n_back, "wraps": n_wraps, "wrap_s": modulus or None,
                     "gaps": int(gaps.sum()), "missing_samples": missing,
                     "longest_gap_s": float(d[gaps].max()) if gaps.any() else 0.0,
                     "max_gap_s": None if max_gap_s is None else gap_limit})
+    note = _repair_note(summary)
+    summary["note"] = note
+    return TimeRepair(t, note, summary, changed)
+
+
+def _median_period(t: np.ndarray, res: float, row_name) -> float:
+    """The median step of the times ``t`` [s] (of the positive steps when most are zero) [s].
+
+    Raises
+    ------
+    RecordingError
+        A time that never advances (naming the first row that runs back, if one does).
+    """
+    from ..errors import RecordingError
+
+    d = np.diff(t)
+    period = float(np.median(d))
+    if not period > 0:
+        period = float(np.median(d[d > 0])) if (d > 0).any() else 0.0
+    if not period > 0:
+        if (d < 0).any():
+            i = int(np.argmax(d < 0)) + 1
+            raise_back(t, i, res, row_name, float(t[i - 1]))
+        raise RecordingError(f"{row_name(t.size - 1)}: time never advances ({t[0]:.6g} s "
+                             "throughout)")
+    return period
+
+
+def _stamps_behind(t: np.ndarray, res: float, row_name) -> tuple[np.ndarray, int, int]:
+    """The stamps that do not exceed every earlier one (bool, shape (T,)), and how many of
+    them repeat the previous stamp and how many run back within the resolution ``res`` [s].
+
+    Raises
+    ------
+    RecordingError
+        A stamp more than the resolution below an earlier one.
+    """
+    prev_max = np.maximum.accumulate(t)[:-1]
+    late = t[1:] < prev_max - res * (1 + 1e-6)
+    if late.any():
+        i = int(np.argmax(late)) + 1
+        raise_back(t, i, res, row_name, float(prev_max[i - 1]))
+    bad = np.zeros(t.size, bool)
+    bad[1:] = t[1:] <= prev_max
+    n_repeat = int(np.count_nonzero(np.diff(t)[bad[1:]] == 0))
+    return bad, n_repeat, int(np.count_nonzero(bad)) - n_repeat
+
+
+def _check_gap_limit(d: np.ndarray, gap_limit: float, row_name) -> None:
+    """Refuse a step of ``d`` [s] longer than ``gap_limit`` [s], naming the row after it."""
+    from ..errors import RecordingError
+
+    too_long = d > gap_limit
+    if too_long.any():
+        i = int(np.argmax(too_long)) + 1
+        raise RecordingError(f"{row_name(i)}: a gap of {d[i - 1]:.6g} s before this row is longer "
+                             f"than the limit of {gap_limit:.6g} s (max_gap_s)")
+
+
+def _repair_note(summary: dict) -> str:
+    """One line on what was repaired, from a :class:`TimeRepair` summary; "" for nothing."""
+    n_wraps, n_repeat, n_back = summary["wraps"], summary["repeated_stamps"], summary["stamps_back"]
+    n_gaps, missing = summary["gaps"], summary["missing_samples"]
     parts = []
     if n_wraps:
-        parts.append(f"{n_wraps} wrap{'s' * (n_wraps > 1)} of a {modulus:.6g} s counter unwrapped")
+        parts.append(f"{n_wraps} wrap{'s' * (n_wraps > 1)} of a {summary['wrap_s']:.6g} s "
+                     "counter unwrapped")
     if n_repeat or n_back:
         what = " and ".join(x for x in (
             f"{n_repeat} repeated stamp{'s' * (n_repeat != 1)}" if n_repeat else "",
             f"{n_back} stamp{'s' * (n_back != 1)} back within the resolution" if n_back else "")
             if x)
         parts.append(f"{what} spread up to the next stamp")
-    n_gaps = int(gaps.sum())
     if n_gaps:
         parts.append(f"{n_gaps} gap{'s' * (n_gaps > 1)} kept ({missing} missing "
                      f"sample{'s' * (missing != 1)}, longest {_ms(summary['longest_gap_s'])})")
-    note = ""
-    if parts:
-        note = (f"time (median period {_ms(period)}, resolution {_ms(res)}): "
-                + "; ".join(parts))
-    summary["note"] = note
-    return TimeRepair(t, note, summary, changed)
+    if not parts:
+        return ""
+    return (f"time (median period {_ms(summary['median_period_s'])}, resolution "
+            f"{_ms(summary['resolution_s'])}): " + "; ".join(parts))
 
 
 def _gaps(t: np.ndarray, period: float, slack: float, window: int = 3) -> np.ndarray:

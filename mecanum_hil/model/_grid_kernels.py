@@ -18,7 +18,7 @@ from .._jit import njit
 
 @njit(cache=True)
 def delay_plan_kernel(t, delay_s, eps):
-    """The dead time's refined grid in one pass: what ``simulate._delay_plan`` computes with
+    """The dead time's refined grid in one pass: what ``plan_cache._delay_plan`` computes with
     numpy (``union1d``, the merge of points closer than ``eps`` [s], three ``searchsorted``),
     the same numbers, for a fit that plans a grid for every trial dead time (about 0.4 ms
     with numpy for 700 samples, most of an evaluation's time outside the kernel).
@@ -134,7 +134,7 @@ def unique_keys_kernel(key, most):
 
 @njit(cache=True)
 def plan_kernel(t, delay_s, eps, max_substep_s, most):
-    """A group's whole time plan in one pass (``simulate._make_plan``): the dead time's grid
+    """A group's whole time plan in one pass (``plan_cache._make_plan``): the dead time's grid
     (:func:`delay_plan_kernel`; none for ``delay_s`` 0), each grid point's sample, and the steps'
     sub-step counts and distinct lengths (:func:`unique_keys_kernel`).
 

@@ -2,27 +2,33 @@
 
 :func:`simulate_batch` is the vectorised core (compiled, robots in parallel);
 :func:`simulate` is the single-robot convenience on top of it. Both are pure: arrays and frozen
-dataclasses in, a :class:`Trajectory` out.
+dataclasses in, a :class:`Trajectory` out. The work remembered between calls (time plans, what
+is known of arrays declared :func:`unchanging`) lives in :mod:`mecanum_hil.model.plan_cache`.
 
-Exactness. Commands are piecewise constant between samples. On the closed-form path (no
-``saturation`` or ``rate_limit`` effect) each wheel is advanced with the exact zero-order-hold
-discretisation of its transfer function, for any (also irregular) sample times; ``dead_time`` is
-exact too, by splitting the steps at the delayed command changes. The pose is advanced with the
-exact solution for the body twist averaged over each step, ``(X, Y, phi)(t + h) = (X, Y, phi)(t)
-* exp(h * twist_mean)`` on SE(2): a straight run or a pure turn is exact to rounding, and a
-combined motion is second order in the step. The paper instead integrates Euler steps with the
-heading of the previous tick, which is first order and drifts on long curved paths.
-With ``saturation`` or ``rate_limit`` each step is split into sub-steps of at most
-``max_substep_s`` (default 1 ms) and the drive's mode (linear or at its limit) is decided at the
-start of each sub-step; within a sub-step each mode is again solved exactly.
+Exactness. Commands are piecewise constant between samples. On the closed-form path (none of
+the effects below; ``deadband``, ``wheel_gain`` and ``slip`` keep it) each wheel is advanced
+with the exact zero-order-hold discretisation of its transfer function, for any (also
+irregular) sample times; ``dead_time`` is exact too, by splitting the steps at the delayed
+command changes. The pose is advanced with the exact solution for the body twist averaged over
+each step, ``(X, Y, phi)(t + h) = (X, Y, phi)(t) * exp(h * twist_mean)`` on SE(2): a straight
+run or a pure turn is exact to rounding, and a combined motion is second order in the step.
+The paper instead integrates Euler steps with the heading of the previous tick, which is first
+order and drifts on long curved paths.
+
+The sub-stepped path is taken by a robot whose effects are nonlinear
+(:attr:`~mecanum_hil.model.calibration.Effects.nonlinear`): ``saturation``, ``windup``,
+``rate_limit``, or any of the drive's own dynamics
+(:attr:`~mecanum_hil.model.calibration.Effects.drive_dynamics`: ``controller_period``,
+``drive_lag``, ``breakaway``, ``braking_limit``, ``fast_decay``). Each step is split into
+sub-steps of at most ``max_substep_s`` (default 1 ms), as
+:func:`~mecanum_hil.model.stepper.step_plan` does for a control period. The set-point ramp and
+the drive's mode (linear or at its output limit) are decided at the start of each sub-step, and
+within a sub-step each mode is solved exactly; with the drive's own dynamics a sub-step is
+further cut at the controller's ticks.
 """
-
 from __future__ import annotations
 
 import math
-import threading
-import weakref
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -30,8 +36,11 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import ConfigError
+from . import plan_cache
 from .calibration import Calibration
 from .kinematics import DEFAULT_POSE
+from .plan_cache import Plan, array_facts, bytes_of, remember
+from .plan_cache import unchanging as unchanging  # part of this module's API (a fit's)
 from .robot import RobotProfile
 
 
@@ -84,7 +93,7 @@ def _float_array(a) -> np.ndarray:
 
 def _times(time_s) -> np.ndarray:
     t = _float_array(time_s)
-    facts = _array_facts(t)
+    facts = array_facts(t)
     if facts is not None and "times" in facts:
         return t
     if t.ndim != 1 or t.size < 1:
@@ -94,59 +103,6 @@ def _times(time_s) -> np.ndarray:
     if facts is not None:
         facts["times"] = True
     return t
-
-
-#: What was learnt about arrays whose elements nothing changes any more, by identity: their
-#: bytes (the plans' keys below) and the checks they passed. Only arrays declared so
-#: (:func:`unchanging`: a fit's recordings) are kept: numpy's read-only flag can be set back,
-#: and an array it views may be written, so it proves nothing.
-#: A fit passes the same recording thousands of times, and copying and hashing its bytes cost
-#: as much as a short kernel. An entry goes when its array does.
-_FACTS: dict[int, tuple[weakref.ref, dict]] = {}
-
-
-def _array_facts(a: np.ndarray) -> dict | None:
-    """The facts remembered about ``a`` (a dict to fill), or None when ``a`` is not declared
-    unchanging."""
-    hit = _FACTS.get(id(a))
-    return hit[1] if hit is not None and hit[0]() is a else None
-
-
-def unchanging(a: np.ndarray) -> np.ndarray:
-    """Declare that nothing will change the elements of ``a`` any more.
-
-    A caller that simulates the same commands and times again and again (a fit: thousands of
-    times) declares them so, and :func:`simulate_batch` keeps what it learnt about them (their
-    bytes, the checks they passed) instead of copying and hashing them on every call. An array
-    written after it was declared gives wrong results: declare a private copy.
-
-    Parameters
-    ----------
-    a : ndarray
-        A float array as passed to :func:`simulate_batch` (``commands`` or ``time_s``; another
-        dtype is converted there on every call, and gains nothing).
-
-    Returns
-    -------
-    ndarray
-        ``a`` itself.
-    """
-    key = id(a)
-    if _array_facts(a) is None:
-        _FACTS[key] = (weakref.ref(a, lambda _, key=key: _FACTS.pop(key, None)), {})
-    return a
-
-
-def _bytes_of(a: np.ndarray) -> bytes:
-    """``a.tobytes()``, the same bytes object each time for an array declared
-    :func:`unchanging` (its hash is then computed once)."""
-    facts = _array_facts(a)
-    if facts is None:
-        return a.tobytes()
-    b = facts.get("bytes")
-    if b is None:
-        b = facts["bytes"] = a.tobytes()
-    return b
 
 
 def uniform_time(duration_s: float, rate_hz: float) -> np.ndarray:
@@ -191,93 +147,11 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
     return state
 
 
-#: Plans (time grids, step-length tables) of recent calls, by their inputs' bytes: a fit
-#: simulates the same recording hundreds of times, and these cost as much as a short kernel.
-_PLANS: OrderedDict = OrderedDict()
-_PLANS_MAX = 64
-#: ... and at most this many bytes of arrays in all: a long recording's plans are megabytes.
-_PLANS_MAX_BYTES = 64 * 2 ** 20
-_PLANS_LOCK = threading.Lock()
-_plans_bytes = 0
-
-
-def _memo(key, make):
-    """``make()`` for ``key`` (hashable, the full input), remembered for the last calls."""
-    global _plans_bytes
-    with _PLANS_LOCK:
-        hit = _PLANS.get(key)
-        if hit is not None:
-            _PLANS.move_to_end(key)
-            return hit
-    value = make()
-    for v in value:
-        if isinstance(v, np.ndarray):
-            v.flags.writeable = False  # shared by later calls (and one type for the kernel)
-    with _PLANS_LOCK:
-        if key not in _PLANS:
-            _PLANS[key] = value
-            _plans_bytes += _nbytes(value)
-        while len(_PLANS) > _PLANS_MAX or (_plans_bytes > _PLANS_MAX_BYTES and len(_PLANS) > 1):
-            _plans_bytes -= _nbytes(_PLANS.popitem(last=False)[1])
-    return value
-
-
-def _nbytes(value: tuple) -> int:
-    return sum(v.nbytes for v in value if isinstance(v, np.ndarray))
-
-
-class _Plan(NamedTuple):
-    """A group's time grid and its steps: what depends on the sample times, the dead time and
-    the sub-step length alone (not on the robots), remembered by :func:`_plan`."""
-
-    grid: np.ndarray | None   # (G,) refined by the dead time [s]; None: the sample times
-    src: np.ndarray | None    # (G,) sample whose command acts at each grid point (-1: before)
-    record: np.ndarray        # (G,) each grid point's sample (-1: none): the kernel's ``record``
-    didx: np.ndarray          # (G,) row of the step each grid point starts (0 for the last)
-    nsub: np.ndarray          # (G,) its sub-step count (0 for the last)
-    h_uniq: np.ndarray        # (K,) the distinct (sub-)step lengths [s]: the tables' rows
-    substeps: int             # sub-steps in all (the kernel's job size per robot)
-
-
-def _plan(t: np.ndarray, delay_s: float, max_substep_s: float | None) -> _Plan:
-    """The time grid of a group with dead time ``delay_s`` [s] and its steps (sub-stepped at
-    ``max_substep_s`` [s], None: the closed-form path), remembered by their inputs: a fit
-    simulates the same recording thousands of times, through a new dead time on many."""
-    return _memo(("plan", _bytes_of(t), float(delay_s), max_substep_s),
-                 lambda: _make_plan(t, float(delay_s), max_substep_s))
-
-
-def _make_plan(t: np.ndarray, delay_s: float, max_substep_s: float | None) -> _Plan:
-    if t.size > 1 and _kernels_compiled():
-        # the same numbers in one compiled pass (a fit plans a grid per trial dead time)
-        from .._jit import compiled
-        from ._grid_kernels import plan_kernel
-
-        planned, grid, src, record, didx, nsub, h, first, ok = compiled(plan_kernel)(
-            t, delay_s, _time_rounding(t), max_substep_s or 0.0, _FEW_LENGTHS)
-        if planned:
-            if not ok:  # many distinct lengths (a real clock's): numpy's sort
-                first, rows = _sorted_lengths(_length_keys(h))
-                didx = np.append(rows, 0)
-            return _Plan(grid if delay_s > 0 else None, src if delay_s > 0 else None, record,
-                         didx, nsub, h[first], int(nsub.sum()))
-    if delay_s > 0:
-        grid, src, sample_idx = _delay_plan(t, delay_s)
-        if sample_idx[-1] >= grid.size:
-            raise ConfigError(f"sample times closer than {_time_rounding(t):.3g} s cannot be "
-                              "simulated through a dead time")
-        record = np.full(grid.size, -1, dtype=np.int64)
-        record[sample_idx] = np.arange(sample_idx.size)
-    else:
-        grid, src, record = None, None, np.arange(t.size, dtype=np.int64)
-    didx, nsub, h_uniq = _grid_steps(t if grid is None else grid, max_substep_s)
-    return _Plan(grid, src, record, didx, nsub, h_uniq, int(nsub.sum()))
-
-
 def _delayed(cmd: np.ndarray, src: np.ndarray, initial_command: np.ndarray) -> np.ndarray:
-    """Commands (N, T, 3) seen through a dead time on its grid (:func:`_delay_plan`'s
-    ``src``): (N, G, 3), C-contiguous and writable; ``initial_command`` (N, 3) before the
-    first (``src`` -1, which are the first grid points: ``src`` never decreases)."""
+    """Commands (N, T, 3) seen through a dead time on its grid (the ``src`` of a
+    :class:`~mecanum_hil.model.plan_cache.Plan`): (N, G, 3), C-contiguous and writable;
+    ``initial_command`` (N, 3) before the first (``src`` -1, which are the first grid points:
+    ``src`` never decreases)."""
     out = np.ascontiguousarray(cmd[:, np.maximum(src, 0), :])
     before = int(np.searchsorted(src, 0))
     if before:
@@ -288,34 +162,8 @@ def _delayed(cmd: np.ndarray, src: np.ndarray, initial_command: np.ndarray) -> n
 def _delay_grid(t: np.ndarray, cmd: np.ndarray, delay_s: float, initial_command: np.ndarray):
     """Refine the time grid so a dead time ``delay_s`` > 0 [s] is exact; return grid, delayed
     commands (N, G, 3) and each grid point's sample (-1: none)."""
-    plan = _plan(t, delay_s, None)
+    plan = plan_cache.plan(t, delay_s, None)
     return plan.grid, _delayed(cmd, plan.src, initial_command), plan.record
-
-
-def _time_rounding(t: np.ndarray) -> float:
-    """The rounding of ``t + delay`` [s]: 1 ns, or a few float steps where the times are large
-    (a fraction of the recording's end time merged the 10 ms samples of a recording with a
-    months-long gap: 2e7 s gave 20 ms)."""
-    return max(1e-9, 16.0 * float(np.spacing(max(abs(t[0]), abs(t[-1])))))
-
-
-def _delay_plan(t: np.ndarray, delay_s: float):
-    """The refined grid, each grid point's source sample (-1: before the first) and the
-    samples' places on the grid (numpy: the reference of the compiled
-    :func:`~mecanum_hil.model._grid_kernels.plan_kernel`, which hands degenerate grids here)."""
-    eps = _time_rounding(t)
-    shifted = t + delay_s
-    shifted = shifted[shifted < t[-1]]
-    # A delayed command change within rounding of a sample time is taken at that sample time, so
-    # every sample time stays on the grid and no step is (almost) empty.
-    j = np.searchsorted(t, shifted)
-    near = (np.abs(t[np.clip(j, 0, t.size - 1)] - shifted) <= eps) | (
-        np.abs(t[np.clip(j - 1, 0, t.size - 1)] - shifted) <= eps)
-    grid = np.union1d(t, shifted[~near])
-    grid = grid[np.concatenate([[True], np.diff(grid) > eps])]
-    src = np.searchsorted(t, grid - delay_s + 2 * eps, side="right") - 1
-    sample_idx = np.searchsorted(grid, t - eps)
-    return grid, src, sample_idx
 
 
 def _step_tables(calibs: Sequence[Calibration], h_uniq: np.ndarray) -> np.ndarray:
@@ -335,54 +183,6 @@ def _step_tables(calibs: Sequence[Calibration], h_uniq: np.ndarray) -> np.ndarra
                      dtype=np.int64)
     table = discretise_many(np.array(list(rows), dtype=float), h_uniq)
     return np.ascontiguousarray(table[which])
-
-
-def _grid_steps(grid: np.ndarray, max_substep_s: float | None):
-    """:func:`_step_lengths` of a grid's steps, with the row and sub-step count of its last
-    point (which starts no step) set to 0."""
-    if grid.size == 1:
-        return np.zeros(1, np.int64), np.zeros(1, np.int64), _step_lengths(np.ones(1),
-                                                                           max_substep_s)[2]
-    didx, nsub, h_uniq = _step_lengths(np.diff(grid), max_substep_s)
-    return np.append(didx, 0), np.append(nsub, 0), h_uniq
-
-
-def _step_lengths(dt: np.ndarray, max_substep_s: float | None):
-    """Per step: its row among the distinct (sub-)step lengths and its sub-step count; and
-    those lengths (numpy: the reference of the compiled
-    :func:`~mecanum_hil.model._grid_kernels.plan_kernel`)."""
-    from .stepper import substeps
-
-    nsub = substeps(dt, max_substep_s)
-    h = dt / nsub
-    first, didx = _sorted_lengths(_length_keys(h))
-    return didx, nsub, h[first]
-
-
-def _length_keys(h: np.ndarray) -> np.ndarray:
-    """Step lengths [s] as keys: lengths equal to rounding (a picosecond) share one table row.
-    Floats: an int64 overflows for a gap over 9.2e6 s (106 days between two samples)."""
-    return np.round(h * 1e12)
-
-
-def _sorted_lengths(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The first step of each distinct key (sorted) and each step's row among them, by
-    numpy's sort (:func:`~mecanum_hil.model._grid_kernels.unique_keys_kernel` scans a few)."""
-    _, first, rows = np.unique(key, return_index=True, return_inverse=True)
-    return first, rows.astype(np.int64).reshape(-1)
-
-
-#: Distinct step lengths up to which the compiled scan replaces ``np.unique``'s sort (a
-#: uniform log and its dead time give a handful; a real clock's, thousands).
-_FEW_LENGTHS = 32
-
-
-def _kernels_compiled() -> bool:
-    """Whether the simulator's kernels are numba's by now (then the grid helpers run compiled
-    too: :mod:`mecanum_hil.model._grid_kernels`); in the interpreter, numpy."""
-    from .._jit import is_compiled, mode
-
-    return mode() != "never" and is_compiled("mecanum_hil.model._kernels")
 
 
 def simulate_batch(
@@ -448,11 +248,9 @@ def simulate_batch(
     # one command before the start for all robots (given once, or none)
     cmd0_shared = initial_command is None or np.ndim(initial_command) == 1
     wheel_rpm, poses, final_state = _output_arrays(out, n_rob, t.size)
-    final_pose = np.empty((n_rob, 3))
-    outputs = (wheel_rpm, poses, final_state, final_pose)
-    in_place = all(o.flags.c_contiguous and o.flags.writeable and o.dtype == np.float64
-                   for o in outputs)
-
+    outputs = (wheel_rpm, poses, final_state, np.empty((n_rob, 3)))
+    batch = _Batch(t, cmd, calibs, robot, shared, cmd0, cmd0_shared, state0, pose0, active,
+                   bool(pose), outputs, _all_in_place(outputs))
     # Robots are simulated in groups sharing a time grid: the same dead time (its grid is split at
     # the delayed command changes) and the same path (sub-stepped or closed-form), so a robot's
     # result never depends on which other robots share its batch.
@@ -460,21 +258,63 @@ def simulate_batch(
     for key in sorted(set(keys)):
         delay, nonlinear = key
         members = np.flatnonzero([k == key for k in keys])
-        whole = members.size == n_rob
-        # the group's rows: a slice where they are consecutive (a Jacobian's perturbed dead
-        # time is one robot), whose views the kernel reads and writes in place
-        rows = slice(None) if whole else (
-            slice(members[0], members[-1] + 1)
-            if in_place and members[-1] - members[0] + 1 == members.size else members)
-        group = calibs if whole else [calibs[i] for i in members]
-        plan = _plan(t, delay, max_substep_s if nonlinear else None)
-        gcmd = _group_commands(t, cmd, cmd0, members, whole, shared, cmd0_shared, delay, plan)
-        args = _kernel_inputs(group, robot, gcmd, _step_tables(group, plan.h_uniq), plan.didx,
-                              plan.nsub, np.ascontiguousarray(state0[rows]),
-                              np.ascontiguousarray(pose0[rows]))
-        _run_group((*args, active, bool(pose), plan.record), rows, len(group), t.size,
-                   plan.substeps, outputs)
+        _simulate_group(batch, members, delay, max_substep_s if nonlinear else None)
     return Trajectory(t, np.asarray(cmd), wheel_rpm, poses, final_state)
+
+
+class _Batch(NamedTuple):
+    """What :func:`simulate_batch` checked and prepared for all its robots (N of them)."""
+
+    t: np.ndarray                 # (T,) sample times [s]
+    cmd: np.ndarray               # (N, T, 3) commands (a broadcast view when shared)
+    calibs: list[Calibration]     # (N,) one per robot
+    robot: RobotProfile           # the geometry
+    shared: np.ndarray | None     # (T, 3) the one command stream of all robots, or None
+    cmd0: np.ndarray              # (N, 3) command before the start
+    cmd0_shared: bool             # one command before the start for all robots
+    state0: np.ndarray            # (N, STATE_WIDTH) initial states
+    pose0: np.ndarray             # (N, 3) initial poses
+    active: np.ndarray            # (4,) bool: the wheels to simulate
+    pose: bool                    # whether to compute the pose
+    outputs: tuple                # wheels (N, T, 4), poses (N, T, 3), final states, final poses
+    in_place: bool                # whether the kernel may write views of ``outputs``
+
+
+def _all_in_place(outputs: tuple) -> bool:
+    """Whether the kernel can write views of every output array: C-contiguous, writable
+    float64."""
+    return all(o.flags.c_contiguous and o.flags.writeable and o.dtype == np.float64
+               for o in outputs)
+
+
+def _group_rows(members: np.ndarray, n_rob: int, in_place: bool) -> slice | np.ndarray:
+    """A group's rows among the ``n_rob`` robots: a slice where its ``members`` are
+    consecutive (a Jacobian's perturbed dead time is one robot), whose views the kernel reads
+    and writes in place, else the member indices."""
+    if members.size == n_rob:
+        return slice(None)
+    if in_place and members[-1] - members[0] + 1 == members.size:
+        return slice(members[0], members[-1] + 1)
+    return members
+
+
+def _simulate_group(batch: _Batch, members: np.ndarray, delay: float,
+                    max_substep_s: float | None) -> None:
+    """Simulate the robots ``members`` of ``batch``, which share the dead time ``delay`` [s]
+    and the path (sub-stepped at ``max_substep_s`` [s], None: closed-form), into
+    ``batch.outputs``."""
+    t, calibs = batch.t, batch.calibs
+    whole = members.size == len(calibs)
+    rows = _group_rows(members, len(calibs), batch.in_place)
+    group = calibs if whole else [calibs[i] for i in members]
+    plan = plan_cache.plan(t, delay, max_substep_s)
+    gcmd = _group_commands(t, batch.cmd, batch.cmd0, members, whole, batch.shared,
+                           batch.cmd0_shared, delay, plan)
+    args = _kernel_inputs(group, batch.robot, gcmd, _step_tables(group, plan.h_uniq),
+                          plan.didx, plan.nsub, np.ascontiguousarray(batch.state0[rows]),
+                          np.ascontiguousarray(batch.pose0[rows]))
+    _run_group((*args, batch.active, batch.pose, plan.record), rows, len(group), t.size,
+               plan.substeps, batch.outputs)
 
 
 def _active_wheels(wheels, pose: bool) -> np.ndarray:
@@ -505,7 +345,7 @@ def _robots_and_commands(commands, t: np.ndarray, calibration):
     cmd = given[None] if given.ndim == 2 else given
     if cmd.ndim != 3 or cmd.shape[1:] != (t.size, 3):
         raise ConfigError(f"commands must have shape (N, {t.size}, 3), got {cmd.shape}")
-    facts = _array_facts(given)
+    facts = array_facts(given)
     if facts is None or "finite" not in facts:
         if not np.isfinite(np.sum(cmd)):  # one pass; any NaN or inf makes the sum non-finite
             raise ConfigError("commands contain NaN or infinite values")
@@ -572,7 +412,7 @@ def _output_arrays(out: Trajectory | None, n_rob: int, n_t: int):
 
 def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: np.ndarray,
                     whole: bool, shared: np.ndarray | None, cmd0_shared: bool, delay: float,
-                    plan: _Plan):
+                    plan: Plan):
     """A group's commands on its grid (``plan``'s): with a dead time, as the wheels see them.
     ``shared``: the one command stream of all robots, (T, 3), or None; ``cmd0_shared``: one
     command before the start for all."""
@@ -587,9 +427,9 @@ def _group_commands(t: np.ndarray, cmd: np.ndarray, cmd0: np.ndarray, members: n
     if one or members.size == 1:
         # one stream (a fit's Jacobian, or its lone trial point) through the same dead time
         # again and again: its delayed commands are remembered
-        first = _memo(
-            ("delayed", _bytes_of(t), float(delay),
-             _bytes_of(shared) if shared is not None else gcmd[0].tobytes(),
+        first = remember(
+            ("delayed", bytes_of(t), float(delay),
+             bytes_of(shared) if shared is not None else gcmd[0].tobytes(),
              cmd0[members[0]].tobytes()),
             lambda: (_delayed(gcmd[:1], plan.src, cmd0[members[:1]]),))[0]
         if one:

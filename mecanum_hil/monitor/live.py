@@ -350,7 +350,7 @@ def listen(open_source: Callable[[], HeardSource], calibration: str | Path,
     tuple of Alarm
         The alarms raised.
     """
-    from ..errors import ConfigError, MecanumHILError
+    from ..errors import ConfigError
     from ..model import load_calibration
 
     if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
@@ -380,17 +380,39 @@ def listen(open_source: Callable[[], HeardSource], calibration: str | Path,
     except KeyboardInterrupt:
         pass  # Ctrl-C is how an open-ended listen ends
     finally:
-        if sys.stderr.isatty():
-            print("", file=sys.stderr)  # end the status line
-        if source is not None:
-            heard.update(source.counts())
-        if writer is not None:
-            writer.close({"heard": heard})
-        if source is not None:
-            source.close()
-        if view is not None:
-            view.live.close()
-        summary = live.close(**heard)
+        summary = _end_listening(live, source, writer, view, heard)
+    _report_heard(heard, summary, name, source, echo)
+    return tuple(live.monitor.alarms)
+
+
+def _end_listening(live: LiveShadow, source: HeardSource | None, writer, view,
+                   heard: dict) -> str:
+    """Close what a listen opened (the status line, the recording with the ``heard`` counts,
+    the source, the live view, the shadow) and return the shadow's summary."""
+    if sys.stderr.isatty():
+        print("", file=sys.stderr)  # end the status line
+    if source is not None:
+        heard.update(source.counts())
+    if writer is not None:
+        writer.close({"heard": heard})
+    if source is not None:
+        source.close()
+    if view is not None:
+        view.live.close()
+    return live.close(**heard)
+
+
+def _report_heard(heard: dict, summary: str, name: str, source: HeardSource | None,
+                  echo: Callable[[str], None]) -> None:
+    """Say what a listen heard and its ``summary``.
+
+    Raises
+    ------
+    MecanumHILError
+        No telemetry was heard: nothing was compared with the model.
+    """
+    from ..errors import MecanumHILError
+
     echo(f"heard {heard['commands']} commands, {heard['stops']} stops, {heard['telemetry']} "
          f"telemetry samples" + (f"; sent {heard['stops_sent']} STOP" if heard["stops_sent"]
                                  else ""))
@@ -400,7 +422,6 @@ def listen(open_source: Callable[[], HeardSource], calibration: str | Path,
         raise MecanumHILError(
             f"heard no telemetry on {name or source.name}: nothing was compared with the "
             f"model ({source.hint if source is not None else 'is the robot there?'})")
-    return tuple(live.monitor.alarms)
 
 
 def _listening_shadow(cal: Calibration, robot: str | Path, config: ShadowConfig,

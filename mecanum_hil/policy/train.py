@@ -132,58 +132,18 @@ def train(policy: NetworkPolicy, calibration: Calibration | str, *, budget_s: fl
     if not budget_s > 0 or (generations is not None and generations < 1) or episodes < 1:
         raise ConfigError("need a positive budget, at least one generation and one episode")
     check_training(policy.params.size, episodes, seed)
-    try:
-        import cma
-    except ImportError as err:
-        raise ConfigError("training needs the rl extra: pip install 'mecanum-hil[rl]'") from err
-    from ..envs import MecanumHILVectorEnv
-
-    opts = {"seed": int(seed) + 1, "verbose": -9, "CMA_diagonal": False}
-    if popsize is not None:
-        opts["popsize"] = int(popsize)
-    es = cma.CMAEvolutionStrategy(policy.params.copy(), sigma0, opts)
+    es = _evolution_strategy(policy, sigma0, seed, popsize)
     P = es.popsize
-    envs = MecanumHILVectorEnv(P * episodes, calibration, policy.robot,
-                               control_period_s=policy.control_period_s, task=policy.task,
-                               randomize=randomize)
+    envs = _vector_env(policy, calibration, P * episodes, randomize)
     rng = np.random.default_rng(seed)
     t0 = time.monotonic()
-    history: list[tuple[float, float]] = []
-    best_f, best_x = -np.inf, policy.params.copy()
-    gen_s = 0.0
-    while generations is None or len(history) < generations:
-        elapsed = time.monotonic() - t0
-        if history and elapsed + 1.5 * gen_s > budget_s:
-            break
-        g0 = time.monotonic()
-        X = np.asarray(es.ask())
-        base = int(rng.integers(1 << 30))
-        seeds = [base + m for _ in range(P) for m in range(episodes)]
-
-        def act(obs, X=X):
-            return policy.act_population(X, obs.reshape(P, episodes, -1)).reshape(-1, 3)
-
-        returns = rollout(envs, act, seeds)[0].reshape(P, episodes).mean(axis=1)
-        es.tell(list(X), list(-returns))
-        i = int(np.argmax(returns))
-        if returns[i] > best_f:
-            best_f, best_x = float(returns[i]), X[i].copy()
-        history.append((float(returns.max()), float(returns.mean())))
-        gen_s = time.monotonic() - g0
-        if progress is not None:
-            progress(len(history) * P, time.monotonic() - t0, *history[-1])
-
+    history, best_x = _search(es, envs, policy, rng, episodes, generations, budget_s, t0,
+                              progress)
     # the best candidate's score is biased upwards (it won on these episodes); the mean of the
     # search distribution is often better: decide on episodes neither has seen
     finalists = np.array([es.result.xfavorite, best_x])
-    venvs = MecanumHILVectorEnv(2 * validation_episodes, calibration, policy.robot,
-                                control_period_s=policy.control_period_s, task=policy.task,
-                                randomize=randomize)
-    base = int(rng.integers(1 << 30))
-    seeds = [base + m for _ in range(2) for m in range(validation_episodes)]
-    val = rollout(venvs, lambda obs: policy.act_population(
-        finalists, obs.reshape(2, validation_episodes, -1)).reshape(-1, 3), seeds)[0]
-    val = val.reshape(2, validation_episodes).mean(axis=1)
+    val = _validation_returns(policy, calibration, finalists, validation_episodes, randomize,
+                              rng)
     k = int(np.argmax(val))
     hist = np.array(history)
     elapsed = time.monotonic() - t0
@@ -195,3 +155,84 @@ def train(policy: NetworkPolicy, calibration: Calibration | str, *, budget_s: fl
         kept="mean" if k == 0 else "best")
     return TrainResult(trained, len(history), len(history) * P, float(hist[-1, 0]),
                        float(hist[-1, 1]), float(val[k]), hist, elapsed)
+
+
+def _evolution_strategy(policy: NetworkPolicy, sigma0: float, seed: int, popsize: int | None):
+    """CMA-ES started at ``policy``'s parameters with step size ``sigma0``, seeded by
+    ``seed``."""
+    try:
+        import cma
+    except ImportError as err:
+        raise ConfigError("training needs the rl extra: pip install 'mecanum-hil[rl]'") from err
+    opts = {"seed": int(seed) + 1, "verbose": -9, "CMA_diagonal": False}
+    if popsize is not None:
+        opts["popsize"] = int(popsize)
+    return cma.CMAEvolutionStrategy(policy.params.copy(), sigma0, opts)
+
+
+def _vector_env(policy: NetworkPolicy, calibration: Calibration | str, n_envs: int,
+                randomize: bool):
+    """``n_envs`` episodes at once of ``policy``'s task on ``calibration``'s model."""
+    from ..envs import MecanumHILVectorEnv
+
+    return MecanumHILVectorEnv(n_envs, calibration, policy.robot,
+                               control_period_s=policy.control_period_s, task=policy.task,
+                               randomize=randomize)
+
+
+def _search(es, envs, policy: NetworkPolicy, rng: np.random.Generator, episodes: int,
+            generations: int | None, budget_s: float, t0: float,
+            progress: Callable[[int, float, float, float], None] | None):
+    """Run CMA-ES generations until ``generations`` or the budget ``budget_s`` [s] from
+    ``t0`` [s, monotonic] is reached (the last one that fits is the last one run).
+
+    Returns the (best, mean) return of each generation and the best candidate seen.
+    """
+    P = es.popsize
+    history: list[tuple[float, float]] = []
+    best_f, best_x = -np.inf, policy.params.copy()
+    gen_s = 0.0
+    while generations is None or len(history) < generations:
+        elapsed = time.monotonic() - t0
+        if history and elapsed + 1.5 * gen_s > budget_s:
+            break
+        g0 = time.monotonic()
+        X, returns = _generation(es, envs, policy, rng, episodes)
+        i = int(np.argmax(returns))
+        if returns[i] > best_f:
+            best_f, best_x = float(returns[i]), X[i].copy()
+        history.append((float(returns.max()), float(returns.mean())))
+        gen_s = time.monotonic() - g0
+        if progress is not None:
+            progress(len(history) * P, time.monotonic() - t0, *history[-1])
+    return history, best_x
+
+
+def _generation(es, envs, policy: NetworkPolicy, rng: np.random.Generator, episodes: int):
+    """One CMA-ES generation: its candidates (P, n) and their mean returns (P,) over
+    ``episodes`` episodes each, told to ``es``."""
+    P = es.popsize
+    X = np.asarray(es.ask())
+    base = int(rng.integers(1 << 30))
+    seeds = [base + m for _ in range(P) for m in range(episodes)]
+
+    def act(obs, X=X):
+        return policy.act_population(X, obs.reshape(P, episodes, -1)).reshape(-1, 3)
+
+    returns = rollout(envs, act, seeds)[0].reshape(P, episodes).mean(axis=1)
+    es.tell(list(X), list(-returns))
+    return X, returns
+
+
+def _validation_returns(policy: NetworkPolicy, calibration: Calibration | str,
+                        finalists: np.ndarray, validation_episodes: int, randomize: bool,
+                        rng: np.random.Generator) -> np.ndarray:
+    """The mean return of each of the ``finalists`` (F, n) on ``validation_episodes`` fresh
+    episodes, shape (F,)."""
+    n = len(finalists)
+    venvs = _vector_env(policy, calibration, n * validation_episodes, randomize)
+    base = int(rng.integers(1 << 30))
+    seeds = [base + m for _ in range(n) for m in range(validation_episodes)]
+    val = rollout(venvs, lambda obs: policy.act_population(
+        finalists, obs.reshape(n, validation_episodes, -1)).reshape(-1, 3), seeds)[0]
+    return val.reshape(n, validation_episodes).mean(axis=1)

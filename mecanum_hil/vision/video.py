@@ -443,37 +443,60 @@ def decoded_in_segments(path: str | Path, cap, segment: int, batch: int,
     try:
         for worker in workers:
             worker.start()
-        part, expect = 0, []
-        while True:
-            q = queues[part % 2]
-            while True:
-                item = q.get()
-                if isinstance(item, BaseException):
-                    raise item
-                if item is _SEEK_FAILED:
-                    raise SegmentMismatchError(f"cannot seek to frame {part * segment}")
-                if isinstance(item, tuple) and item[0] is _END:
-                    break
-                if expect:  # the other decoder's frames decoded on: the same?
-                    meet = min(len(expect), len(item))
-                    for before, after in zip(expect[:meet], item[:meet], strict=True):
-                        _check_meeting(before, after)
-                        if free is not None:
-                            free.put(before[2])
-                    del expect[:meet]
-                yield item
-            if expect:
-                raise SegmentMismatchError(f"the part from frame {expect[0][0]} ends early")
-            expect = item[1]
-            if not expect:
-                return
-            part += 1
+        yield from _runs_in_order(queues, segment, free)
     finally:
         stop.set()
         for worker in workers:
             if worker.ident is not None:
                 worker.join(timeout=join_timeout_s)
         second.release()
+
+
+def _runs_in_order(queues: list[queue.Queue], segment: int,
+                   free: queue.Queue | None) -> Iterator[list]:
+    """Yield the runs of the two decoders' ``queues`` part by part (``segment`` frames each,
+    alternating), checking where two parts meet (:func:`_meeting_frames`), until a part's end
+    has nothing decoded on after it.
+
+    Raises
+    ------
+    SegmentMismatchError
+        A decoder could not seek, or disagrees with the other where their parts meet.
+    BaseException
+        Whatever a decoder raised.
+    """
+    part, expect = 0, []
+    while True:
+        q = queues[part % 2]
+        while True:
+            item = q.get()
+            if isinstance(item, BaseException):
+                raise item
+            if item is _SEEK_FAILED:
+                raise SegmentMismatchError(f"cannot seek to frame {part * segment}")
+            if isinstance(item, tuple) and item[0] is _END:
+                break
+            if expect:
+                _meeting_frames(expect, item, free)
+            yield item
+        if expect:
+            raise SegmentMismatchError(f"the part from frame {expect[0][0]} ends early")
+        expect = item[1]
+        if not expect:
+            return
+        part += 1
+
+
+def _meeting_frames(expect: list, run: list, free: queue.Queue | None) -> None:
+    """Check the first frames of a part's ``run`` against those the other decoder decoded on
+    past its own part (``expect``, consumed from the front), returning the compared buffers
+    to ``free``."""
+    meet = min(len(expect), len(run))
+    for before, after in zip(expect[:meet], run[:meet], strict=True):
+        _check_meeting(before, after)
+        if free is not None:
+            free.put(before[2])
+    del expect[:meet]
 
 
 def _check_meeting(before: tuple, after: tuple) -> None:

@@ -251,7 +251,7 @@ def test_compiled_grid_helpers_equal_numpy(monkeypatch):
     """Once the kernels are compiled, a group's whole plan (the dead time's grid, its samples,
     sub-steps and step-length table) comes from one compiled pass (``plan_kernel``, built on
     ``_grid_kernels.delay_plan_kernel`` and ``unique_keys_kernel``): the same arrays, bit for
-    bit, as the numpy code the interpreter uses (``simulate._delay_plan``, ``_step_lengths``),
+    bit, as the numpy code the interpreter uses (``plan_cache._delay_plan``, ``_step_lengths``),
     on uniform, jittered, millisecond-rounded and near-coincident sample times, for delays at,
     near and between samples and beyond the end."""
     import importlib
@@ -260,7 +260,7 @@ def test_compiled_grid_helpers_equal_numpy(monkeypatch):
     from mecanum_hil.model._grid_kernels import delay_plan_kernel, unique_keys_kernel
     from mecanum_hil.model.stepper import substeps
 
-    sim = importlib.import_module("mecanum_hil.model.simulate")
+    sim = importlib.import_module("mecanum_hil.model.plan_cache")
     rng = np.random.default_rng(7)
     fast = sim._kernels_compiled
     for trial in range(400):
@@ -365,13 +365,13 @@ def test_what_is_remembered_of_an_array_is_only_of_one_declared_unchanging():
     # read-only view looks at may be written
     import importlib
 
-    sim = importlib.import_module("mecanum_hil.model.simulate")
+    sim = importlib.import_module("mecanum_hil.model.plan_cache")
     t = uniform_time(0.5, 100)
     base = t.copy()
     base.flags.writeable = False
     view = base[:]
-    assert sim._array_facts(base) is None and sim._array_facts(view) is None
-    assert sim._bytes_of(view) is not sim._bytes_of(view)
+    assert sim.array_facts(base) is None and sim.array_facts(view) is None
+    assert sim.bytes_of(view) is not sim.bytes_of(view)
     cmd = hold(60, 20, 45, t)
     cal = replace(PAPER, effects=Effects(dead_time_s=0.013))
     before = simulate(cmd, view, cal).wheel_rpm
@@ -382,7 +382,7 @@ def test_what_is_remembered_of_an_array_is_only_of_one_declared_unchanging():
     assert not np.array_equal(after, before)
     # declared: the same bytes object each time, and the same result as undeclared
     declared = sim.unchanging(t.copy())
-    assert sim._bytes_of(declared) is sim._bytes_of(declared)
+    assert sim.bytes_of(declared) is sim.bytes_of(declared)
     fresh = simulate(cmd, t, cal).wheel_rpm
     kept = sim.unchanging(cmd.copy())
     for _ in range(2):
@@ -408,7 +408,7 @@ def test_an_unpickled_array_declared_unchanging_is_remembered():
     import importlib
     import pickle
 
-    sim = importlib.import_module("mecanum_hil.model.simulate")
+    sim = importlib.import_module("mecanum_hil.model.plan_cache")
     t = pickle.loads(pickle.dumps(uniform_time(0.5, 100)))
     cmd = pickle.loads(pickle.dumps(hold(60, 20, 45, uniform_time(0.5, 100))))
     assert t.dtype is not np.dtype(float) and t.dtype == np.dtype(float)
@@ -416,8 +416,8 @@ def test_an_unpickled_array_declared_unchanging_is_remembered():
     cal = replace(PAPER, effects=Effects(dead_time_s=0.013))
     fresh = simulate(cmd.copy(), t.copy(), cal).wheel_rpm
     np.testing.assert_array_equal(simulate(declared_cmd, declared_t, cal).wheel_rpm, fresh)
-    assert sim._array_facts(declared_t).get("times") is True
-    assert sim._array_facts(declared_cmd).get("finite") is True
+    assert sim.array_facts(declared_t).get("times") is True
+    assert sim.array_facts(declared_cmd).get("finite") is True
 
 
 @pytest.mark.parametrize("bad", [0.0, -1e-3, float("nan")])

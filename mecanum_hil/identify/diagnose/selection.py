@@ -695,71 +695,23 @@ def _score_candidates(ctx: _Context, model: _Model, pool: Sequence[str], channel
     the costliest job left (by the time each took last round) as soon as it is idle, while this
     process works through the rest; the lines are said in the pool's order, and the results
     are the same either way."""
-    def expected_s(effect: str) -> float:
-        return ctx.cost_s.get(effect, _COST_PRIOR.get(effect, 0.0))
-
-    order = sorted(pool, key=lambda e: -expected_s(e))
-    done: dict[str, tuple[CandidateScore, _Fitted | None, HeldOut | None, str, float]] = {}
-    away: dict[str, tuple[Future, Helper, float]] = {}
-    # ``order`` and ``away`` are shared with the helpers' reader threads (:func:`feed`)
-    lock = threading.Lock()
-    said = 0
-
-    def args(effect: str) -> tuple:
-        return (ctx.ev, effect, model.current, tuple(model.free), ctx.names, channel, noise,
-                scale2, s0, f0)
-
-    def feed(h: Helper) -> None:
-        """Hand ``h`` the costliest job left if it is idle; called again (from its reader
-        thread) when it answers, so a helper never waits for this process to end a job of
-        its own before it gets the next (a third of a second a round, measured)."""
-        with lock:
-            if not (order and h.idle()):
-                return
-            effect = order.pop(0)
-            fut = h.submit(_timed_candidate, *args(effect))
-            away[effect] = (fut, h, time.perf_counter())
-        fut.add_done_callback(lambda f: fed_on(f, h))
-
-    def fed_on(f: Future, h: Helper) -> None:
-        # an answer, not a failure: a helper fails its jobs while it holds its own lock (stop)
-        if not f.cancelled() and f.exception() is None:
-            feed(h)
-
-    def collect(block: bool) -> None:
-        with lock:
-            jobs = list(away.items())
-        for effect, (fut, h, sent) in jobs:
-            if not (block or fut.done()):
-                continue
-            late = sent + HELPER_LATE_FACTOR * expected_s(effect) + HELPER_LATE_S
-            result = None
-            try:
-                result = fut.result(timeout=max(0.0, late - time.perf_counter()))
-            except TimeoutError:
-                pass  # late: the job runs here; the helper gets no job until it answers
-            except Exception as err:  # it failed (helper.py): not used again
-                h.stop(err)
-            with lock:
-                del away[effect]
-            done[effect] = result or _timed_candidate(*args(effect))
-            ctx.cost_s[effect] = done[effect][4]
-
+    jobs = _CandidateJobs(ctx, model, pool, (channel, noise, scale2, s0, f0))
     for h in ctx.helpers:
         # a helper still busy with another job (the reference model) is fed when it answers
         for fut in h.pending():
-            fut.add_done_callback(lambda f, h=h: fed_on(f, h))
+            fut.add_done_callback(lambda f, h=h: jobs.fed_on(f, h))
+    done = jobs.done
+    said = 0
     while True:
         for h in ctx.helpers:
-            feed(h)
-        with lock:
-            if not (order or away):
+            jobs.feed(h)
+        with jobs.lock:
+            if not (jobs.order or jobs.away):
                 break
-            effect = order.pop(0) if order else None
+            effect = jobs.order.pop(0) if jobs.order else None
         if effect is not None:
-            done[effect] = _timed_candidate(*args(effect))
-            ctx.cost_s[effect] = done[effect][4]
-        collect(block=not order)
+            jobs.run_here(effect)
+        jobs.collect(block=not jobs.order)
         while said < len(pool) and pool[said] in done:
             ctx.say(done[pool[said]][3])
             said += 1
@@ -767,6 +719,80 @@ def _score_candidates(ctx: _Context, model: _Model, pool: Sequence[str], channel
     fits = {e: done[e][1] for e in pool if done[e][1] is not None}
     held = {e: done[e][2] for e in pool if done[e][2] is not None}
     return scores, fits, held
+
+
+class _CandidateJobs:
+    """The candidate jobs of one round of :func:`_score_candidates`: those left (``order``,
+    costliest first), those with a helper (``away``: future, helper, time sent [s]) and the
+    results (``done``: score, fit, held-out score, line, time taken [s]), by effect.
+
+    ``order`` and ``away`` are shared with the helpers' reader threads (:meth:`feed`), under
+    ``lock``.
+    """
+
+    def __init__(self, ctx: _Context, model: _Model, pool: Sequence[str], rest: tuple):
+        self.ctx = ctx
+        self.model = model
+        self.rest = rest  # (channel, noise, scale2, s0, f0)
+        self.order = sorted(pool, key=lambda e: -self.expected_s(e))
+        self.done: dict[str, tuple[CandidateScore, _Fitted | None, HeldOut | None, str,
+                                   float]] = {}
+        self.away: dict[str, tuple[Future, Helper, float]] = {}
+        self.lock = threading.Lock()
+
+    def expected_s(self, effect: str) -> float:
+        """What ``effect``'s job is expected to take [s]: what it took last round, or a
+        prior."""
+        return self.ctx.cost_s.get(effect, _COST_PRIOR.get(effect, 0.0))
+
+    def args(self, effect: str) -> tuple:
+        """The arguments of :func:`_timed_candidate` for ``effect``."""
+        return (self.ctx.ev, effect, self.model.current, tuple(self.model.free),
+                self.ctx.names, *self.rest)
+
+    def run_here(self, effect: str) -> None:
+        """Run ``effect``'s job in this process."""
+        self.done[effect] = _timed_candidate(*self.args(effect))
+        self.ctx.cost_s[effect] = self.done[effect][4]
+
+    def feed(self, h: Helper) -> None:
+        """Hand ``h`` the costliest job left if it is idle; called again (from its reader
+        thread) when it answers, so a helper never waits for this process to end a job of
+        its own before it gets the next (a third of a second a round, measured)."""
+        with self.lock:
+            if not (self.order and h.idle()):
+                return
+            effect = self.order.pop(0)
+            fut = h.submit(_timed_candidate, *self.args(effect))
+            self.away[effect] = (fut, h, time.perf_counter())
+        fut.add_done_callback(lambda f: self.fed_on(f, h))
+
+    def fed_on(self, f: Future, h: Helper) -> None:
+        """Feed ``h`` again once its job ``f`` is answered."""
+        # an answer, not a failure: a helper fails its jobs while it holds its own lock (stop)
+        if not f.cancelled() and f.exception() is None:
+            self.feed(h)
+
+    def collect(self, block: bool) -> None:
+        """Take the helpers' answers (waiting for each when ``block``); a job that fails or is
+        late runs here instead."""
+        with self.lock:
+            jobs = list(self.away.items())
+        for effect, (fut, h, sent) in jobs:
+            if not (block or fut.done()):
+                continue
+            late = sent + HELPER_LATE_FACTOR * self.expected_s(effect) + HELPER_LATE_S
+            result = None
+            try:
+                result = fut.result(timeout=max(0.0, late - time.perf_counter()))
+            except TimeoutError:
+                pass  # late: the job runs here; the helper gets no job until it answers
+            except Exception as err:  # it failed (helper.py): not used again
+                h.stop(err)
+            with self.lock:
+                del self.away[effect]
+            self.done[effect] = result or _timed_candidate(*self.args(effect))
+            self.ctx.cost_s[effect] = self.done[effect][4]
 
 
 #: A helper's job is late (and is run here instead) once the diagnosing process has nothing
