@@ -27,6 +27,7 @@ from ._options import (
     OdomTopicOpt,
     OutOpt,
     PortOpt,
+    ProgressOpt,
     RobotOpt,
     TransportOpt,
     WheelSignsOpt,
@@ -97,8 +98,6 @@ LinkTimeoutOpt = Annotated[float, typer.Option(
     "--link-timeout", help="Telemetry silence that counts as a lost link, whatever "
                            "else arrives [s]; at least 3 of the controller's telemetry "
                            "periods.")]
-ProgressOpt = Annotated[bool, typer.Option(
-    "--progress/--no-progress", help="Show a progress bar.")]
 ShadowOpt = Annotated[str | None, typer.Option(
     "--shadow", metavar="CAL", help="Shadow mode: run this calibration's model beside the "
     "robot and flag divergence (events in OUT.shadow.jsonl).")]

@@ -55,8 +55,6 @@ ThresholdOpt = Annotated[float, typer.Option(
     "--threshold", help="CUSUM decision threshold h [noise sigmas].")]
 WarmupOpt = Annotated[float, typer.Option(
     "--warmup", help="Initial window for the noise estimate [s].")]
-
-
 ReplayOpt = Annotated[Path | None, typer.Option(
     "--replay", help="Recording (CSV) to run the monitor over, as if live.",
     metavar="REC.csv")]

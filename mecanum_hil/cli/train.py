@@ -6,7 +6,7 @@ from typing import Annotated
 
 import typer
 
-from ._options import CalibrationOpt, JsonOpt, RobotOpt
+from ._options import CalibrationOpt, JsonOpt, ProgressOpt, RobotOpt
 
 PolicyOutOpt = Annotated[Path, typer.Option("--out", "-o", help="Policy file (.npz) to write.",
                                              metavar="POLICY")]
@@ -28,8 +28,6 @@ HiddenOpt = Annotated[int, typer.Option(
     "keeps a full covariance of the ~15 x HIDDEN parameters).")]
 ControlPeriodOpt = Annotated[float, typer.Option(
     "--control-period", help="How long each action is held [s].")]
-ProgressOpt = Annotated[bool, typer.Option(
-    "--progress/--no-progress", help="Show a progress bar.")]
 
 
 def command(
