@@ -18,6 +18,8 @@ RobotOpt = Annotated[
 ]
 OutOpt = Annotated[Path, typer.Option("--out", "-o", help="Recording (CSV) to write.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout.")]
+ProgressOpt = Annotated[bool, typer.Option(
+    "--progress/--no-progress", help="Show a progress bar.")]
 
 #: Options whose value may be left out (``--foxglove`` alone serves on localhost:8765); typer
 #: has no such options, so :func:`fill_optional_values` gives them an empty value first.

@@ -10,74 +10,95 @@ from ._options import JsonOpt, RobotOpt
 
 _STAGES = ("fit", "diagnose", "shadow", "measure-video")
 
+StageArg = Annotated[str, typer.Argument(
+    help="fit, diagnose (fit then diagnose), shadow (replay each recording) or "
+         "measure-video (each video).", metavar="fit|diagnose|shadow|measure-video")]
+ArchiveArg = Annotated[str, typer.Argument(
+    help="Folder or fsspec URL (file://, s3://...); each first-level folder is a robot.",
+    metavar="ARCHIVE")]
+ResultsOpt = Annotated[Path, typer.Option(
+    "--out", "-o", help="Results table: .parquet or .csv (one row per group).",
+    metavar="RESULTS")]
+SchedulerOpt = Annotated[str | None, typer.Option(
+    "--scheduler", help="An existing Dask cluster (tcp://HOST:PORT); default: a local "
+    "cluster on this machine.", metavar="tcp://HOST:PORT")]
+WorkersOpt = Annotated[int | None, typer.Option(
+    "--workers", min=1, help="Local cluster: worker processes, one thread each "
+    "(default: the cores).")]
+GroupByOpt = Annotated[str | None, typer.Option(
+    "--group-by", help="Robot = this path level (1 = first-level folder, the default) or "
+    "this sidecar key (dotted for nested).", metavar="LEVEL|KEY")]
+PeriodOpt = Annotated[str | None, typer.Option(
+    "--period", help="Also group per day or week (UTC; sidecar started_utc, else the "
+    "file's modification time).", metavar="day|week")]
+PeriodLevelOpt = Annotated[int | None, typer.Option(
+    "--period-level", min=0, help="Also group per period named by this path level's folder "
+    "(robot/DAY/run.csv: 2; 0: the ARCHIVE folder's own name); no sidecar is read.",
+    metavar="LEVEL")]
+BatchCalibrationOpt = Annotated[str, typer.Option(
+    "--calibration", "-c", metavar="CAL",
+    help="fit/diagnose: effects held (as for fit); shadow: the model to replay against. A "
+    "shipped name, a file, an fsspec URL or a template such as 'cals/{group}.toml' "
+    "({group}, {period}).")]
+MethodOpt = Annotated[str, typer.Option(
+    "--method", "-m", help="fit/diagnose: lsq or paper-grid.")]
+CandidatesOpt = Annotated[str | None, typer.Option(
+    "--candidates", help="diagnose: comma-separated effects to consider.")]
+NoiseRpmOpt = Annotated[float | None, typer.Option(
+    "--noise-rpm", help="shadow: wheel noise (1 sigma) [rpm]; default: estimated.")]
+DriftOpt = Annotated[float, typer.Option(
+    "--drift", help="shadow: CUSUM allowance k [noise sigmas].")]
+ThresholdOpt = Annotated[float, typer.Option(
+    "--threshold", help="shadow: CUSUM decision threshold h [noise sigmas].")]
+WarmupOpt = Annotated[float, typer.Option(
+    "--warmup", help="shadow: noise estimation window [s].")]
+WheelOpt = Annotated[int, typer.Option(
+    "--wheel", min=1, max=4, help="measure-video: wheel column to fill.")]
+RoiOpt = Annotated[list[str] | None, typer.Option(
+    "--roi", help="measure-video: search region [N:]x,y,w,h [px].",
+    metavar="[N:]X,Y,W,H")]
+MarkerOpt = Annotated[str, typer.Option(
+    "--marker", help="measure-video: auto or aruco.")]
+FpsOpt = Annotated[float | None, typer.Option(
+    "--fps", help="measure-video: frame rate overriding the timestamps [1/s].")]
+MinFoundOpt = Annotated[float, typer.Option(
+    "--min-found", help="measure-video: smallest share of frames with the marker.")]
+WriteOpt = Annotated[str | None, typer.Option(
+    "--write", help="Folder or fsspec URL for each group's output: fit/diagnose "
+    "GROUP.toml (GROUP/PERIOD.toml with --period), measure-video the measured "
+    "recordings.", metavar="DIR")]
+NoResumeOpt = Annotated[bool, typer.Option(
+    "--no-resume", help="Run every group, even those whose inputs did not change.")]
+DriftThresholdOpt = Annotated[float, typer.Option(
+    "--drift-threshold", help="Smallest coefficient change flagged as drift (also outside "
+    "the 95 % intervals) [%].")]
+
 
 def command(
-    stage: Annotated[str, typer.Argument(
-        help="fit, diagnose (fit then diagnose), shadow (replay each recording) or "
-             "measure-video (each video).", metavar="fit|diagnose|shadow|measure-video")],
-    archive: Annotated[str, typer.Argument(
-        help="Folder or fsspec URL (file://, s3://...); each first-level folder is a robot.",
-        metavar="ARCHIVE")],
-    out: Annotated[Path, typer.Option(
-        "--out", "-o", help="Results table: .parquet or .csv (one row per group).",
-        metavar="RESULTS")],
-    scheduler: Annotated[str | None, typer.Option(
-        "--scheduler", help="An existing Dask cluster (tcp://HOST:PORT); default: a local "
-        "cluster on this machine.", metavar="tcp://HOST:PORT")] = None,
-    workers: Annotated[int | None, typer.Option(
-        "--workers", min=1, help="Local cluster: worker processes, one thread each "
-        "(default: the cores).")] = None,
-    group_by: Annotated[str | None, typer.Option(
-        "--group-by", help="Robot = this path level (1 = first-level folder, the default) or "
-        "this sidecar key (dotted for nested).", metavar="LEVEL|KEY")] = None,
-    period: Annotated[str | None, typer.Option(
-        "--period", help="Also group per day or week (UTC; sidecar started_utc, else the "
-        "file's modification time).", metavar="day|week")] = None,
-    period_level: Annotated[int | None, typer.Option(
-        "--period-level", min=0, help="Also group per period named by this path level's folder "
-        "(robot/DAY/run.csv: 2; 0: the ARCHIVE folder's own name); no sidecar is read.",
-        metavar="LEVEL")] = None,
-    calibration: Annotated[str, typer.Option(
-        "--calibration", "-c", metavar="CAL",
-        help="fit/diagnose: effects held (as for fit); shadow: the model to replay against. A "
-        "shipped name, a file, an fsspec URL or a template such as 'cals/{group}.toml' "
-        "({group}, {period}).")] = "paper",
+    stage: StageArg,
+    archive: ArchiveArg,
+    out: ResultsOpt,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
+    group_by: GroupByOpt = None,
+    period: PeriodOpt = None,
+    period_level: PeriodLevelOpt = None,
+    calibration: BatchCalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",
-    method: Annotated[str, typer.Option(
-        "--method", "-m", help="fit/diagnose: lsq or paper-grid.")] = "lsq",
-    candidates: Annotated[str | None, typer.Option(
-        "--candidates", help="diagnose: comma-separated effects to consider.")] = None,
-    noise_rpm: Annotated[float | None, typer.Option(
-        "--noise-rpm", help="shadow: wheel noise (1 sigma) [rpm]; default: estimated.")
-    ] = None,
-    drift: Annotated[float, typer.Option(
-        "--drift", help="shadow: CUSUM allowance k [noise sigmas].")] = 1.0,
-    threshold: Annotated[float, typer.Option(
-        "--threshold", help="shadow: CUSUM decision threshold h [noise sigmas].")] = 10.0,
-    warmup: Annotated[float, typer.Option(
-        "--warmup", help="shadow: noise estimation window [s].")] = 2.0,
-    wheel: Annotated[int, typer.Option(
-        "--wheel", min=1, max=4, help="measure-video: wheel column to fill.")] = 1,
-    roi: Annotated[list[str] | None, typer.Option(
-        "--roi", help="measure-video: search region [N:]x,y,w,h [px].",
-        metavar="[N:]X,Y,W,H")] = None,
-    marker: Annotated[str, typer.Option(
-        "--marker", help="measure-video: auto or aruco.")] = "auto",
-    fps: Annotated[float | None, typer.Option(
-        "--fps", help="measure-video: frame rate overriding the timestamps [1/s].")] = None,
-    min_found: Annotated[float, typer.Option(
-        "--min-found", help="measure-video: smallest share of frames with the marker.")
-    ] = 0.5,
-    write: Annotated[str | None, typer.Option(
-        "--write", help="Folder or fsspec URL for each group's output: fit/diagnose "
-        "GROUP.toml (GROUP/PERIOD.toml with --period), measure-video the measured "
-        "recordings.", metavar="DIR")] = None,
-    no_resume: Annotated[bool, typer.Option(
-        "--no-resume", help="Run every group, even those whose inputs did not change.")
-    ] = False,
-    drift_threshold: Annotated[float, typer.Option(
-        "--drift-threshold", help="Smallest coefficient change flagged as drift (also outside "
-        "the 95 % intervals) [%].")] = 5.0,
+    method: MethodOpt = "lsq",
+    candidates: CandidatesOpt = None,
+    noise_rpm: NoiseRpmOpt = None,
+    drift: DriftOpt = 1.0,
+    threshold: ThresholdOpt = 10.0,
+    warmup: WarmupOpt = 2.0,
+    wheel: WheelOpt = 1,
+    roi: RoiOpt = None,
+    marker: MarkerOpt = "auto",
+    fps: FpsOpt = None,
+    min_found: MinFoundOpt = 0.5,
+    write: WriteOpt = None,
+    no_resume: NoResumeOpt = False,
+    drift_threshold: DriftThresholdOpt = 5.0,
     json_out: JsonOpt = False,
 ) -> None:
     """Run a stage over a fleet's archive on Dask: one task per robot (and period).
@@ -86,15 +107,28 @@ def command(
     against the robot's previous period, error). A bad recording or group fails alone, in its
     row; a re-run skips groups whose inputs did not change.
     """
-    import json
     import os
-    import sys
-
-    from ..errors import ConfigError
 
     # before numpy loads OpenBLAS in this process (as fit does; workers get it from the cluster)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from ..fleet.runner import BatchSettings
+
+    _check(stage, period, method, marker, scheduler, workers, drift_threshold, fps)
+    options = _stage_options(stage, method=method, candidates=candidates, drift=drift,
+                             threshold=threshold, warmup=warmup, noise_rpm=noise_rpm,
+                             wheel=wheel, roi=roi, marker=marker, fps=fps, min_found=min_found)
+    settings = BatchSettings(
+        command=stage, archive=archive, out=out, group_by=group_by, period=period,
+        period_level=period_level,
+        scheduler=scheduler, workers=workers, calibration=calibration, robot=robot,
+        options=options, write_to=write, resume=not no_resume,
+        drift_min_relative=drift_threshold / 100.0)
+    _report(_run_with_progress(settings, quiet=json_out), json_out)
+
+
+def _check(stage, period, method, marker, scheduler, workers, drift_threshold, fps) -> None:
+    """One-line errors for option values batch does not take, before any work."""
+    from ..errors import ConfigError
 
     if stage not in _STAGES:
         raise ConfigError(f"batch runs {', '.join(_STAGES)}; got {stage!r}")
@@ -113,6 +147,11 @@ def command(
         from ..vision.video import check_fps
 
         check_fps(fps)
+
+
+def _stage_options(stage: str, *, method, candidates, drift, threshold, warmup, noise_rpm,
+                   wheel, roi, marker, fps, min_found) -> dict:
+    """The options of ``stage`` that go to each group's task."""
     options: dict = {}
     if stage in ("fit", "diagnose"):
         options["method"] = method
@@ -124,13 +163,16 @@ def command(
     if stage == "measure-video":
         options["video"] = {"wheel": wheel, "roi": list(roi or []), "marker": marker,
                             "fps": fps, "min_found": min_found}
-    settings = BatchSettings(
-        command=stage, archive=archive, out=out, group_by=group_by, period=period,
-        period_level=period_level,
-        scheduler=scheduler, workers=workers, calibration=calibration, robot=robot,
-        options=options, write_to=write, resume=not no_resume,
-        drift_min_relative=drift_threshold / 100.0)
-    outcome = _run_with_progress(settings, quiet=json_out)
+    return options
+
+
+def _report(outcome, json_out: bool) -> None:
+    """Print the outcome (a line per count, or JSON); every group failed: a one-line error."""
+    import json
+    import sys
+
+    from ..errors import ConfigError
+
     c = outcome.counts
     drifted = sorted({r["group"] for r in outcome.rows if r.get("drifted")})
     alarmed = sorted({r["group"] for r in outcome.rows if (r.get("alarms") or 0) > 0})

@@ -22,6 +22,20 @@ from ._options import (
     require_writable,
 )
 
+RuleOpt = Annotated[list[str] | None, typer.Option(
+    "--rule", metavar="NAME", help="Run only this rule or group (hello, command.valid, "
+    "...); repeatable.")]
+EstopPressedOpt = Annotated[bool, typer.Option(
+    "--estop-pressed", help="The e-stop was pressed before the run: also run the "
+    "estop.* rules (release it before estop.reset).")]
+JsonPathOpt = Annotated[str | None, typer.Option(
+    "--json", metavar="PATH", help="Also write the report as JSON ('-' for stdout).")]
+ListOpt = Annotated[bool, typer.Option("--list", help="List the rules and exit.")]
+AnswerTimeoutOpt = Annotated[float, typer.Option(
+    "--answer-timeout", metavar="S", help="How long an answer (HELLO_ACK, ERROR, PONG, an "
+    "acknowledging sample) may take [s]; the rules that check that nothing answers wait "
+    "as long. More for a controller behind a slow adapter or on a loaded host.")]
+
 
 def command(
     transport: TransportOpt = "serial",
@@ -31,24 +45,13 @@ def command(
     bitrate: BitrateOpt = None,
     link_option: LinkOptionOpt = None,
     robot: RobotOpt = "tdam-stm",
-    rule: Annotated[list[str] | None, typer.Option(
-        "--rule", metavar="NAME", help="Run only this rule or group (hello, command.valid, "
-        "...); repeatable.")] = None,
-    estop_pressed: Annotated[bool, typer.Option(
-        "--estop-pressed", help="The e-stop was pressed before the run: also run the "
-        "estop.* rules (release it before estop.reset).")] = False,
-    json_out: Annotated[str | None, typer.Option(
-        "--json", metavar="PATH", help="Also write the report as JSON ('-' for stdout).")
-    ] = None,
-    list_rules: Annotated[bool, typer.Option(
-        "--list", help="List the rules and exit.")] = False,
-    answer_timeout: Annotated[float, typer.Option(
-        "--answer-timeout", metavar="S", help="How long an answer (HELLO_ACK, ERROR, PONG, an "
-        "acknowledging sample) may take [s]; the rules that check that nothing answers wait "
-        "as long. More for a controller behind a slow adapter or on a loaded host.")] = 0.3,
+    rule: RuleOpt = None,
+    estop_pressed: EstopPressedOpt = False,
+    json_out: JsonPathOpt = None,
+    list_rules: ListOpt = False,
+    answer_timeout: AnswerTimeoutOpt = 0.3,
 ) -> None:
     """Drive a controller through every rule of the protocol and report pass/fail per rule."""
-    import json
     import sys
 
     from ..errors import ConfigError
@@ -77,6 +80,14 @@ def command(
                 f"  {r.outcome:<4}  {r.rule}", file=sys.stderr, flush=True)))
     finally:
         link.close()
+    _report(report, json_out)
+
+
+def _report(report, json_out: str | None) -> None:
+    """The report: as text (and JSON to a file), or as JSON on stdout; exit 1 if a rule
+    failed."""
+    import json
+
     if json_out == "-":
         typer.echo(json.dumps(report.as_dict(), indent=2))
     else:

@@ -26,30 +26,42 @@ def _grid(text: str | None, name: str):
     return parts
 
 
+RecordingsArg = Annotated[list[Path], typer.Argument(
+    help="Recording CSV files (any commands; wheel speeds from telemetry or video).",
+    metavar="REC.csv...")]
+CalOutOpt = Annotated[Path, typer.Option("--out", "-o", help="Calibration TOML to write.")]
+MethodOpt = Annotated[str, typer.Option(
+    "--method", "-m", help="lsq (continuous least squares) or paper-grid (the paper's "
+    "three-pass grid search).")]
+HeldCalibrationOpt = Annotated[str, typer.Option(
+    "--calibration", "-c", metavar="CAL",
+    help="Calibration whose effects are held fixed during the fit (its A, B, C are "
+    "replaced).")]
+ReportOpt = Annotated[Path | None, typer.Option(
+    "--report", help="Report PNG (default: the --out path with .png).")]
+NoReportOpt = Annotated[bool, typer.Option("--no-report", help="Write no report PNG.")]
+AGridOpt = Annotated[str | None, typer.Option("--a-grid", help=f"A grid {_GRID_HELP}; "
+                                              "default 0:2000:1.")]
+BGridOpt = Annotated[str | None, typer.Option("--b-grid", help=f"B sweep {_GRID_HELP}; "
+                                              "default 5.5:25.5:0.1.")]
+CGridOpt = Annotated[str | None, typer.Option("--c-grid", help=f"C grid {_GRID_HELP}; "
+                                              "default 0:2000:1.")]
+BStartOpt = Annotated[float | None, typer.Option(
+    "--b-start", help="B held in the first pass (paper-grid only); default 15.5.")]
+
+
 def command(
-    recordings: Annotated[list[Path], typer.Argument(
-        help="Recording CSV files (any commands; wheel speeds from telemetry or video).",
-        metavar="REC.csv...")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Calibration TOML to write.")],
-    method: Annotated[str, typer.Option(
-        "--method", "-m", help="lsq (continuous least squares) or paper-grid (the paper's "
-        "three-pass grid search).")] = "lsq",
-    calibration: Annotated[str, typer.Option(
-        "--calibration", "-c", metavar="CAL",
-        help="Calibration whose effects are held fixed during the fit (its A, B, C are "
-        "replaced).")] = "paper",
+    recordings: RecordingsArg,
+    out: CalOutOpt,
+    method: MethodOpt = "lsq",
+    calibration: HeldCalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",
-    report: Annotated[Path | None, typer.Option(
-        "--report", help="Report PNG (default: the --out path with .png).")] = None,
-    no_report: Annotated[bool, typer.Option("--no-report", help="Write no report PNG.")] = False,
-    a_grid: Annotated[str | None, typer.Option("--a-grid", help=f"A grid {_GRID_HELP}; "
-                                               "default 0:2000:1.")] = None,
-    b_grid: Annotated[str | None, typer.Option("--b-grid", help=f"B sweep {_GRID_HELP}; "
-                                               "default 5.5:25.5:0.1.")] = None,
-    c_grid: Annotated[str | None, typer.Option("--c-grid", help=f"C grid {_GRID_HELP}; "
-                                               "default 0:2000:1.")] = None,
-    b_start: Annotated[float | None, typer.Option(
-        "--b-start", help="B held in the first pass (paper-grid only); default 15.5.")] = None,
+    report: ReportOpt = None,
+    no_report: NoReportOpt = False,
+    a_grid: AGridOpt = None,
+    b_grid: BGridOpt = None,
+    c_grid: CGridOpt = None,
+    b_start: BStartOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Estimate A, B, C from recordings; write a calibration TOML and a report PNG."""
@@ -58,14 +70,25 @@ def command(
     # Before numpy/scipy load OpenBLAS: its worker threads, competing with numba's on a small
     # machine, made the many tiny matrix calls of a fit up to 10x slower (docs/fit.md).
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    import json
-    import math
-    import sys
-
-    from ..errors import FitError
-    from ..identify.files import fit_files
-    from ..model import load_calibration, load_robot_profile
     from ._options import refuse_overwriting, shipped_or_file
+
+    grid_options = _grid_options(method, a_grid, b_grid, c_grid, b_start)
+    png = None if no_report else (report or out.with_suffix(".png"))
+    refuse_overwriting([*((p, "a recording", True) for p in recordings),
+                        (shipped_or_file(calibration), "the calibration")],
+                       [(out, "--out"), (png, "--report")])
+    output = _fit(recordings, out, robot, method, calibration, png, grid_options)
+    if json_out:
+        typer.echo(_json(output.result))
+        return
+    _print(output)
+
+
+def _grid_options(method: str, a_grid: str | None, b_grid: str | None, c_grid: str | None,
+                  b_start: float | None) -> dict:
+    """The paper-grid's options given (one-line errors for a method, grid or start it does
+    not take)."""
+    from ..errors import FitError
 
     if method not in ("lsq", "paper-grid"):
         raise FitError(f"--method must be lsq or paper-grid, got {method!r}")
@@ -77,31 +100,47 @@ def command(
                                       ("b_start", b_start)) if v is not None}
     if grid_options and method != "paper-grid":
         raise FitError("--a-grid, --b-grid, --c-grid and --b-start apply to --method paper-grid")
-    png = None if no_report else (report or out.with_suffix(".png"))
-    refuse_overwriting([*((p, "a recording", True) for p in recordings),
-                        (shipped_or_file(calibration), "the calibration")],
-                       [(out, "--out"), (png, "--report")])
+    return grid_options
+
+
+def _fit(recordings: list[Path], out: Path, robot: str, method: str, calibration: str,
+         png: Path | None, grid_options: dict):
+    """Fit and write the calibration (and report); its warnings on stderr."""
+    import sys
+
+    from ..identify.files import fit_files
+    from ..model import load_calibration, load_robot_profile
+
     rob = load_robot_profile(robot)
     cal = load_calibration(calibration)
     output = fit_files(recordings, out, rob, method, cal, png, **grid_options)
-    res = output.result
-    for w in res.warnings:
+    for w in output.result.warnings:
         print(f"warning: {w}", file=sys.stderr)
-    if json_out:
-        def num(v: float):
-            return float(v) if math.isfinite(v) else None
+    return output
 
-        c = res.calibration
-        doc = {
-            "A": c.A, "B": c.B, "C": c.C,
-            "rmse_rpm": num(res.rmse_rpm), "fit_percent": num(res.fit_percent),
-            # an interval the data cannot bound (NaN) is null, as one not computed
-            "ci95": {k: [res.ci95[k][0], res.ci95[k][1]] if k in res.ci95
-                     and all(map(math.isfinite, res.ci95[k])) else None for k in ("A", "B", "C")},
-            "method": res.method,
-        }
-        typer.echo(json.dumps(doc))
-        return
+
+def _json(res) -> str:
+    """The fit as one JSON line (a number or interval that is not finite: null)."""
+    import json
+
+    def num(v: float):
+        return float(v) if math.isfinite(v) else None
+
+    c = res.calibration
+    doc = {
+        "A": c.A, "B": c.B, "C": c.C,
+        "rmse_rpm": num(res.rmse_rpm), "fit_percent": num(res.fit_percent),
+        # an interval the data cannot bound (NaN) is null, as one not computed
+        "ci95": {k: [res.ci95[k][0], res.ci95[k][1]] if k in res.ci95
+                 and all(map(math.isfinite, res.ci95[k])) else None for k in ("A", "B", "C")},
+        "method": res.method,
+    }
+    return json.dumps(doc)
+
+
+def _print(output) -> None:
+    """The coefficients with their intervals, the fit, the files written."""
+    res = output.result
     c = res.calibration
     for k in ("A", "B", "C"):
         lo, hi = res.ci95.get(k, (math.nan, math.nan))

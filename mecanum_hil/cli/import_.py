@@ -14,52 +14,79 @@ import typer
 DRY_RUN_ROWS = 10
 
 
+SourceArg = Annotated[Path, typer.Argument(help="The log to import (a file or a bag directory).",
+                                           metavar="SOURCE")]
+ImportOutOpt = Annotated[Path | None, typer.Option(
+    "--out", "-o", help="Recording (CSV, with its JSON sidecar) to write.")]
+FormatOpt = Annotated[str, typer.Option(
+    "--format", "-f", help="auto (detect by content) or a format name: text, ...")]
+MapOpt = Annotated[Path | None, typer.Option(
+    "--map", help="MAP.toml: which source column is which recording column, in which unit "
+    "(docs/formats-import.md).", metavar="MAP.toml")]
+DryRunOpt = Annotated[bool, typer.Option(
+    "--dry-run", help="Print the first rows as they would be written; write nothing.")]
+BagCmdTopicOpt = Annotated[str | None, typer.Option(
+    "--cmd-topic", help="rosbag: Twist or TwistStamped commands (default /cmd_vel).")]
+BagJointTopicOpt = Annotated[str | None, typer.Option(
+    "--joint-topic", help="rosbag: JointState wheel velocities (default /joint_states).")]
+BagJointsOpt = Annotated[str | None, typer.Option(
+    "--joints", metavar="FL,FR,RL,RR", help="rosbag: joint names of wheels 1 FL, 2 FR, "
+    "3 RL, 4 RR (default: detected by name).")]
+BagWheelSignsOpt = Annotated[str | None, typer.Option(
+    "--wheel-signs", metavar="S1,S2,S3,S4", help="rosbag: +1/-1 per wheel 1..4, -1 for a "
+    "joint whose positive axis turns the wheel backwards.")]
+BagOdomTopicOpt = Annotated[str | None, typer.Option(
+    "--odom-topic", help="rosbag: Odometry giving the pose (optional).")]
+BagRobotOpt = Annotated[str | None, typer.Option(
+    "--robot", metavar="ROBOT", help="rosbag: robot profile whose wheel radius turns m/s "
+    "into wheel rpm (default tdam-stm).")]
+DbcOpt = Annotated[Path | None, typer.Option(
+    "--dbc", metavar="DBC", help="canlog: the DBC decoding the frames (default: "
+    "drivers/mecanum_hil.dbc; with your own, --map says which signal is which column).")]
+MocapRecordingOpt = Annotated[Path | None, typer.Option(
+    "--recording", metavar="REC.csv", help="mocap: fill this recording's pose columns "
+    "(resampled to its times, never across an occlusion).")]
+StartOpt = Annotated[str | None, typer.Option(
+    "--start-s", metavar="S|auto", help="mocap: recording time of the capture's first "
+    "sample [s], or auto (motion onset against the commands; the default with "
+    "--recording).")]
+
+
 def command(
-    source: Annotated[Path, typer.Argument(help="The log to import (a file or a bag directory).",
-                                           metavar="SOURCE")],
-    out: Annotated[Path | None, typer.Option(
-        "--out", "-o", help="Recording (CSV, with its JSON sidecar) to write.")] = None,
-    fmt: Annotated[str, typer.Option(
-        "--format", "-f", help="auto (detect by content) or a format name: text, ...")] = "auto",
-    map_path: Annotated[Path | None, typer.Option(
-        "--map", help="MAP.toml: which source column is which recording column, in which unit "
-        "(docs/formats-import.md).", metavar="MAP.toml")] = None,
-    dry_run: Annotated[bool, typer.Option(
-        "--dry-run", help="Print the first rows as they would be written; write nothing.")] = False,
-    cmd_topic: Annotated[str | None, typer.Option(
-        "--cmd-topic", help="rosbag: Twist or TwistStamped commands (default /cmd_vel).")] = None,
-    joint_topic: Annotated[str | None, typer.Option(
-        "--joint-topic", help="rosbag: JointState wheel velocities (default /joint_states).")
-    ] = None,
-    joints: Annotated[str | None, typer.Option(
-        "--joints", metavar="FL,FR,RL,RR", help="rosbag: joint names of wheels 1 FL, 2 FR, "
-        "3 RL, 4 RR (default: detected by name).")] = None,
-    wheel_signs: Annotated[str | None, typer.Option(
-        "--wheel-signs", metavar="S1,S2,S3,S4", help="rosbag: +1/-1 per wheel 1..4, -1 for a "
-        "joint whose positive axis turns the wheel backwards.")] = None,
-    odom_topic: Annotated[str | None, typer.Option(
-        "--odom-topic", help="rosbag: Odometry giving the pose (optional).")] = None,
-    robot: Annotated[str | None, typer.Option(
-        "--robot", metavar="ROBOT", help="rosbag: robot profile whose wheel radius turns m/s "
-        "into wheel rpm (default tdam-stm).")] = None,
-    dbc_path: Annotated[Path | None, typer.Option(
-        "--dbc", metavar="DBC", help="canlog: the DBC decoding the frames (default: "
-        "drivers/mecanum_hil.dbc; with your own, --map says which signal is which column).")
-    ] = None,
-    recording: Annotated[Path | None, typer.Option(
-        "--recording", metavar="REC.csv", help="mocap: fill this recording's pose columns "
-        "(resampled to its times, never across an occlusion).")] = None,
-    start_s: Annotated[str | None, typer.Option(
-        "--start-s", metavar="S|auto", help="mocap: recording time of the capture's first "
-        "sample [s], or auto (motion onset against the commands; the default with "
-        "--recording).")] = None,
+    source: SourceArg,
+    out: ImportOutOpt = None,
+    fmt: FormatOpt = "auto",
+    map_path: MapOpt = None,
+    dry_run: DryRunOpt = False,
+    cmd_topic: BagCmdTopicOpt = None,
+    joint_topic: BagJointTopicOpt = None,
+    joints: BagJointsOpt = None,
+    wheel_signs: BagWheelSignsOpt = None,
+    odom_topic: BagOdomTopicOpt = None,
+    robot: BagRobotOpt = None,
+    dbc_path: DbcOpt = None,
+    recording: MocapRecordingOpt = None,
+    start_s: StartOpt = None,
 ) -> None:
     """Import a log into a recording (CSV + JSON sidecar)."""
-    import sys
+    from ..importers import import_source
 
+    _check_outputs(source, out, dry_run, map_path, dbc_path, recording)
+    options = {key: value for key, value in (
+        ("map_path", map_path), ("cmd_topic", cmd_topic), ("joint_topic", joint_topic),
+        ("joints", joints), ("wheel_signs", wheel_signs), ("odom_topic", odom_topic),
+        ("dbc_path", dbc_path), ("recording", recording), ("start_s", start_s))
+        if value is not None}
+    fmt = _with_robot(source, fmt, robot, options)
+    _with_model_pose(fmt, options)
+    res = _noted_radius(import_source(source, fmt, **options), robot, options)
+    _write_or_show(res, out, dry_run)
+
+
+def _check_outputs(source: Path, out: Path | None, dry_run: bool, map_path: Path | None,
+                   dbc_path: Path | None, recording: Path | None) -> None:
+    """An ``--out`` (unless a dry run) that overwrites none of the inputs."""
     from ..errors import UsageError
-    from ..importers import import_source, with_notes
-    from ..io.recording import format_rows, write_recording
     from ._options import refuse_overwriting
 
     if out is None and not dry_run:
@@ -67,18 +94,13 @@ def command(
     if not dry_run:
         refuse_overwriting([(source, "the log"), (map_path, "the map"), (dbc_path, "the DBC"),
                             (recording, "the --recording", True)], [(out, "--out", True)])
-    options = {}
-    if map_path is not None:
-        options["map_path"] = map_path
-    for key, value in (("cmd_topic", cmd_topic), ("joint_topic", joint_topic), ("joints", joints),
-                       ("wheel_signs", wheel_signs), ("odom_topic", odom_topic),
-                       ("dbc_path", dbc_path), ("recording", recording),
-                       ("start_s", start_s)):
-        if value is not None:
-            options[key] = value
-    fmt = _with_robot(source, fmt, robot, options)
-    _with_model_pose(fmt, options)
-    res = import_source(source, fmt, **options)
+
+
+def _noted_radius(res, robot: str | None, options: dict):
+    """``res``, with a note where m/s became wheel rpm with a radius the user did not
+    choose."""
+    from ..importers import with_notes
+
     used = res.recording.metadata.get("import")
     if (robot is None and "wheel_radius_m" in options and isinstance(used, dict)
             and used.get("wheel_radius_m")):
@@ -86,6 +108,15 @@ def command(
         res = with_notes(res, f"speeds in m/s converted with the wheel radius "
                               f"{options['wheel_radius_m']:g} m of robot profile tdam-stm "
                               "(give --robot for your robot's)")
+    return res
+
+
+def _write_or_show(res, out: Path | None, dry_run: bool) -> None:
+    """The import's notes as warnings; the recording written (or its first rows shown)."""
+    import sys
+
+    from ..io.recording import format_rows, write_recording
+
     rec = res.recording
     for note in res.notes:
         print(f"warning: {note}", file=sys.stderr)

@@ -9,40 +9,49 @@ import typer
 
 from ._options import CalibrationOpt, JsonOpt, RobotOpt
 
+VideoArg = Annotated[Path, typer.Argument(help="Overhead video of the robot.")]
+CameraOpt = Annotated[Path, typer.Option(
+    "--camera", help="camera.toml (calibrate-camera).", metavar="CAMERA.toml")]
+SceneOpt = Annotated[Path, typer.Option(
+    "--scene", help="scene.toml: floor markers and the robot's marker.",
+    metavar="SCENE.toml")]
+PoseOutOpt = Annotated[Path, typer.Option(
+    "--out", "-o", help="POSE.csv to write; with --recording the recording with its pose "
+    "columns filled.")]
+RecordingOpt = Annotated[Path | None, typer.Option(
+    "--recording", help="Fill this recording's pose columns from the video.",
+    metavar="REC.csv")]
+VideoStartOpt = Annotated[str | None, typer.Option(
+    "--video-start-s", help="Recording time of the first frame [s], or auto (the "
+    "robot's motion onset against the model for the commands; needs --recording). "
+    "Default: 0, with --recording auto.", metavar="S|auto")]
+WindowOpt = Annotated[float, typer.Option(
+    "--window", help="Smoothing window [s] (0: per-frame poses).")]
+FpsOpt = Annotated[float | None, typer.Option(
+    "--fps", help="Frame rate overriding the video's timestamps [1/s].")]
+MinFoundOpt = Annotated[float, typer.Option(
+    "--min-found", help="Refuse when the robot's marker is in fewer frames (0..1).")]
+
 
 def command(
-    video: Annotated[Path, typer.Argument(help="Overhead video of the robot.")],
-    camera: Annotated[Path, typer.Option(
-        "--camera", help="camera.toml (calibrate-camera).", metavar="CAMERA.toml")],
-    scene: Annotated[Path, typer.Option(
-        "--scene", help="scene.toml: floor markers and the robot's marker.",
-        metavar="SCENE.toml")],
-    out: Annotated[Path, typer.Option(
-        "--out", "-o", help="POSE.csv to write; with --recording the recording with its pose "
-        "columns filled.")],
-    recording: Annotated[Path | None, typer.Option(
-        "--recording", help="Fill this recording's pose columns from the video.",
-        metavar="REC.csv")] = None,
-    video_start: Annotated[str | None, typer.Option(
-        "--video-start-s", help="Recording time of the first frame [s], or auto (the "
-        "robot's motion onset against the model for the commands; needs --recording). "
-        "Default: 0, with --recording auto.", metavar="S|auto")] = None,
+    video: VideoArg,
+    camera: CameraOpt,
+    scene: SceneOpt,
+    out: PoseOutOpt,
+    recording: RecordingOpt = None,
+    video_start: VideoStartOpt = None,
     calibration: CalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",
-    window_s: Annotated[float, typer.Option(
-        "--window", help="Smoothing window [s] (0: per-frame poses).")] = 0.2,
-    fps: Annotated[float | None, typer.Option(
-        "--fps", help="Frame rate overriding the video's timestamps [1/s].")] = None,
-    min_found: Annotated[float, typer.Option(
-        "--min-found", help="Refuse when the robot's marker is in fewer frames (0..1).")] = 0.2,
+    window_s: WindowOpt = 0.2,
+    fps: FpsOpt = None,
+    min_found: MinFoundOpt = 0.2,
     as_json: JsonOpt = False,
 ) -> None:
     """Measure the robot's pose per frame: static camera from the floor markers over the whole
     video, the robot's marker on its known plane, smoothed without lag."""
-    from ..io.pose_track import fill_pose
-    from ..io.recording import read_recording, write_metadata, write_recording
+    from ..io.recording import read_recording
     from ..vision.camera import load_camera
-    from ..vision.pose import PoseOptions, write_pose_csv
+    from ..vision.pose import PoseOptions
     from ..vision.scene import load_scene
     from ._options import refuse_overwriting
 
@@ -59,14 +68,31 @@ def command(
                                                             min_found=min_found))
     for w in m.warnings:
         typer.echo(f"warning: {w}", err=True)
-    summary = dict(m.summary)
     method = "given"
     if start_auto:
         assert rec is not None
         start_s = _motion_onset_start(m, rec, calibration, robot, recording, video)
         method = "auto: the robot's motion onset (1 cm) against the model for the commands"
-    summary["video_start_s"] = round(start_s, 6)
-    summary["video_start_method"] = method
+    summary = {**m.summary, "video_start_s": round(start_s, 6), "video_start_method": method}
+    _write(m, rec, summary, video, recording, out, start_s, method)
+    if as_json:
+        typer.echo(json.dumps(summary, indent=2))
+        return
+    cp = summary["camera_pose"]
+    typer.echo(f"{summary['frames']} frames, robot found in {100 * summary['found_share']:.1f} %;"
+               f" camera at {cp['position_m']} m, tilt {cp['tilt_deg']:.1f} deg, floor markers "
+               f"reproject {summary['camera_reprojection_rms_px']:.3f} px RMS; video start "
+               f"{start_s:.3f} s ({method}) -> {out}")
+
+
+def _write(m, rec, summary: dict, video: Path, recording: Path | None, out: Path,
+           start_s: float, method: str) -> None:
+    """The recording with its pose columns filled, or the poses alone (with a sidecar);
+    ``summary`` gets what was written."""
+    from ..io.pose_track import fill_pose
+    from ..io.recording import write_metadata, write_recording
+    from ..vision.pose import write_pose_csv
+
     if rec is not None:
         filled = fill_pose(rec, m.t_s, m.pose, start_s, {
             "pose_source": f"measure-pose {video}", "video_start_s": start_s,
@@ -81,14 +107,6 @@ def command(
         write_pose_csv(out, m.t_s + start_s, m.pose)
         write_metadata(out, summary)
         summary["out"] = str(out)
-    if as_json:
-        typer.echo(json.dumps(summary, indent=2))
-        return
-    cp = summary["camera_pose"]
-    typer.echo(f"{summary['frames']} frames, robot found in {100 * summary['found_share']:.1f} %;"
-               f" camera at {cp['position_m']} m, tilt {cp['tilt_deg']:.1f} deg, floor markers "
-               f"reproject {summary['camera_reprojection_rms_px']:.3f} px RMS; video start "
-               f"{start_s:.3f} s ({method}) -> {out}")
 
 
 def _parse_video_start(video_start: str | None, recording: Path | None) -> tuple[bool, float]:

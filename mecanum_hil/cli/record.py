@@ -9,6 +9,7 @@ builds it there.
 
 
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Annotated
 
 import typer
@@ -26,6 +27,7 @@ from ._options import (
     OdomTopicOpt,
     OutOpt,
     PortOpt,
+    ProgressOpt,
     RobotOpt,
     TransportOpt,
     WheelSignsOpt,
@@ -82,6 +84,44 @@ def clear_former_run(out: Path, folder: bool) -> None:
                               f"{err.strerror or err}") from err
 
 
+ProfileOpt = Annotated[str | None, typer.Option(
+    "--profile", help="Built-in profile (paper-step-60, ...) or profile TOML file.")]
+CommandsOpt = Annotated[Path | None, typer.Option(
+    "--commands", help="Recording whose command columns are sent.")]
+RateOpt = Annotated[float, typer.Option("--rate", help="Command rate [Hz].")]
+DryRunOpt = Annotated[bool, typer.Option(
+    "--dry-run", help="Check and show what would be sent; open nothing.")]
+ConnectTimeoutOpt = Annotated[float | None, typer.Option(
+    "--connect-timeout", help="How long to wait for the controller's HELLO_ACK, or on "
+    "ROS 2 for the robot's topics [s] (default 2; ROS 2: 5).")]
+LinkTimeoutOpt = Annotated[float, typer.Option(
+    "--link-timeout", help="Telemetry silence that counts as a lost link, whatever "
+                           "else arrives [s]; at least 3 of the controller's telemetry "
+                           "periods.")]
+ShadowOpt = Annotated[str | None, typer.Option(
+    "--shadow", metavar="CAL", help="Shadow mode: run this calibration's model beside the "
+    "robot and flag divergence (events in OUT.shadow.jsonl).")]
+OnDivergenceOpt = Annotated[str, typer.Option(
+    "--on-divergence", help="With --shadow: none (report) or stop (send STOP at the "
+    "first alarm; exit 3).")]
+PolicyOpt = Annotated[str | None, typer.Option(
+    "--policy", metavar="POLICY", help="Closed loop: this policy file (from train) or "
+    "'scripted' drives the robot; --out is then a folder (one recording per episode, "
+    "summary.json).")]
+TaskOpt = Annotated[str | None, typer.Option(
+    "--task", help="With --policy: reach or dodge (must be the policy's).")]
+EpisodesOpt = Annotated[int, typer.Option("--episodes", help="With --policy: episodes.")]
+SeedOpt = Annotated[int, typer.Option(
+    "--seed", help="With --policy: episode i draws its target or strike from seed + i, "
+    "as evaluate does.")]
+PolicyJsonOpt = Annotated[bool, typer.Option(
+    "--json", help="With --policy: print the summary (summary.json) on stdout.")]
+ForceOpt = Annotated[bool, typer.Option(
+    "--force", help="Replace an existing recording at --out (its sidecar and event log "
+    "too: a former event log is removed; with --policy, the folder's episode files and "
+    "summary.json).")]
+
+
 def command(
     out: OutOpt,
     transport: TransportOpt = "serial",
@@ -96,53 +136,51 @@ def command(
     odom_topic: OdomTopicOpt = "/odom",
     joints: JointsOpt = None,
     wheel_signs: WheelSignsOpt = None,
-    profile: Annotated[str | None, typer.Option(
-        "--profile", help="Built-in profile (paper-step-60, ...) or profile TOML file.")] = None,
-    commands: Annotated[Path | None, typer.Option(
-        "--commands", help="Recording whose command columns are sent.")] = None,
-    rate_hz: Annotated[float, typer.Option("--rate", help="Command rate [Hz].")] = 50.0,
+    profile: ProfileOpt = None,
+    commands: CommandsOpt = None,
+    rate_hz: RateOpt = 50.0,
     robot: RobotOpt = "tdam-stm",
-    dry_run: Annotated[bool, typer.Option(
-        "--dry-run", help="Check and show what would be sent; open nothing.")] = False,
-    connect_timeout_s: Annotated[float | None, typer.Option(
-        "--connect-timeout", help="How long to wait for the controller's HELLO_ACK, or on "
-        "ROS 2 for the robot's topics [s] (default 2; ROS 2: 5).")] = None,
-    link_timeout_s: Annotated[float, typer.Option(
-        "--link-timeout", help="Telemetry silence that counts as a lost link, whatever "
-                               "else arrives [s]; at least 3 of the controller's telemetry "
-                               "periods.")] = 0.5,
-    progress: Annotated[bool, typer.Option(
-        "--progress/--no-progress", help="Show a progress bar.")] = True,
-    shadow: Annotated[str | None, typer.Option(
-        "--shadow", metavar="CAL", help="Shadow mode: run this calibration's model beside the "
-        "robot and flag divergence (events in OUT.shadow.jsonl).")] = None,
-    on_divergence: Annotated[str, typer.Option(
-        "--on-divergence", help="With --shadow: none (report) or stop (send STOP at the "
-        "first alarm; exit 3).")] = "none",
+    dry_run: DryRunOpt = False,
+    connect_timeout_s: ConnectTimeoutOpt = None,
+    link_timeout_s: LinkTimeoutOpt = 0.5,
+    progress: ProgressOpt = True,
+    shadow: ShadowOpt = None,
+    on_divergence: OnDivergenceOpt = "none",
     foxglove: FoxgloveOpt = None,
-    policy: Annotated[str | None, typer.Option(
-        "--policy", metavar="POLICY", help="Closed loop: this policy file (from train) or "
-        "'scripted' drives the robot; --out is then a folder (one recording per episode, "
-        "summary.json).")] = None,
-    task: Annotated[str | None, typer.Option(
-        "--task", help="With --policy: reach or dodge (must be the policy's).")] = None,
-    episodes: Annotated[int, typer.Option("--episodes", help="With --policy: episodes.")] = 1,
-    seed: Annotated[int, typer.Option(
-        "--seed", help="With --policy: episode i draws its target or strike from seed + i, "
-        "as evaluate does.")] = 0,
-    json_out: Annotated[bool, typer.Option(
-        "--json", help="With --policy: print the summary (summary.json) on stdout.")] = False,
-    force: Annotated[bool, typer.Option(
-        "--force", help="Replace an existing recording at --out (its sidecar and event log "
-        "too: a former event log is removed; with --policy, the folder's episode files and "
-        "summary.json).")] = False,
+    policy: PolicyOpt = None,
+    task: TaskOpt = None,
+    episodes: EpisodesOpt = 1,
+    seed: SeedOpt = 0,
+    json_out: PolicyJsonOpt = False,
+    force: ForceOpt = False,
 ) -> None:
     """Send a command profile to a robot controller and record commands and telemetry."""
+    a = SimpleNamespace(**locals())  # the options, by name, for the steps below
+    a.connect_timeout_s = _check_timing(transport, rate_hz, connect_timeout_s, link_timeout_s)
+    ros2 = ros2_options(transport, cmd_topic=cmd_topic, cmd_type=cmd_type,
+                        joint_topic=joint_topic, odom_topic=odom_topic, joints=joints,
+                        wheel_signs=wheel_signs, robot=robot,
+                        discovery_timeout_s=a.connect_timeout_s)
+    if policy is not None:
+        return _record_policy(a, ros2)
+    _check_stream_run(a)
+    rob, t, cmd, source = _checked_stream(robot, profile, commands, rate_hz)
+    options, where = _link_options(a, ros2)
+    if dry_run:
+        from ..link.record import dry_run_report
+
+        echo_safely(dry_run_report(t, cmd, rob, transport, where))
+        return
+    meta = {"commands_from": source, "command_rate_hz": rate_hz}
+    result = _run(a, options, where, rob, t, cmd, meta)
+    _end(result)
+
+
+def _check_timing(transport: str, rate_hz: float, connect_timeout_s: float | None,
+                  link_timeout_s: float) -> float:
+    """The connect timeout (its default by transport), after one-line errors for a rate or a
+    timeout the link cannot keep."""
     from ..errors import ConfigError
-    from ..link.record import dry_run_report, format_summary
-    from ..link.session import SessionConfig, run_record_session
-    from ..link.transport import open_transport, transport_options
-    from ..model import load_robot_profile
 
     if connect_timeout_s is None:
         connect_timeout_s = 5.0 if transport == "ros2" else 2.0
@@ -151,69 +189,99 @@ def command(
                           f"stop at their reference timeout), got {rate_hz:g}")
     require_positive(connect_timeout_s, "--connect-timeout")
     require_positive(link_timeout_s, "--link-timeout")
-    ros2 = ros2_options(transport, cmd_topic=cmd_topic, cmd_type=cmd_type,
-                        joint_topic=joint_topic, odom_topic=odom_topic, joints=joints,
-                        wheel_signs=wheel_signs, robot=robot,
-                        discovery_timeout_s=connect_timeout_s)
-    if policy is not None:
-        from ._record_policy import record_policy
+    return connect_timeout_s
 
-        if not force:
-            refuse_replacing_recording(out, folder=True)
 
-        return record_policy(
-            out=out, transport=transport, port=port, interface=interface, channel=channel,
-            bitrate=bitrate, link_option=link_option, robot=robot, policy=policy, task=task,
-            episodes=episodes, seed=seed, connect_timeout_s=connect_timeout_s,
-            link_timeout_s=link_timeout_s, progress=progress, shadow=shadow,
-            on_divergence=on_divergence, json_out=json_out, profile=profile, commands=commands,
-            dry_run=dry_run, foxglove=foxglove, ros2=ros2,
-            before_run=(lambda: clear_former_run(out, folder=True)) if force else None)
-    if (commands is None) == (profile is None):
+def _record_policy(a, ros2: dict) -> None:
+    """``--policy``: episodes into the folder ``--out`` (:mod:`._record_policy`)."""
+    from ._record_policy import record_policy
+
+    if not a.force:
+        refuse_replacing_recording(a.out, folder=True)
+    out = a.out
+    return record_policy(
+        out=out, transport=a.transport, port=a.port, interface=a.interface, channel=a.channel,
+        bitrate=a.bitrate, link_option=a.link_option, robot=a.robot, policy=a.policy,
+        task=a.task, episodes=a.episodes, seed=a.seed, connect_timeout_s=a.connect_timeout_s,
+        link_timeout_s=a.link_timeout_s, progress=a.progress, shadow=a.shadow,
+        on_divergence=a.on_divergence, json_out=a.json_out, profile=a.profile,
+        commands=a.commands, dry_run=a.dry_run, foxglove=a.foxglove, ros2=ros2,
+        before_run=(lambda: clear_former_run(out, folder=True)) if a.force else None)
+
+
+def _check_stream_run(a) -> None:
+    """One source of commands, and (unless a dry run) no input or former recording
+    overwritten."""
+    from ..errors import ConfigError
+
+    if (a.commands is None) == (a.profile is None):
         raise ConfigError("give exactly one of --profile NAME_OR_FILE and --commands REC.csv")
-    if not dry_run:  # the recording is created before the first command is sent
-        refuse_overwriting([(commands, "the --commands recording", True),
-                            (shipped_or_file(profile), "the profile"),
-                            (shipped_or_file(robot), "the robot profile"),
-                            (shipped_or_file(shadow), "the --shadow calibration")],
-                           [(out, "--out", True)])
-        if not force:
-            refuse_replacing_recording(out, folder=False)
+    if not a.dry_run:  # the recording is created before the first command is sent
+        refuse_overwriting([(a.commands, "the --commands recording", True),
+                            (shipped_or_file(a.profile), "the profile"),
+                            (shipped_or_file(a.robot), "the robot profile"),
+                            (shipped_or_file(a.shadow), "the --shadow calibration")],
+                           [(a.out, "--out", True)])
+        if not a.force:
+            refuse_replacing_recording(a.out, folder=False)
+
+
+def _checked_stream(robot: str, profile: str | None, commands: Path | None, rate_hz: float):
+    """``(robot profile, t [s], commands, where they come from)``, the commands checked
+    against the robot before anything is opened or sent."""
+    from ..model import load_robot_profile
+
     rob = load_robot_profile(robot)
     t, cmd, source = _command_stream(profile, commands, rate_hz)
     rob.check_commands(cmd, source)  # before anything is opened or sent
-    options = transport_options(transport, port=port, interface=interface, channel=channel,
-                                bitrate=bitrate, link_options=link_option)
-    options.update(ros2)
-    where = link_name(transport, port, interface, channel, cmd_topic)
-    if dry_run:
-        echo_safely(dry_run_report(t, cmd, rob, transport, where))
-        return
+    return rob, t, cmd, source
 
-    observers, shadow_obs, live_view = _observers(shadow, on_divergence, foxglove, rob, t, cmd,
-                                                  out)
+
+def _link_options(a, ros2: dict) -> tuple[dict, str]:
+    """The transport's options and how the run names its link."""
+    from ..link.transport import transport_options
+
+    options = transport_options(a.transport, port=a.port, interface=a.interface,
+                                channel=a.channel, bitrate=a.bitrate,
+                                link_options=a.link_option)
+    options.update(ros2)
+    return options, link_name(a.transport, a.port, a.interface, a.channel, a.cmd_topic)
+
+
+def _run(a, options: dict, where: str, rob, t, cmd, meta: dict):
+    """Open the link, run the session with its observers, close everything; the result."""
+    from ..link.session import SessionConfig, run_record_session
+    from ..link.transport import open_transport
+
+    observers, shadow_obs, live_view = _observers(a.shadow, a.on_divergence, a.foxglove, rob,
+                                                  t, cmd, a.out)
     try:
-        link = open_transport(transport, options)
+        link = open_transport(a.transport, options)
     except BaseException:
         if live_view is not None:  # a port that does not open must not leave a server running
             live_view.live.close()
         raise
     try:
-        if force and shadow is None:  # the session replaces the recording from here on
-            clear_former_run(out, folder=False)
-        config = SessionConfig(connect_timeout_s=connect_timeout_s, link_timeout_s=link_timeout_s)
-        meta = {"commands_from": source, "command_rate_hz": rate_hz}
-        if progress:
-            result = _run_with_progress(link, t, cmd, out, rob, config, observers, meta, where)
-        else:
-            result = run_record_session(link, t, cmd, out, rob, config=config,
-                                        observers=observers, metadata=meta)
+        if a.force and a.shadow is None:  # the session replaces the recording from here on
+            clear_former_run(a.out, folder=False)
+        config = SessionConfig(connect_timeout_s=a.connect_timeout_s,
+                               link_timeout_s=a.link_timeout_s)
+        if a.progress:
+            return _run_with_progress(link, t, cmd, a.out, rob, config, observers, meta, where)
+        return run_record_session(link, t, cmd, a.out, rob, config=config,
+                                  observers=observers, metadata=meta)
     finally:
         link.close()
         if shadow_obs is not None:
             echo_safely(shadow_obs.close())
         if live_view is not None:
             live_view.live.close()
+
+
+def _end(result) -> None:
+    """Print the run's summary; end with its exit code (an error or a signal as such)."""
+    from ..link.record import format_summary
+
     echo_safely(format_summary(result))
     if result.exit_code == 0:
         return

@@ -55,54 +55,62 @@ ThresholdOpt = Annotated[float, typer.Option(
     "--threshold", help="CUSUM decision threshold h [noise sigmas].")]
 WarmupOpt = Annotated[float, typer.Option(
     "--warmup", help="Initial window for the noise estimate [s].")]
+ReplayOpt = Annotated[Path | None, typer.Option(
+    "--replay", help="Recording (CSV) to run the monitor over, as if live.",
+    metavar="REC.csv")]
+EventsOpt = Annotated[Path | None, typer.Option(
+    "--events", help="Event log (JSON lines); default: next to the recording, "
+    "REC.shadow.jsonl (none beside a recording shipped with mecanum-hil).")]
+NoEventsOpt = Annotated[bool, typer.Option("--no-events", help="Write no event log.")]
+PlotOpt = Annotated[Path | None, typer.Option(
+    "--plot", help="Replay: also write a PNG of measured against model, alarms marked.")]
+ListenTransportOpt = Annotated[str | None, typer.Option(
+    "--transport", help="Live: listen on a link passively (can, ros2).")]
+CanInterfaceOpt = Annotated[str, typer.Option(
+    "--interface", help="Live CAN: python-can interface (socketcan, slcan, virtual...).")]
+CanChannelOpt = Annotated[str | None, typer.Option(
+    "--channel", help="Live CAN: channel (can0, /dev/ttyACM0...).")]
+CanBitrateOpt = Annotated[int | None, typer.Option(
+    "--bitrate", help="Live CAN: bitrate [bit/s].")]
+HeardOutOpt = Annotated[Path | None, typer.Option(
+    "--out", "-o", help="Live: also record what was heard (CSV); the event log goes next "
+    "to it.")]
+DurationOpt = Annotated[float | None, typer.Option(
+    "--duration", help="Live: stop listening after this long [s] (default: until Ctrl-C).")]
+OnDivergenceOpt = Annotated[str, typer.Option(
+    "--on-divergence", help="Live: 'none' (only report) or 'stop' (send STOP on the bus at "
+    "the first alarm).")]
+DiagnosticsTopicOpt = Annotated[str, typer.Option(
+    "--diagnostics-topic", help="Live ROS 2: where the verdict is published "
+    "(diagnostic_msgs/DiagnosticArray).")]
 
 
 def command(
-    replay_path: Annotated[Path | None, typer.Option(
-        "--replay", help="Recording (CSV) to run the monitor over, as if live.",
-        metavar="REC.csv")] = None,
+    replay_path: ReplayOpt = None,
     calibration: CalibrationOpt = "paper",
     robot: RobotOpt = "tdam-stm",
     json_out: JsonOpt = False,
-    events: Annotated[Path | None, typer.Option(
-        "--events", help="Event log (JSON lines); default: next to the recording, "
-        "REC.shadow.jsonl (none beside a recording shipped with mecanum-hil).")] = None,
-    no_events: Annotated[bool, typer.Option(
-        "--no-events", help="Write no event log.")] = False,
-    plot: Annotated[Path | None, typer.Option(
-        "--plot", help="Replay: also write a PNG of measured against model, alarms marked.")
-    ] = None,
+    events: EventsOpt = None,
+    no_events: NoEventsOpt = False,
+    plot: PlotOpt = None,
     noise_rpm: NoiseOpt = None,
     drift: DriftOpt = 1.0,
     threshold: ThresholdOpt = 10.0,
     warmup: WarmupOpt = 2.0,
-    transport: Annotated[str | None, typer.Option(
-        "--transport", help="Live: listen on a link passively (can, ros2).")] = None,
-    interface: Annotated[str, typer.Option(
-        "--interface", help="Live CAN: python-can interface (socketcan, slcan, virtual...).")
-    ] = "socketcan",
-    channel: Annotated[str | None, typer.Option(
-        "--channel", help="Live CAN: channel (can0, /dev/ttyACM0...).")] = None,
-    bitrate: Annotated[int | None, typer.Option(
-        "--bitrate", help="Live CAN: bitrate [bit/s].")] = None,
-    out: Annotated[Path | None, typer.Option(
-        "--out", "-o", help="Live: also record what was heard (CSV); the event log goes next "
-        "to it.")] = None,
-    duration: Annotated[float | None, typer.Option(
-        "--duration", help="Live: stop listening after this long [s] (default: until Ctrl-C).")
-    ] = None,
-    on_divergence: Annotated[str, typer.Option(
-        "--on-divergence", help="Live: 'none' (only report) or 'stop' (send STOP on the bus at "
-        "the first alarm).")] = "none",
+    transport: ListenTransportOpt = None,
+    interface: CanInterfaceOpt = "socketcan",
+    channel: CanChannelOpt = None,
+    bitrate: CanBitrateOpt = None,
+    out: HeardOutOpt = None,
+    duration: DurationOpt = None,
+    on_divergence: OnDivergenceOpt = "none",
     foxglove: FoxgloveOpt = None,
     cmd_topic: CmdTopicOpt = "/cmd_vel",
     cmd_type: CmdTypeOpt = "twist",
     joint_topic: JointTopicOpt = "/joint_states",
     joints: JointsOpt = None,
     wheel_signs: WheelSignsOpt = None,
-    diagnostics_topic: Annotated[str, typer.Option(
-        "--diagnostics-topic", help="Live ROS 2: where the verdict is published "
-        "(diagnostic_msgs/DiagnosticArray).")] = "/diagnostics",
+    diagnostics_topic: DiagnosticsTopicOpt = "/diagnostics",
 ) -> None:
     """Run the model beside the robot and flag persistent divergence (exit 3 on alarms)."""
     from ..errors import ConfigError
@@ -124,17 +132,29 @@ def command(
         n_alarms = _listen_ros2(ros2, calibration, robot, config, out, events, no_events,
                                 duration, on_divergence, json_out, foxglove)
     else:
-        from ..monitor.live import listen_can
-
-        if transport != "can":
-            raise ConfigError(f"passive listening needs --transport can or ros2, got "
-                              f"'{transport}' (on a serial link, use record --shadow)")
-        n_alarms = listen_can(interface, channel, bitrate, calibration, robot, config,
-                              out=out, events=None if no_events else events,
-                              duration_s=duration, stop_on_divergence=on_divergence == "stop",
-                              echo=typer.echo, foxglove=foxglove)
+        n_alarms = _listen_can(transport, (interface, channel, bitrate), calibration, robot,
+                               config, out, None if no_events else events, duration,
+                               on_divergence, foxglove)
     if n_alarms:
         raise typer.Exit(EXIT_ALARM)
+
+
+def _listen_can(transport: str | None, bus: tuple, calibration: str, robot: str, config,
+                out: Path | None, events: Path | None, duration: float | None,
+                on_divergence: str, foxglove) -> int:
+    """``shadow --transport can``: the monitor beside a controller someone else commands
+    (``bus``: interface, channel, bitrate); the number of alarms."""
+    from ..errors import ConfigError
+    from ..monitor.live import listen_can
+
+    if transport != "can":
+        raise ConfigError(f"passive listening needs --transport can or ros2, got "
+                          f"'{transport}' (on a serial link, use record --shadow)")
+    interface, channel, bitrate = bus
+    return listen_can(interface, channel, bitrate, calibration, robot, config,
+                      out=out, events=events, duration_s=duration,
+                      stop_on_divergence=on_divergence == "stop", echo=typer.echo,
+                      foxglove=foxglove)
 
 
 def _replay(path: Path, calibration: str, robot: str, config, json_out: bool,
