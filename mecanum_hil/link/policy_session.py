@@ -12,7 +12,7 @@ profile's limits and the transport's ranges) before it is sent.
 Two drivers run the same :class:`EpisodeController`:
 
 - :func:`run_policy_episode` on a real link, in real time, with every safety rule of ``record``
-  (it is :class:`~mecanum_hil.link.session._Session` with a closed-loop ``run``): STOP on every
+  (it is :class:`~mecanum_hil.link.session.RecordSession` with a closed-loop ``run``): STOP on every
   way out (end of episode, Ctrl-C, SIGTERM/SIGHUP, exception, lost link, an observer's stop),
   the recording flushed as it grows, observers (shadow mode) beside it;
 - :func:`run_policy_lockstep`: the simulated controller (``sim-robot``'s firmware and robot,
@@ -38,25 +38,22 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError, LimitError, MecanumHILError
+from ..errors import ConfigError, LimitError, MecanumHILError, SessionTerminated
 from ..io.recording import RecordingWriter
 from ..model import Calibration, RobotProfile, wheels_to_twist
 from ..units import DPS_TO_RPM, RPM_TO_RAD_S
+from .observers import ObserverStopError
 from .protocol import PROTOCOL_VERSION, Telemetry
 from .session import (
-    EXIT_CODES,
     EXTRA_COLUMNS,
     RecordResult,
+    RecordSession,
     SessionConfig,
-    SessionTerminated,
-    SignalGuard,
-    _ObserverStopError,
-    _Session,
     _start_metadata,
-    _stream_stop_close,
-    signal_end_reason,
-    signal_reason,
 )
+from .session_types import EXIT_CODES
+from .signals import SignalGuard, signal_end_reason, signal_reason
+from .stop_path import stream_stop_close
 from .transport import Transport
 
 #: Wheel speed below which the robot counts as at rest between episodes [rpm].
@@ -224,7 +221,7 @@ class EpisodeController:
             self.done = True
 
 
-class _PolicySession(_Session):
+class _PolicySession(RecordSession):
     """The record session with a closed-loop ``run``: commands come from the controller."""
 
     def __init__(self, transport: Transport, controller: EpisodeController, robot: RobotProfile,
@@ -275,7 +272,7 @@ class _PolicySession(_Session):
                 raise MecanumHILError(f"observer failed: {type(self.pump.error).__name__}: "
                                       f"{self.pump.error}") from self.pump.error
             if self.pump.stop_requested:
-                raise _ObserverStopError()
+                raise ObserverStopError()
             command = self.ctl.next_command()
             if command is None:
                 return
@@ -314,7 +311,7 @@ def run_policy_episode(transport: Transport, controller: EpisodeController, out:
     meta = _start_metadata(transport, robot, metadata, source="mecanum-hil record --policy")
     writer = RecordingWriter(out, EXTRA_COLUMNS, meta, fsync=True)
     sess = _PolicySession(transport, controller, robot, writer, config, observers, progress)
-    return _stream_stop_close(
+    return stream_stop_close(
         sess, transport, writer, out, config,
         settle=lambda: sess.wait_for_rest(rest_timeout_s), cut_short=controller.cut_short,
         end_extra=lambda: {"policy_episode": controller.outcome.as_dict()})
