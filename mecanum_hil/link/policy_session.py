@@ -12,7 +12,7 @@ profile's limits and the transport's ranges) before it is sent.
 Two drivers run the same :class:`EpisodeController`:
 
 - :func:`run_policy_episode` on a real link, in real time, with every safety rule of ``record``
-  (it is :class:`~mecanum_hil.link.session._Session` with a closed-loop ``run``): STOP on every
+  (it is :class:`~mecanum_hil.link.session.RecordSession` with a closed-loop ``run``): STOP on every
   way out (end of episode, Ctrl-C, SIGTERM/SIGHUP, exception, lost link, an observer's stop),
   the recording flushed as it grows, observers (shadow mode) beside it;
 - :func:`run_policy_lockstep`: the simulated controller (``sim-robot``'s firmware and robot,
@@ -38,25 +38,22 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError, LimitError, MecanumHILError
+from ..errors import ConfigError, LimitError, MecanumHILError, SessionTerminated
 from ..io.recording import RecordingWriter
 from ..model import Calibration, RobotProfile, wheels_to_twist
 from ..units import DPS_TO_RPM, RPM_TO_RAD_S
-from .protocol import PROTOCOL_VERSION, Telemetry
+from .observers import ObserverStopError
+from .protocol import PROTOCOL_VERSION, Hello, Stop, Telemetry
 from .session import (
-    EXIT_CODES,
     EXTRA_COLUMNS,
     RecordResult,
+    RecordSession,
     SessionConfig,
-    SessionTerminated,
-    SignalGuard,
-    _ObserverStopError,
-    _Session,
     _start_metadata,
-    _stream_stop_close,
-    signal_end_reason,
-    signal_reason,
 )
+from .session_types import EXIT_CODES
+from .signals import SignalGuard, signal_end_reason, signal_reason
+from .stop_path import stream_stop_close
 from .transport import Transport
 
 #: Wheel speed below which the robot counts as at rest between episodes [rpm].
@@ -224,7 +221,7 @@ class EpisodeController:
             self.done = True
 
 
-class _PolicySession(_Session):
+class _PolicySession(RecordSession):
     """The record session with a closed-loop ``run``: commands come from the controller."""
 
     def __init__(self, transport: Transport, controller: EpisodeController, robot: RobotProfile,
@@ -275,7 +272,7 @@ class _PolicySession(_Session):
                 raise MecanumHILError(f"observer failed: {type(self.pump.error).__name__}: "
                                       f"{self.pump.error}") from self.pump.error
             if self.pump.stop_requested:
-                raise _ObserverStopError()
+                raise ObserverStopError()
             command = self.ctl.next_command()
             if command is None:
                 return
@@ -314,7 +311,7 @@ def run_policy_episode(transport: Transport, controller: EpisodeController, out:
     meta = _start_metadata(transport, robot, metadata, source="mecanum-hil record --policy")
     writer = RecordingWriter(out, EXTRA_COLUMNS, meta, fsync=True)
     sess = _PolicySession(transport, controller, robot, writer, config, observers, progress)
-    return _stream_stop_close(
+    return stream_stop_close(
         sess, transport, writer, out, config,
         settle=lambda: sess.wait_for_rest(rest_timeout_s), cut_short=controller.cut_short,
         end_extra=lambda: {"policy_episode": controller.outcome.as_dict()})
@@ -355,6 +352,95 @@ def summary_of(policy, robot: RobotProfile, outcomes: Sequence[EpisodeOutcome],
     return {**ev.as_dict(), "control_period_s": policy.control_period_s, **(extra or {})}
 
 
+@dataclass(frozen=True)
+class _EpisodeRun:
+    """What every episode of a ``record --policy`` run shares (see
+    :func:`run_policy_episodes`)."""
+
+    transport: Transport
+    policy: Any
+    robot: RobotProfile
+    calibration: Calibration
+    seed: int
+    out_dir: Path
+    config: SessionConfig
+    make_observers: Callable[[Path], Sequence[Any]] | None
+    close_observers: Callable[[Sequence[Any]], None] | None
+    metadata: dict[str, Any] | None
+    progress: Callable[[int, float, float, dict], None] | None
+    echo: Callable[[str], None] | None
+
+
+def _run_episode(run: _EpisodeRun, i: int) -> tuple[RecordResult, EpisodeOutcome]:
+    """Episode ``i``: its draw, observers and recording; STOP at its every way out."""
+    from ..policy.evaluate import episode_draw
+    from ..policy.policies import task_name
+
+    policy = run.policy
+    ctl = EpisodeController(policy, run.robot, run.calibration,
+                            episode_draw(policy.task, run.seed, i))
+    out = run.out_dir / f"episode_{i:03d}.csv"
+    observers = list(run.make_observers(out)) if run.make_observers else []
+    meta = {**(run.metadata or {}), "episode": i, "seed": run.seed,
+            "task": task_name(policy.task), "command_rate_hz": 1.0 / ctl.period_s}
+    progress = run.progress
+    prog = None if progress is None else (
+        lambda el, tot, counts: progress(i, el, tot, counts))
+    try:
+        res = run_policy_episode(run.transport, ctl, out, run.robot, config=run.config,
+                                 observers=observers, metadata=meta, progress=prog)
+    finally:
+        if run.close_observers is not None:
+            run.close_observers(observers)
+    return res, ctl.outcome
+
+
+def _echo_episode(run: _EpisodeRun, i: int, res: RecordResult, o: EpisodeOutcome) -> None:
+    """One line on how episode ``i`` went, when the run echoes."""
+    if run.echo is not None:
+        run.echo(f"episode {i}: {o.ended} after {o.end_time_s:.2f} s, return "
+                 f"{o.episode_return:+.3f} ({res.reason}, {res.path.name})")
+
+
+def _end_after_episode(res: RecordResult) -> tuple[str, int] | None:
+    """``(reason, exit_code)`` when no further episode may run after ``res``, else None."""
+    if res.exit_code != 0:
+        return res.reason, res.exit_code
+    if res.signal_at_end is not None:  # the episode ended whole; no further one
+        reason = signal_end_reason(res.signal_at_end)
+        return reason, EXIT_CODES[reason]
+    return None
+
+
+def _write_summary(out_dir: Path, summary: dict[str, Any]) -> None:
+    """``summary.json``, atomically: a reader never sees half of it."""
+    path = out_dir / "summary.json"
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
+        os.replace(tmp, path)
+    except OSError as err:
+        raise ConfigError(f"{out_dir}: cannot write summary.json: "
+                          f"{err.strerror or err}") from err
+
+
+def _run_episodes(run: _EpisodeRun, episodes: int, guard: SignalGuard,
+                  results: list, outcomes: list) -> tuple[str, int]:
+    """Run episodes until ``episodes`` ran or one did not complete; the run's reason and
+    exit code. A signal kept by ``guard`` between episodes ends the run before the next."""
+    for i in range(episodes):
+        if guard.pending is not None:
+            kept = signal_end_reason(guard.pending)
+            return kept, EXIT_CODES[kept]
+        res, outcome = _run_episode(run, i)
+        results.append(res)
+        outcomes.append(outcome)
+        _echo_episode(run, i, res, outcome)
+        if (end := _end_after_episode(res)) is not None:
+            return end
+    return "completed", 0
+
+
 def run_policy_episodes(transport: Transport, policy, robot: RobotProfile,
                         calibration: Calibration, *, episodes: int, seed: int,
                         out_dir: str | Path, config: SessionConfig | None = None,
@@ -370,61 +456,24 @@ def run_policy_episodes(transport: Transport, policy, robot: RobotProfile,
     then been sent. ``make_observers(out_csv)`` builds an episode's observers (shadow mode)
     and ``close_observers`` closes them.
     """
-    from ..policy.evaluate import episode_draw
-    from ..policy.policies import task_name
-
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise ConfigError(f"{out_dir}: cannot create: {err.strerror or err}") from err
     config = config or SessionConfig()
-    results, outcomes = [], []
-    exit_code, reason = 0, "completed"
+    run = _EpisodeRun(transport, policy, robot, calibration, seed, out_dir, config,
+                      make_observers, close_observers, metadata, progress, echo)
+    results: list[RecordResult] = []
+    outcomes: list[EpisodeOutcome] = []
     # between episodes a signal is kept (observers closed, the episode counted, the summary
     # written whole) and ends the run at the next check; inside an episode the episode's own
     # guard ends it with STOP (it takes over this guard's handlers)
     guard = SignalGuard(config.handle_sigterm)
     guard.defer()
-
-    def signalled() -> str | None:
-        if guard.pending is None:
-            return None
-        return signal_end_reason(guard.pending)
-
     try:
         try:
-            for i in range(episodes):
-                if (kept := signalled()) is not None:
-                    exit_code, reason = EXIT_CODES[kept], kept
-                    break
-                ctl = EpisodeController(policy, robot, calibration,
-                                        episode_draw(policy.task, seed, i))
-                out = out_dir / f"episode_{i:03d}.csv"
-                observers = list(make_observers(out)) if make_observers else []
-                meta = {**(metadata or {}), "episode": i, "seed": seed,
-                        "task": task_name(policy.task), "command_rate_hz": 1.0 / ctl.period_s}
-                prog = None if progress is None else (
-                    lambda el, tot, counts, i=i: progress(i, el, tot, counts))
-                try:
-                    res = run_policy_episode(transport, ctl, out, robot, config=config,
-                                             observers=observers, metadata=meta, progress=prog)
-                finally:
-                    if close_observers is not None:
-                        close_observers(observers)
-                results.append(res)
-                outcomes.append(ctl.outcome)
-                if echo is not None:
-                    o = ctl.outcome
-                    echo(f"episode {i}: {o.ended} after {o.end_time_s:.2f} s, return "
-                         f"{o.episode_return:+.3f} ({res.reason}, {out.name})")
-                if res.exit_code != 0:
-                    exit_code, reason = res.exit_code, res.reason
-                    break
-                if res.signal_at_end is not None:  # the episode ended whole; no further one
-                    reason = signal_end_reason(res.signal_at_end)
-                    exit_code = EXIT_CODES[reason]
-                    break
+            reason, exit_code = _run_episodes(run, episodes, guard, results, outcomes)
         except (KeyboardInterrupt, SessionTerminated) as exc:  # raised between episodes
             reason = signal_reason(exc)
             exit_code = EXIT_CODES[reason]
@@ -432,14 +481,7 @@ def run_policy_episodes(transport: Transport, policy, robot: RobotProfile,
             "seed": seed, "episodes_requested": episodes, "end_reason": reason,
             "exit_code": exit_code, "policy": policy.describe(),
             "recordings": [r.path.name for r in results]})
-        path = out_dir / "summary.json"
-        tmp = path.with_name(path.name + ".tmp")
-        try:  # atomically: a reader never sees half of it
-            tmp.write_text(json.dumps(summary, indent=2) + "\n")
-            os.replace(tmp, path)
-        except OSError as err:
-            raise ConfigError(f"{out_dir}: cannot write summary.json: "
-                              f"{err.strerror or err}") from err
+        _write_summary(out_dir, summary)
     finally:
         guard.restore()
     return PolicyRun(results, outcomes, summary, exit_code)
@@ -463,6 +505,66 @@ class LockstepEpisode:
     true_path: np.ndarray
 
 
+class _LockstepLink:
+    """``sim-robot``'s firmware and the serial framing to it, advanced in host time.
+
+    Parameters
+    ----------
+    ctl : EpisodeController
+        Gets every telemetry sample as it reaches the host.
+    model : ControllerModel
+        The simulated robot.
+    telemetry_rate_hz : float
+        The firmware's telemetry rate [Hz].
+    link_delay_s : float
+        Time a message takes either way [s].
+    """
+
+    def __init__(self, ctl: EpisodeController, model, telemetry_rate_hz: float,
+                 link_delay_s: float) -> None:
+        from .lockstep import FramedLoopback, VirtualClock
+        from .simulated import SimulatedController
+
+        self.ctl, self.model = ctl, model
+        self.clock = VirtualClock()
+        self.to_ctrl, self.to_host = FramedLoopback(), FramedLoopback()
+        self.fw = SimulatedController(self.to_host, model, telemetry_rate_hz, clock=self.clock)
+        self.delay_s = float(link_delay_s)
+        self.to_ctrl.send(Hello(PROTOCOL_VERSION))
+        self.fw.handle(self.to_ctrl.delivered.popleft())
+        self.to_host.delivered.clear()
+        self.to_ctrl.restart_sequences()
+        self.dt_s, self.ticks_per_sample = model.dt_s, self.fw.telemetry_ticks
+        self.tick = 0
+        self.pending: list[tuple[float, Any]] = []  # (controller arrival time [s], message)
+
+    def send(self, msg, at_s: float) -> None:
+        """Send ``msg`` at host time ``at_s`` [s]: it reaches the controller a delay later."""
+        self.to_ctrl.send(msg)
+        self.pending.append((at_s + self.delay_s, self.to_ctrl.delivered.popleft()))
+
+    def advance(self, until_s: float) -> None:
+        """Controller events up to host time ``until_s`` [s]: command arrivals, telemetry
+        ticks (a sample reaches the host a delay after it is sent)."""
+        fw, to_host = self.fw, self.to_host
+        while True:
+            c_tlm = self.tick * self.dt_s
+            if self.pending and self.pending[0][0] <= c_tlm:
+                self.clock.now_s = self.pending[0][0]
+                fw.handle(self.pending.pop(0)[1])
+                continue
+            if c_tlm + self.delay_s > until_s:
+                return
+            self.clock.now_s = c_tlm
+            fw.check_watchdog()
+            fw.send_telemetry(self.tick)
+            for msg in list(to_host.delivered):
+                if isinstance(msg, Telemetry):
+                    self.ctl.on_telemetry(msg.time_us * 1e-6, msg.wheel_rpm)
+            to_host.delivered.clear()
+            self.tick += self.ticks_per_sample
+
+
 def run_policy_lockstep(policy, robot: RobotProfile, task_state: np.ndarray, *,
                         calibration: Calibration, truth: Calibration | None = None,
                         sim_effects=None, telemetry_rate_hz: float = 100.0,
@@ -483,64 +585,29 @@ def run_policy_lockstep(policy, robot: RobotProfile, task_state: np.ndarray, *,
         What the host believes (its slip efficiencies for odometry), as for the robot.
     """
     from .effects_file import SimEffects
-    from .lockstep import FramedLoopback, VirtualClock
-    from .protocol import Hello, Stop
-    from .simulated import ControllerModel, SimulatedController
+    from .simulated import ControllerModel
 
     if not (internal_rate_hz > 0 and telemetry_rate_hz > 0 and link_delay_s >= 0):
         raise ConfigError("rates must be positive and the link delay >= 0")
     ctl = EpisodeController(policy, robot, calibration, task_state)
     model = ControllerModel(truth or Calibration(), robot, sim_effects or SimEffects(),
                             rate_hz=internal_rate_hz, lookahead=20)
-    clock = VirtualClock()
-    to_ctrl, to_host = FramedLoopback(), FramedLoopback()
-    fw = SimulatedController(to_host, model, telemetry_rate_hz, clock=clock)
-    d = float(link_delay_s)
-    to_ctrl.send(Hello(PROTOCOL_VERSION))
-    fw.handle(to_ctrl.delivered.popleft())
-    to_host.delivered.clear()
-    to_ctrl.restart_sequences()
-    dt, step = model.dt_s, fw.telemetry_ticks
-    tick = 0
-    pending: list[tuple[float, Any]] = []  # (controller arrival time, message)
+    link = _LockstepLink(ctl, model, telemetry_rate_hz, link_delay_s)
     true_path = []
-
-    def advance(until_s: float) -> None:
-        # controller events up to host time until_s: command arrivals, telemetry ticks
-        nonlocal tick
-        while True:
-            c_tlm = tick * dt
-            if pending and pending[0][0] <= c_tlm:
-                clock.now_s = pending[0][0]
-                fw.handle(pending.pop(0)[1])
-                continue
-            if c_tlm + d > until_s:
-                return
-            clock.now_s = c_tlm
-            fw.check_watchdog()
-            fw.send_telemetry(tick)
-            for msg in list(to_host.delivered):
-                if isinstance(msg, Telemetry):
-                    ctl.on_telemetry(msg.time_us * 1e-6, msg.wheel_rpm)
-            to_host.delivered.clear()
-            tick += step
-
-    advance(0.0)
+    link.advance(0.0)
     ctl.begin()
     k = 0
     while True:
         h = k * ctl.period_s
-        advance(h)
+        link.advance(h)
         # the simulated robot starts at the default pose, the tasks' start pose
-        true_path.append(model.pose(max(round(h / dt), model.anchor)))
+        true_path.append(model.pose(max(round(h / link.dt_s), model.anchor)))
         command = ctl.next_command()
         if command is None:
             break
         robot.check_commands(command, "policy command")
-        to_ctrl.send(to_ctrl.wire_command(*command))
-        pending.append((h + d, to_ctrl.delivered.popleft()))
+        link.send(link.to_ctrl.wire_command(*command), h)
         k += 1
-    to_ctrl.send(Stop())
-    pending.append((k * ctl.period_s + d, to_ctrl.delivered.popleft()))
-    advance(k * ctl.period_s + 2 * d)
+    link.send(Stop(), k * ctl.period_s)
+    link.advance(k * ctl.period_s + 2 * link.delay_s)
     return LockstepEpisode(ctl.outcome, np.array(true_path))

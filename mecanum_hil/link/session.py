@@ -35,21 +35,22 @@ others are ``link_events``. Each limit is a constant below.
 
 Observers (shadow mode) see every telemetry sample on their own thread, so a slow observer
 never delays a command; see :class:`TelemetryObserver`.
+
+The parts, by concern: this module holds the session (:class:`RecordSession`: handshake,
+commands, telemetry and its checks); :mod:`~mecanum_hil.link.stop_path` the ways out (STOP,
+the close, the result); :mod:`~mecanum_hil.link.signals` turns signals into clean stops;
+:mod:`~mecanum_hil.link.observers` feeds the observers; :mod:`~mecanum_hil.link.session_types`
+holds the config, the end reasons and the result. Their public names are importable from here.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import math
-import signal
-import threading
 import time
-from collections import deque
 from collections.abc import Callable, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
 
@@ -66,6 +67,7 @@ from ..errors import (
 from ..io.recording import MAX_ABS_VALUE, RecordingWriter
 from ..model.kinematics import command_to_wheels
 from ..model.robot import RobotProfile
+from .observers import ObserverPump, ObserverStopError, TelemetryObserver
 from .protocol import (
     LIMIT_SLACK,
     PROTOCOL_VERSION,
@@ -81,18 +83,33 @@ from .protocol import (
     Stop,
     Telemetry,
 )
+from .session_types import (
+    EXIT_CODES,
+    NOT_AS_ASKED,
+    STOP_AT_ONCE,
+    RecordResult,
+    SessionConfig,
+    TelemetryCheckError,
+    TelemetrySilenceError,
+    percentiles_ms,
+)
+from .signals import ENDING_SIGNALS, SignalGuard, signal_end_reason, signal_reason
+from .stop_path import stream_stop_close
 from .transport import PoseReading, Transport
 
-#: Exit code of each way a session can end.
-EXIT_CODES = {"completed": 0, "error": 1, "observer_stop": 3, "link_lost": 4,
-              "telemetry_rate": 5, "controller_reset": 6, "estop": 7, "drive_fault": 8,
-              "not_acknowledged": 9, "invalid_readings": 10, "clock_drift": 11,
-              "host_stall": 12, "interrupted": 130, "terminated": 143}
+__all__ = [
+    "ACK_FROZEN_COMMANDS", "ACK_FROZEN_S", "CLOCK_DRIFT_MAX", "CLOCK_DRIFT_SLACK_S",
+    "CLOCK_DRIFT_WINDOW_S", "COLUMN_NOTES", "ENDING_SIGNALS", "EXIT_CODES", "EXTRA_COLUMNS",
+    "HOST_STALL_SHARE", "INVALID_RUN_MAX_S", "INVALID_SHARE_MAX", "LINK_TIMEOUT_PERIODS",
+    "NOT_AS_ASKED", "RATE_TOLERANCE", "RESTART_PROBE_S", "STOP_AT_ONCE", "WATCHDOG_S",
+    "WHEEL_READING_MAX_RPM", "RecordResult", "RecordSession", "SessionConfig",
+    "SessionTerminated", "SignalGuard", "TelemetryCheckError", "TelemetryObserver",
+    "TelemetrySilenceError", "check_command_stream", "next_row_time", "percentiles_ms",
+    "run_record_session", "signal_end_reason", "signal_reason",
+]
 
-#: Reasons that end the run at once (STOP, then the tail of telemetry is kept).
-STOP_AT_ONCE = ("estop", "drive_fault", "not_acknowledged")
-#: Reasons judged while the profile runs to its end: they only set the reason and exit code.
-NOT_AS_ASKED = ("invalid_readings", "clock_drift", "host_stall")
+#: The observer pump under the name tests patch it by.
+_ObserverPump = ObserverPump
 
 #: Commands left unacknowledged (``ack_seq`` not reaching them) after which, when the oldest
 #: was sent more than :data:`ACK_FROZEN_S` before a telemetry sample, the run ends with
@@ -157,217 +174,81 @@ def next_row_time(t_s: float, last_t_s: float) -> float:
     return t if t > last_t_s else round(last_t_s + 1e-6, 6)
 
 
-@runtime_checkable
-class TelemetryObserver(Protocol):
-    """Something that watches the telemetry of a running session (e.g. shadow mode).
+class RecordSession:
+    """One command stream over a link: handshake, commands out, telemetry in, checks, STOP.
 
-    ``on_telemetry`` is called on the session's observer thread, in order, once per telemetry
-    sample: ``t_s`` host receive time since the first command [s], ``commands`` the
-    ``(n [rpm], omega [deg/s], theta [deg])`` in force as sent, shape (3,), ``wheel_rpm`` the
-    reported wheel speeds 1..4 [rpm], shape (4,). It must not keep the arrays (they are not
-    reused, but copying is cheap). The session reads ``stop_requested`` before every command;
-    once it is true the session sends STOP and ends with reason ``observer_stop`` (exit 3).
-    An exception raised by an observer ends the session with reason ``error``.
+    :func:`run_record_session` builds it and hands it to
+    :func:`~mecanum_hil.link.stop_path.stream_stop_close`, which runs it (:meth:`run`) and
+    sends STOP (:meth:`stop`) at every way out. Host times are ``time.perf_counter()``.
 
-    Optionally an observer also defines ``on_command(t_s, commands)``: it is then told every
-    command (and the final stop) at its actual send time, in order with the telemetry, and its
-    ``on_telemetry`` receives ``controller_time_s=`` (the controller's clock for the sample [s]),
-    which lets it time samples by the controller instead of by a possibly stalled host.
-    """
-
-    stop_requested: bool
-
-    def on_telemetry(self, t_s: float, commands: np.ndarray, wheel_rpm: np.ndarray) -> None:
-        """See the class docstring."""
-
-
-@dataclass(frozen=True)
-class SessionConfig:
-    """Settings of a record session.
+    Parameters
+    ----------
+    transport : Transport
+        Open link to the controller (its role is set to ``host``).
+    t_s : ndarray, shape (T,)
+        Send times from the first command [s].
+    commands : ndarray, shape (T, 3)
+        ``(n [rpm], omega [deg/s], theta [deg])`` to send at ``t_s``.
+    writer : RecordingWriter
+        The recording rows go to.
+    config : SessionConfig
+    observers : sequence of TelemetryObserver
+        Fed on their own thread (:class:`~mecanum_hil.link.observers.ObserverPump`).
+    progress : callable or None
+        ``progress(elapsed_s, total_s, counters)``, at most every 0.1 s.
+    peak_wheel_rpm : float
+        Largest wheel speed the commands need [rpm], checked against the announced limit.
 
     Attributes
     ----------
-    connect_timeout_s : float
-        How long HELLO is repeated (every 0.1 s) before giving up [s].
+    tr : Transport
+        The link.
+    pump : ObserverPump
+        The observers' queue and thread.
+    t0 : float or None
+        Host time of the first command [s]; None before it.
+    last_t : float
+        Time of the last row written [s] since ``t0``.
+    cmd_in_force : ndarray, shape (3,)
+        The command last sent ``(n [rpm], omega [deg/s], theta [deg])``; NaN before one.
+    commands_sent, telemetry : int
+        Command frames sent, telemetry samples recorded.
+    telemetry_rate_hz : int
+        Telemetry rate the controller announced [Hz] (0: none).
+    watchdog_ms : int
+        The controller's announced watchdog [ms].
+    wheel_limit_rpm : float
+        The controller's announced wheel speed limit [rpm].
     link_timeout_s : float
-        Telemetry silence after which the link counts as lost, whatever other frames arrive
-        (when the controller announced telemetry) [s].
-    ping_rate_hz : float
-        Rate of PING frames for the round-trip latency [Hz]; 0 for none.
-    tail_s : float
-        Telemetry kept after the STOP at the end of a completed profile [s].
-    max_send_failures : int
-        Consecutive failed sends after which the link counts as lost.
-    handle_sigterm : bool
-        Turn SIGTERM into a clean stop (main thread only).
-    observer_queue : int
-        Samples buffered for observers before the oldest are dropped (and counted).
-    host_stall_share : float or None
-        Share of the announced watchdog time the host's command stream may pause before the
-        run ends with ``host_stall``; None reads :data:`HOST_STALL_SHARE` when the run checks
-        it (the test suite raises that to infinity so that a loaded machine does not end tests
-        of other behaviour).
-    """
-
-    connect_timeout_s: float = 2.0
-    link_timeout_s: float = 0.5
-    ping_rate_hz: float = 5.0
-    tail_s: float = 0.2
-    max_send_failures: int = 5
-    handle_sigterm: bool = True
-    observer_queue: int = 10000
-    host_stall_share: float | None = None
-
-
-@dataclass(frozen=True)
-class RecordResult:
-    """How a session ended and what it counted.
-
-    Attributes
-    ----------
-    reason : str
-        One of :data:`EXIT_CODES`.
-    exit_code : int
-        Process exit code for ``reason``.
-    path : Path
-        The recording written.
-    rows : int
-        Rows in the recording.
-    commands_sent, telemetry_received : int
-        Command frames sent and telemetry samples recorded.
-    duration_s : float
-        Time from the first command to the end [s].
-    stats : dict
-        The transport's counters (:class:`~mecanum_hil.link.transport.LinkStats`).
-    latency_ms : dict
-        ``rtt_*`` PING round trip and ``ack_*`` command-to-acknowledgement latency
-        percentiles (``p50``, ``p90``, ``p99``, ``max``, ``n``) [ms].
-    message : str
-        The error's text for ``error``/``link_lost``, else empty.
-    observer_dropped : int
-        Telemetry samples observers did not see because they lagged.
+        Telemetry silence that counts as a lost link [s] (a link may ask for more than the
+        config's).
+    last_tlm : float
+        Host time of the last telemetry sample [s].
+    send_failures : int
+        Failed sends in a row.
     controller : str
         Name the controller gave in HELLO_ACK.
-    signal_at_end : int or None
-        A signal that came while STOP was being sent and the recording closed: kept, not
-        raised, so that neither was cut short (``record --policy`` then runs no further
-        episode).
+    stop_attempted : bool
+        Whether :meth:`stop` has been called (STOP sent or tried).
+    run_over : bool
+        The profile is over (STOP sent): the run's checks no longer apply to the tail.
+    events : list of dict
+        What happened on the link that did not end the run (the sidecar's ``link_events``,
+        ``t_s`` [s] since ``t0``).
+    not_as_asked : tuple of (str, str) or None
+        The first reason of :data:`NOT_AS_ASKED` found, and its message.
+    invalid_readings, invalid_samples : int
+        Wheel readings a recording cannot hold (written empty), and samples with one.
+    longest_invalid_s : float
+        Longest run of samples with an invalid reading [s].
+    clock_drift_s : float
+        Largest drift of the controller clock from the host's [s].
+    widest_command_gap_s : float
+        Longest pause between two commands sent [s].
+    rtt, ack : list of float
+        PING round trips and command-to-acknowledgement latencies [s].
     """
 
-    reason: str
-    exit_code: int
-    path: Path
-    rows: int
-    commands_sent: int
-    telemetry_received: int
-    duration_s: float
-    stats: dict[str, int]
-    latency_ms: dict[str, float]
-    message: str = ""
-    observer_dropped: int = 0
-    controller: str = ""
-    error: BaseException | None = field(default=None, compare=False, repr=False)
-    signal_at_end: int | None = None
-
-
-class TelemetrySilenceError(LinkLostError):
-    """No telemetry for the link timeout (the port itself still works)."""
-
-
-class TelemetryCheckError(LinkError):
-    """The telemetry is not sane: the run ends with STOP and ``reason``'s exit code.
-
-    Attributes
-    ----------
-    reason : str
-        ``"telemetry_rate"``, ``"controller_reset"`` or one of :data:`STOP_AT_ONCE` (see
-        :data:`EXIT_CODES`).
-    """
-
-    def __init__(self, reason: str, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
-        self.exit_code = EXIT_CODES[reason]
-
-
-def percentiles_ms(samples_s: Sequence[float], prefix: str) -> dict[str, float]:
-    """``p50``, ``p90``, ``p99``, ``max`` [ms] and ``n`` of latency samples [s]."""
-    out: dict[str, float] = {f"{prefix}_n": float(len(samples_s))}
-    if len(samples_s):
-        arr = np.asarray(samples_s) * 1e3
-        for q in (50, 90, 99):
-            out[f"{prefix}_p{q}"] = float(np.percentile(arr, q))
-        out[f"{prefix}_max"] = float(arr.max())
-    return out
-
-
-class _ObserverPump:
-    """Feeds observers on their own thread so they never slow the command stream."""
-
-    def __init__(self, observers: Sequence[TelemetryObserver], maxlen: int) -> None:
-        self.observers = list(observers)
-        self._queue: deque = deque(maxlen=maxlen)
-        self._event = threading.Event()
-        self._done = False
-        self.dropped = 0
-        self.error: BaseException | None = None
-        self._thread = None
-        if self.observers:
-            self._thread = threading.Thread(target=self._run, name="telemetry-observers",
-                                            daemon=True)
-            self._thread.start()
-
-    def _put(self, item: tuple) -> None:
-        if self._thread is None:
-            return
-        if len(self._queue) == self._queue.maxlen:
-            self.dropped += 1
-        self._queue.append(item)
-        self._event.set()
-
-    def push(self, t_s: float, commands: np.ndarray, wheels: np.ndarray,
-             controller_time_s: float | None = None) -> None:
-        """A telemetry sample for the observers."""
-        self._put((t_s, commands, wheels, controller_time_s))
-
-    def push_command(self, t_s: float, commands: np.ndarray) -> None:
-        """A command as sent, for the observers that take commands."""
-        self._put((t_s, commands, None, None))
-
-    @property
-    def stop_requested(self) -> bool:
-        return any(getattr(o, "stop_requested", False) for o in self.observers)
-
-    def _run(self) -> None:
-        while True:
-            self._event.wait(0.05)
-            self._event.clear()
-            while self._queue:
-                t_s, cmd, wheels, ctrl_t = self._queue.popleft()
-                for obs in self.observers:
-                    try:
-                        takes_commands = hasattr(obs, "on_command")
-                        if wheels is None:
-                            if takes_commands:
-                                obs.on_command(t_s, cmd)
-                        elif takes_commands:
-                            obs.on_telemetry(t_s, cmd, wheels, controller_time_s=ctrl_t)
-                        else:
-                            obs.on_telemetry(t_s, cmd, wheels)
-                    except Exception as err:  # reported by the session, which then stops
-                        self.error = err
-                        return
-            if self._done:
-                return
-
-    def close(self, timeout_s: float = 2.0) -> None:
-        if self._thread is not None:
-            self._done = True
-            self._event.set()
-            self._thread.join(timeout_s)
-
-
-class _Session:
     def __init__(self, transport: Transport, t_s: np.ndarray, commands: np.ndarray,
                  writer: RecordingWriter, config: SessionConfig,
                  observers: Sequence[TelemetryObserver],
@@ -380,7 +261,7 @@ class _Session:
         self.commands = commands
         self.writer = writer
         self.config = config
-        self.pump = _ObserverPump(observers, config.observer_queue)
+        self.pump = ObserverPump(observers, config.observer_queue)
         self.progress = progress
         self.t0: float | None = None
         self.last_t = -math.inf
@@ -545,6 +426,10 @@ class _Session:
 
     # -- receiving ---------------------------------------------------------------------------
     def handle(self, msg, now: float) -> None:
+        """Take one received frame at host time ``now`` [s]: record it, check it.
+
+        Raises :class:`TelemetryCheckError` (or :class:`~mecanum_hil.errors.ProtocolError`)
+        when the telemetry shows the run must end."""
         if isinstance(msg, Telemetry):
             self.last_tlm = now
             self._other_frames = 0
@@ -673,6 +558,8 @@ class _Session:
                 "controller is not taking the commands")
 
     def pump_until(self, deadline: float) -> None:
+        """Receive and handle frames until host time ``deadline`` [s]; raise
+        :class:`TelemetrySilenceError` when telemetry stopped for the link timeout."""
         while True:
             now = time.perf_counter()
             remaining = deadline - now
@@ -706,6 +593,9 @@ class _Session:
 
     # -- sending -----------------------------------------------------------------------------
     def send(self, msg):
+        """Send ``msg``; the frame sent, or None when the send failed (the link counts as
+        lost, :class:`~mecanum_hil.errors.LinkLostError`, after
+        ``config.max_send_failures`` failures in a row)."""
         try:
             sent = self.tr.send(msg)
         except LinkLostError:
@@ -767,6 +657,7 @@ class _Session:
                 "was commanded)")
 
     def handshake(self) -> None:
+        """HELLO every 0.1 s until HELLO_ACK, then check what the controller announced."""
         deadline = time.perf_counter() + self.config.connect_timeout_s
         hellos = 0
         while time.perf_counter() < deadline:
@@ -806,6 +697,7 @@ class _Session:
                                     f"(error {msg.code}: {msg.text or 'no text'})")
 
     def run(self) -> None:
+        """Handshake, then send every command at its time (PING beside them)."""
         self.handshake()
         ping_period = (1.0 / self.config.ping_rate_hz
                        if self.config.ping_rate_hz > 0 and self.tr.acknowledges else math.inf)
@@ -817,7 +709,7 @@ class _Session:
                 raise MecanumHILError(f"observer failed: {type(self.pump.error).__name__}: "
                                       f"{self.pump.error}") from self.pump.error
             if self.pump.stop_requested:
-                raise _ObserverStopError()
+                raise ObserverStopError()
             now = self._send_command(self.commands[i])
             if now >= next_ping:
                 self._ping_token = (self._ping_token + 1) & 0xFFFFFFFF
@@ -919,10 +811,6 @@ class _Session:
                 pass
         if interrupt is not None:
             raise interrupt
-
-
-class _ObserverStopError(Exception):
-    pass
 
 
 def check_command_stream(t_s, commands, robot: RobotProfile,
@@ -1027,129 +915,8 @@ def run_record_session(
     writer = RecordingWriter(out, EXTRA_COLUMNS, _start_metadata(transport, robot, metadata),
                              fsync=True)
     peak = float(np.abs(command_to_wheels(cmd[:, 0], cmd[:, 1], cmd[:, 2], robot.k)).max())
-    sess = _Session(transport, t, cmd, writer, config, observers, progress, peak)
-    return _stream_stop_close(sess, transport, writer, out, config)
-
-
-def _stream_stop_close(sess: _Session, transport: Transport, writer: RecordingWriter,
-                       out: str | Path, config: SessionConfig, *,
-                       settle: Callable[[], None] | None = None,
-                       cut_short: Callable[[str], None] | None = None,
-                       end_extra: Callable[[], dict[str, Any]] | None = None) -> RecordResult:
-    """Run ``sess`` to its end, STOP at every way out, close the recording; the result.
-
-    The one place the ways out of a command stream are handled (``record`` and
-    ``record --policy``): SIGTERM/SIGHUP end the stream while it runs, how it ended is
-    classified (:func:`_stream_until_end`), STOP is sent whatever happened (guarded against a
-    Ctrl-C or SIGTERM meanwhile), the handlers are put back and the sidecar is closed.
-
-    Parameters
-    ----------
-    settle : callable, optional
-        After the STOP of a completed stream, in place of keeping ``config.tail_s`` of
-        telemetry (``record --policy`` waits for the wheels to come to rest). A Ctrl-C or
-        SIGTERM in it ends the run as ``interrupted`` (STOP again), a link error as
-        ``link_lost``.
-    cut_short : callable, optional
-        ``cut_short(reason)`` before the STOP of a stream that did not complete.
-    end_extra : callable, optional
-        Keys added to the sidecar's end (called as the recording is closed).
-    """
-    reason, message, error = "completed", "", None
-    failing: BaseException | None = None  # an exception on its way out of the stream
-    guard = SignalGuard(config.handle_sigterm)
-    try:
-        try:
-            guard.check()
-            reason, message, error, tail = _stream_until_end(sess, config)
-            # from here a signal is kept, not raised: nothing may cut STOP or the close short
-            guard.defer()
-        except (KeyboardInterrupt, SessionTerminated) as exc:  # as the stream was ending
-            reason, tail = signal_reason(exc), 0.0
-            guard.defer()
-        ran_to_end = reason == "completed" or reason in NOT_AS_ASKED
-        if not ran_to_end and cut_short is not None:
-            cut_short(reason)
-        # every way out: STOP first, then the recording is closed cleanly
-        try:
-            sess.stop(tail if settle is None else 0.0)
-            if isinstance(error, TelemetrySilenceError):  # silence: a restart or a lost link
-                why = sess.restarted()
-                if why is not None:
-                    reason, message = "controller_reset", why
-        except (KeyboardInterrupt, SessionTerminated) as exc:
-            # raised after STOP went out, where no guard defers signals (not the main
-            # thread, handle_sigterm off): during the tail a courtesy, the run still
-            # completed; with episodes to come (settle) the run ends here
-            if settle is not None:
-                reason = signal_reason(exc)
-            settle = None
-        if settle is not None and ran_to_end and sess.t0 is not None:
-            try:
-                with guard.raising():  # waiting for rest may be cut short: STOP is out
-                    settle()
-            except (KeyboardInterrupt, SessionTerminated) as exc:
-                reason = signal_reason(exc)
-                sess.stop(0.0)
-            except LinkError as err:  # only settling receives on its own (STOP never raises)
-                reason, message, error = "link_lost", str(err), err
-            except Exception as err:  # a row that cannot be written while settling, ...
-                reason, message, error = "error", str(err), err
-    except BaseException as exc:  # what no end of the stream takes (SystemExit, a callback's)
-        guard.defer()  # nothing may cut STOP or the close short from here
-        failing = exc
-        if reason == "completed" or reason in NOT_AS_ASKED:  # the sidecar must not say the
-            # stream ran to its end
-            if isinstance(exc, (KeyboardInterrupt, SessionTerminated)):
-                reason = signal_reason(exc)  # no guard (handle_sigterm off): raised here
-            else:
-                reason, message = "error", f"ended by {type(exc).__name__}: {exc}"
-        raise
-    finally:
-        # Without a guard (handle_sigterm off, not the main thread) a signal raises where it
-        # lands: one that lands in the fallback STOP, the observers' close or the end's
-        # metadata is kept and raised once the recording is closed, not in place of its close
-        # (and not in place of an exception already on its way out: STOP has gone out)
-        late: BaseException | None = None
-        try:
-            guard.defer()
-            if not sess.stop_attempted:  # an exception (or a signal) before the STOP above
-                try:
-                    sess.stop(0.0)
-                except (KeyboardInterrupt, SessionTerminated) as exc:
-                    late = exc
-            try:
-                sess.pump.close()
-            except (KeyboardInterrupt, SessionTerminated) as exc:
-                late = late or exc
-            except Exception:  # the observers' thread: the recording is closed all the same
-                pass
-            duration = 0.0 if sess.t0 is None else time.perf_counter() - sess.t0
-            latency = {**percentiles_ms(sess.rtt, "rtt"), **percentiles_ms(sess.ack, "ack")}
-            try:
-                end_meta = _end_metadata(sess, transport, reason, message, latency)
-                if end_extra is not None:
-                    end_meta.update(end_extra())
-            except (KeyboardInterrupt, SessionTerminated, Exception) as err:
-                # the end is written, whatever failed (or was cut short) in making it
-                if isinstance(err, (KeyboardInterrupt, SessionTerminated)):
-                    late = late or err
-                end_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
-                            "end_message": f"{message} (end metadata failed: {err!r})"}
-            writer.close(end_meta)
-        finally:
-            guard.restore()
-        if late is not None and failing is None:
-            raise late
-    if sess.pump.error is not None and reason == "error" and error is None:
-        error = sess.pump.error
-    exit_code = EXIT_CODES[reason]
-    if reason == "error" and isinstance(error, MecanumHILError):
-        exit_code = error.exit_code
-    return RecordResult(reason, exit_code, Path(out), writer.rows, sess.commands_sent,
-                        sess.telemetry, duration, transport.stats.as_dict(), latency, message,
-                        sess.pump.dropped, sess.controller, error, guard.pending)
-
+    sess = RecordSession(transport, t, cmd, writer, config, observers, progress, peak)
+    return stream_stop_close(sess, transport, writer, out, config)
 
 def _start_metadata(transport: Transport, robot: RobotProfile,
                     metadata: dict[str, Any] | None,
@@ -1168,162 +935,3 @@ def _start_metadata(transport: Transport, robot: RobotProfile,
         **(metadata or {}),
     }
 
-
-#: Signals that end a command stream, each of which would otherwise end the process with no
-#: STOP: SIGTERM (kill, a service manager), SIGHUP (a closed terminal or SSH session) and
-#: SIGINT (Ctrl-C) always; SIGQUIT (Ctrl-\) and the others that terminate by default where
-#: nothing else handles them. SIGKILL cannot be caught: the controller's watchdog stops then.
-ENDING_SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT", "SIGQUIT", "SIGUSR1", "SIGUSR2", "SIGALRM",
-                  "SIGXCPU", "SIGVTALRM", "SIGPROF")
-
-
-def signal_reason(exc: BaseException) -> str:
-    """The end reason of a signal's exception: ``interrupted`` for Ctrl-C, else
-    ``terminated``."""
-    return "interrupted" if isinstance(exc, KeyboardInterrupt) else "terminated"
-
-
-def signal_end_reason(signum: int) -> str:
-    """The end reason of a signal kept by a :class:`SignalGuard` (as :func:`signal_reason`)."""
-    return "interrupted" if signum == signal.SIGINT else "terminated"
-
-
-def _signal_exception(signum: int) -> BaseException:
-    """What a signal raises in a stream: ``KeyboardInterrupt`` for Ctrl-C, else
-    :class:`SessionTerminated`."""
-    return KeyboardInterrupt() if signum == signal.SIGINT else SessionTerminated()
-
-
-class SignalGuard:
-    """The stream's signal handlers, from its start until its recording is closed.
-
-    While raising (the stream runs), the first signal of :data:`ENDING_SIGNALS` ends it:
-    SIGINT raises ``KeyboardInterrupt`` (also where the process was started with SIGINT
-    ignored: Python then installs no handler, and Ctrl-C did nothing while the robot drove
-    on), the others :class:`SessionTerminated`. After that, and once :meth:`defer` is called
-    (STOP and the close), a signal is kept in :attr:`pending` and nothing is raised: a second
-    Ctrl-C used to land in the close and lose the sidecar's end. Installed only in the main
-    thread and when ``active``; guards nest (the inner restores the outer's handlers).
-
-    Parameters
-    ----------
-    active : bool
-        Install the handlers (``SessionConfig.handle_sigterm``).
-    """
-
-    def __init__(self, active: bool = True) -> None:
-        self.pending: int | None = None
-        # installed keeping signals: one that comes while the handlers go in is raised by
-        # check() inside the caller's try, not out of this constructor (handlers orphaned)
-        self._raise = False
-        self._saved: dict[int, Any] = {}
-        if active and threading.current_thread() is threading.main_thread():
-            for name in ENDING_SIGNALS:
-                sig = getattr(signal, name, None)
-                if sig is None:
-                    continue
-                current = signal.getsignal(sig)
-                if (name not in ("SIGTERM", "SIGHUP", "SIGINT") and current is not signal.SIG_DFL
-                        and getattr(current, "__func__", None) is not SignalGuard._on_signal):
-                    continue  # someone else handles (or ignores) it; an outer guard's we take
-                self._saved[sig] = signal.signal(sig, self._on_signal)
-        self._raise = True
-
-    def check(self) -> None:
-        """Raise a signal kept so far (while raising), as its handler would have."""
-        if self.pending is not None and self._raise:
-            signum, self.pending = self.pending, None
-            self._raise = False
-            raise _signal_exception(signum)
-
-    def _on_signal(self, signum, frame) -> None:
-        if not self._raise:
-            self.pending = self.pending or signum
-            return
-        self._raise = False  # once: the way out that follows must not be cut short
-        self.pending = None
-        raise _signal_exception(signum)
-
-    def defer(self) -> None:
-        """From now on keep a signal in :attr:`pending` instead of raising."""
-        self._raise = False
-
-    def rearm(self) -> None:
-        """Raise again from now on; a signal kept meanwhile is raised at once."""
-        self._raise = True
-        self.check()
-
-    @contextmanager
-    def raising(self):
-        """Raise again while inside (a wait after STOP that a signal may cut short); a signal
-        already pending is raised on entry."""
-        if self.pending is not None:
-            signum, self.pending = self.pending, None
-            raise _signal_exception(signum)
-        self._raise = True
-        try:
-            yield
-        finally:
-            self._raise = False
-
-    def restore(self) -> None:
-        """Put back the handlers found at the start."""
-        for sig, handler in self._saved.items():
-            signal.signal(sig, handler)
-        self._saved.clear()
-
-
-def _stream_until_end(sess: _Session, config: SessionConfig
-                      ) -> tuple[str, str, BaseException | None, float]:
-    """Handshake and stream until the profile ends or something ends it first.
-
-    Returns ``(reason, message, error, tail_s)``: how it ended (a key of :data:`EXIT_CODES`)
-    and the telemetry to keep after STOP [s] (only after a completed profile). The caller
-    sends STOP whatever this returns or raises.
-    """
-    try:
-        sess.run()
-        sess.finish_checks()
-        if sess.not_as_asked is not None:  # the profile ran to its end, not as asked
-            reason, message = sess.not_as_asked
-            return reason, message, None, config.tail_s
-        return "completed", "", None, config.tail_s
-    except _ObserverStopError:
-        return "observer_stop", "", None, 0.0
-    except TelemetryCheckError as err:
-        # the controller stopped (or ignores) the commands: the tail shows the wheels at rest
-        return err.reason, str(err), err, config.tail_s if err.reason in STOP_AT_ONCE else 0.0
-    except LinkLostError as err:
-        return "link_lost", str(err), err, 0.0
-    except KeyboardInterrupt:
-        return "interrupted", "", None, 0.0
-    except SessionTerminated:
-        return "terminated", "", None, 0.0
-    except Exception as err:
-        return "error", str(err), err, 0.0
-
-
-def _end_metadata(sess: _Session, transport: Transport, reason: str, message: str,
-                  latency: dict[str, float]) -> dict[str, Any]:
-    """The sidecar's keys known once the stream has ended: how, and what the link did."""
-    result_meta = {"end_reason": reason, "exit_code": EXIT_CODES[reason],
-                   "link_stats": transport.stats.as_dict(), "latency_ms": latency,
-                   "link_events": sess.events,
-                   **transport.link_metadata(),
-                   "invalid_readings": sess.invalid_readings,
-                   "run_checks": {
-                       "invalid_samples": sess.invalid_samples,
-                       "longest_invalid_s": round(sess.longest_invalid_s, 6),
-                       "clock_drift_s": round(sess.clock_drift_s, 6),
-                       "widest_command_gap_s": round(sess.widest_command_gap_s, 6),
-                       "unacknowledged_commands": len(sess._acks)},
-                   "controller": sess.controller,
-                   "controller_wheel_limit_rpm": (sess.wheel_limit_rpm
-                                                  if math.isfinite(sess.wheel_limit_rpm)
-                                                  else None),
-                   "telemetry_rate_hz": sess.telemetry_rate_hz,
-                   # the recording's sample rate is the telemetry's (commands interleave)
-                   "sample_rate_hz": sess.telemetry_rate_hz or None}
-    if message:
-        result_meta["end_message"] = message
-    return result_meta
