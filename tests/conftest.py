@@ -15,13 +15,14 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 
 
 @pytest.fixture(autouse=True)
-def _host_pauses_are_not_judged(monkeypatch):
+def _host_timing_is_not_judged(monkeypatch):
     """A loaded machine pauses the test process's command stream for longer than half a
-    controller watchdog: ``record`` would end such runs with ``host_stall``. Tests of other
-    behaviour do not judge it; the tests of that rule set ``host_stall_share`` themselves."""
-    from mecanum_hil.link import session
-
-    monkeypatch.setattr(session, "HOST_STALL_SHARE", float("inf"))
+    controller watchdog, and delays a scripted controller whose clock counts its samples:
+    ``record`` would end such runs with ``host_stall`` or ``clock_drift``. Tests of other
+    behaviour do not judge either (the environment reaches the commands tests start as
+    subprocesses too); the tests of those rules set ``SessionConfig``'s fields themselves."""
+    monkeypatch.setenv("MECANUM_HIL_HOST_STALL_SHARE", "inf")
+    monkeypatch.setenv("MECANUM_HIL_CLOCK_DRIFT_SLACK_S", "inf")
 
 
 @pytest.fixture(scope="session")

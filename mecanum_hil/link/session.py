@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -129,14 +130,41 @@ INVALID_RUN_MAX_S = 0.1
 #: :data:`CLOCK_DRIFT_SLACK_S` before the run ends with ``clock_drift``. It is measured on the
 #: earliest arrival in each second (a late arrival is the host's or the link's delay).
 CLOCK_DRIFT_MAX = 0.02
-#: See :data:`CLOCK_DRIFT_MAX` [s].
+#: See :data:`CLOCK_DRIFT_MAX` [s]. The environment variable ``MECANUM_HIL_CLOCK_DRIFT_SLACK_S``
+#: overrides it, and ``SessionConfig.clock_drift_slack_s`` overrides both.
 CLOCK_DRIFT_SLACK_S = 0.1
 #: Window of :data:`CLOCK_DRIFT_MAX`'s earliest arrivals [s].
 CLOCK_DRIFT_WINDOW_S = 1.0
 
 #: Share of the announced watchdog time the host's own command stream may pause (two commands
-#: sent further apart) before the run ends with ``host_stall``.
+#: sent further apart) before the run ends with ``host_stall``. The environment variable
+#: ``MECANUM_HIL_HOST_STALL_SHARE`` overrides it (a host that also runs other work, or a test
+#: suite on a loaded machine: ``inf`` judges no pause), and ``SessionConfig.host_stall_share``
+#: overrides both.
 HOST_STALL_SHARE = 0.5
+
+
+def run_check_limit(given: float | None, variable: str, default: float) -> float:
+    """A run check's limit: ``given`` (a ``SessionConfig`` field), else the environment
+    variable ``variable``, else ``default``.
+
+    Raises
+    ------
+    ConfigError
+        The environment variable is not a number >= 0 (``inf`` allowed).
+    """
+    if given is not None:
+        return float(given)
+    text = os.environ.get(variable)
+    if text is None or not text.strip():
+        return default
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value >= 0:
+        raise ConfigError(f"{variable} must be a number >= 0 (inf: no limit), got {text!r}")
+    return value
 
 #: Telemetry rate (observed over windows of at least 1 s) outside this factor of the
 #: announced one ends the run with ``telemetry_rate``.
@@ -261,6 +289,11 @@ class RecordSession:
         self.commands = commands
         self.writer = writer
         self.config = config
+        self.stall_share = run_check_limit(config.host_stall_share,
+                                           "MECANUM_HIL_HOST_STALL_SHARE", HOST_STALL_SHARE)
+        self.drift_slack_s = run_check_limit(config.clock_drift_slack_s,
+                                             "MECANUM_HIL_CLOCK_DRIFT_SLACK_S",
+                                             CLOCK_DRIFT_SLACK_S)
         self.pump = ObserverPump(observers, config.observer_queue)
         self.progress = progress
         self.t0: float | None = None
@@ -511,11 +544,11 @@ class RecordSession:
         if abs(drift) > abs(self.clock_drift_s):
             self.clock_drift_s = drift
         host_s, ctrl_s = now - self._drift0[0], ctrl_t - self._drift0[1]
-        if abs(drift) > CLOCK_DRIFT_MAX * host_s + CLOCK_DRIFT_SLACK_S:
+        if abs(drift) > CLOCK_DRIFT_MAX * host_s + self.drift_slack_s:
             self._flag("clock_drift", now, f"{self.tr.port}: the controller clock advanced "
                        f"{ctrl_s:.2f} s while the host's advanced {host_s:.2f} s (a drift of "
                        f"{drift:+.3f} s, more than {CLOCK_DRIFT_MAX:.0%} + "
-                       f"{CLOCK_DRIFT_SLACK_S:g} s)")
+                       f"{self.drift_slack_s:g} s)")
 
     def finish_checks(self) -> None:
         """The checks judged at the end of a profile run to its end."""
@@ -725,8 +758,7 @@ class RecordSession:
             gap = now - self._last_cmd_sent
             self.widest_command_gap_s = max(self.widest_command_gap_s, gap)
             watchdog_s = self.watchdog_ms / 1000.0 if self.watchdog_ms > 0 else WATCHDOG_S
-            share = self.config.host_stall_share
-            if gap > (HOST_STALL_SHARE if share is None else share) * watchdog_s:
+            if gap > self.stall_share * watchdog_s:
                 at = now - (self.t0 or now)
                 self._flag("host_stall", now, f"{self.tr.port}: the host's command stream "
                            f"paused {gap * 1000:.0f} ms at {at:.3f} s (more than half the "
@@ -911,12 +943,17 @@ def run_record_session(
     """
     config = config or SessionConfig()
     t, cmd = check_command_stream(t_s, commands, robot, transport)
+    # the limits from the environment are refused before a file is made or a byte is sent
+    run_check_limit(config.host_stall_share, "MECANUM_HIL_HOST_STALL_SHARE", HOST_STALL_SHARE)
+    run_check_limit(config.clock_drift_slack_s, "MECANUM_HIL_CLOCK_DRIFT_SLACK_S",
+                    CLOCK_DRIFT_SLACK_S)
     # fsync at every flush (at least every 0.2 s): a power loss keeps what was received
     writer = RecordingWriter(out, EXTRA_COLUMNS, _start_metadata(transport, robot, metadata),
                              fsync=True)
     peak = float(np.abs(command_to_wheels(cmd[:, 0], cmd[:, 1], cmd[:, 2], robot.k)).max())
     sess = RecordSession(transport, t, cmd, writer, config, observers, progress, peak)
     return stream_stop_close(sess, transport, writer, out, config)
+
 
 def _start_metadata(transport: Transport, robot: RobotProfile,
                     metadata: dict[str, Any] | None,

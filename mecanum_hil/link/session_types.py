@@ -52,10 +52,14 @@ class SessionConfig:
         Samples buffered for observers before the oldest are dropped (and counted).
     host_stall_share : float or None
         Share of the announced watchdog time the host's command stream may pause before the
-        run ends with ``host_stall``; None reads
-        :data:`~mecanum_hil.link.session.HOST_STALL_SHARE` when the run checks it (the test
-        suite raises that to infinity so that a loaded machine does not end tests of other
-        behaviour).
+        run ends with ``host_stall``; None: the environment variable
+        ``MECANUM_HIL_HOST_STALL_SHARE``, else
+        :data:`~mecanum_hil.link.session.HOST_STALL_SHARE` (0.5).
+    clock_drift_slack_s : float or None
+        Drift of the controller clock beyond ``CLOCK_DRIFT_MAX`` of the elapsed time that ends
+        the run with ``clock_drift`` [s]; None: the environment variable
+        ``MECANUM_HIL_CLOCK_DRIFT_SLACK_S``, else
+        :data:`~mecanum_hil.link.session.CLOCK_DRIFT_SLACK_S` (0.1 s).
     """
 
     connect_timeout_s: float = 2.0
@@ -66,6 +70,7 @@ class SessionConfig:
     handle_sigterm: bool = True
     observer_queue: int = 10000
     host_stall_share: float | None = None
+    clock_drift_slack_s: float | None = None
 
 
 @dataclass(frozen=True)

@@ -127,7 +127,9 @@ def test_a_controller_clock_at_a_third_of_the_host_s_is_clock_drift(pty_pair, sc
     # a sample every 12 ms of host time, each stamped 4 ms later (the announced 250 Hz)
     scripted(p.master, telemetry=400, period_s=0.012, time_step_us=4000)
     t, cmd = _stream(2.5)
-    res, _, side = _run(p, host_serial, tmp_path, t, cmd)
+    config = SessionConfig(connect_timeout_s=1.0, link_timeout_s=0.3, tail_s=0.05,
+                           clock_drift_slack_s=0.1)
+    res, _, side = _run(p, host_serial, tmp_path, t, cmd, config=config)
     _ends_as(res, side, "clock_drift")
     assert res.commands_sent == t.size
     assert side["run_checks"]["clock_drift_s"] > 1.0
@@ -153,3 +155,32 @@ def test_a_host_that_paused_its_command_stream_is_host_stall(pty_pair, scripted,
     assert "paused" in res.message and side["run_checks"]["widest_command_gap_s"] > 0.125
     assert res.commands_sent == t.size
     assert [e["event"] for e in side["link_events"]].count("host_stall") == 1
+
+
+def test_a_run_check_s_limit_comes_from_the_config_then_the_environment(monkeypatch):
+    from mecanum_hil.errors import ConfigError
+    from mecanum_hil.link.session import run_check_limit
+
+    monkeypatch.setenv("MECANUM_HIL_HOST_STALL_SHARE", "0.8")
+    assert run_check_limit(None, "MECANUM_HIL_HOST_STALL_SHARE", 0.5) == 0.8
+    assert run_check_limit(0.3, "MECANUM_HIL_HOST_STALL_SHARE", 0.5) == 0.3
+    monkeypatch.setenv("MECANUM_HIL_HOST_STALL_SHARE", "inf")
+    assert run_check_limit(None, "MECANUM_HIL_HOST_STALL_SHARE", 0.5) == math.inf
+    monkeypatch.delenv("MECANUM_HIL_HOST_STALL_SHARE")
+    assert run_check_limit(None, "MECANUM_HIL_HOST_STALL_SHARE", 0.5) == 0.5
+    for bad in ("half", "-1", "nan"):
+        monkeypatch.setenv("MECANUM_HIL_HOST_STALL_SHARE", bad)
+        with pytest.raises(ConfigError, match="MECANUM_HIL_HOST_STALL_SHARE must be a number"):
+            run_check_limit(None, "MECANUM_HIL_HOST_STALL_SHARE", 0.5)
+
+
+def test_a_bad_limit_in_the_environment_is_refused_before_anything_is_sent(
+        pty_pair, host_serial, tmp_path, monkeypatch):
+    from mecanum_hil.errors import ConfigError
+
+    p = pty_pair()
+    monkeypatch.setenv("MECANUM_HIL_CLOCK_DRIFT_SLACK_S", "soon")
+    t, cmd = _stream(0.5)
+    with pytest.raises(ConfigError, match="MECANUM_HIL_CLOCK_DRIFT_SLACK_S"):
+        run_record_session(host_serial(p.path), t, cmd, tmp_path / "r.csv", ROBOT, config=FAST)
+    assert not (tmp_path / "r.csv").exists()
