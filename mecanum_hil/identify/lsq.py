@@ -51,7 +51,7 @@ class Solution:
     status : int
         SciPy's codes: 0 evaluations exhausted, 1 gtol, 2 ftol, 3 xtol, 4 ftol and xtol; -1
         every step refused because the residuals there are not finite (a failure); and 5, a
-        search stopped by its caller because it stalled (``mecanum_hil.identify.fit``).
+        search stopped by its caller because it stalled (``mecanum_hil.identify.search``).
     nfev : int
         Residual evaluations.
     message : str
