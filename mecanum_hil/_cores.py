@@ -2,10 +2,11 @@
 
 :func:`idle_cores` is the rule by which a stage decides to work beside itself
 (``measure-video`` decoding in a helper thread, ``diagnose`` fitting candidates in a helper
-process). OpenBLAS's thread pool is this module's too: :func:`one_blas_thread` runs OpenBLAS
-on one thread inside a block of this process. The process's own default,
-``OPENBLAS_NUM_THREADS=1`` unless the user set it, is set by the package's ``__init__``: the
-earliest point, before numpy loads OpenBLAS.
+process). The BLAS and OpenMP thread pools are this module's too: :data:`SINGLE_THREAD_ENV`
+is the environment of a process started to step one robot or run one task (one thread per
+pool), and :func:`one_blas_thread` runs OpenBLAS on one thread inside a block of this process.
+The process's own default, ``OPENBLAS_NUM_THREADS=1`` unless the user set
+it, is set by the package's ``__init__``: the earliest point, before numpy loads OpenBLAS.
 """
 
 from __future__ import annotations
@@ -136,6 +137,13 @@ def _cpu_times(cores: set[int] | None) -> list[tuple[int, int]]:
     if not out:
         raise ValueError("no per-core lines in /proc/stat")
     return out
+
+
+#: Environment of a child process that steps one robot or runs one task beside others (a
+#: simulated controller, a worker of the local cluster): one thread each for numba, OpenMP,
+#: OpenBLAS and MKL, so that nested thread pools do not oversubscribe a small machine.
+SINGLE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+                     "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 #: ``openblas_set_num_threads`` / ``..._get_...`` under the names OpenBLAS builds export.

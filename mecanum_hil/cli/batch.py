@@ -87,13 +87,12 @@ def command(
     row; a re-run skips groups whose inputs did not change.
     """
     import json
-    import os
     import sys
 
     from ..errors import ConfigError
 
-    # before numpy loads OpenBLAS in this process (as fit does; workers get it from the cluster)
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    # OpenBLAS on one thread: mecanum_hil/__init__.py set it before numpy loaded (workers get
+    # mecanum_hil._cores.SINGLE_THREAD_ENV from the cluster)
     from ..fleet.runner import BatchSettings
 
     if stage not in _STAGES:
