@@ -264,6 +264,7 @@ def fit_parameters(
 
 def _fit_parameters(recordings, calibration, robot, free, x0, bounds, pose_weight, sources,
                     max_evaluations) -> FitResult:
+    """:func:`fit_parameters` with OpenBLAS already on one thread."""
     free = list(dict.fromkeys(free))
     if not free:
         raise FitError("no free parameters to fit")

@@ -36,6 +36,7 @@ MAX_CONDITION = 1e8
 
 
 def _simulate(p: Prepared, calibs: Sequence[Calibration], robot: RobotProfile, pose: bool):
+    """Wheel speeds [rpm] and poses of one recording, shape (len(calibs), T, .)."""
     state = p.initial_states(calibs)
     with few_threads(len(calibs) * p.t_s.size * 4):
         traj = simulate_batch(p.commands, p.t_s, list(calibs), robot, initial_pose=p.pose0,
@@ -219,6 +220,7 @@ class Problem:
             self._watched(self._x, self._r)
 
     def unwatch(self) -> None:
+        """Stop watching for a stall."""
         self._trace = self._best = None
 
     def _watched(self, x: np.ndarray, r: np.ndarray) -> None:
@@ -256,6 +258,8 @@ class Problem:
             raise ConfigError(problem) from None
 
     def steps(self, x: np.ndarray) -> np.ndarray:
+        """Forward-difference steps at ``x``, in the parameters' units (negative on an upper
+        bound)."""
         floor = np.array([FD_FLOOR.get(n, 1.0) for n in self.free])
         h = FD_RELATIVE * np.maximum(np.abs(x), floor)
         # step into the feasible region (a parameter on its bound is differentiated one-sidedly)
@@ -288,11 +292,13 @@ class Problem:
         return ((perturbed - self._r) / h[:, None]).T
 
     def fun(self, x) -> np.ndarray:
+        """Residuals at ``x`` (wheels [rpm], then pose channels as wheel-rpm equivalents)."""
         if self._x is None or not np.array_equal(self._x, x):
             self.evaluate(x, jacobian=not self.lazy)
         return self._r
 
     def jac(self, x) -> np.ndarray:
+        """Jacobian of :meth:`fun` at ``x``, shape (residuals, free parameters)."""
         if self._x is None or not np.array_equal(self._x, x):
             self.evaluate(x)
         elif self._J is None:
@@ -356,6 +362,8 @@ def intervals(J: np.ndarray, r_wheel_and_pose: np.ndarray, x: np.ndarray, free: 
 
 
 def metrics(data, calibration, robot, rows=None) -> tuple[float, float, float, int, list[float]]:
+    """The fit's measures on the wheel speeds: SSE [rpm^2], RMSE [rpm], fit [%], the number of
+    measured samples, and the fit [%] per recording (NaN for one without spread)."""
     # rows: the wheel residuals of ``calibration`` when the caller has them
     if rows is None:
         rows = residual_rows(data, [calibration], robot, 0.0)[0]
