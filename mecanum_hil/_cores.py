@@ -1,6 +1,13 @@
-"""How many cores other jobs leave free: the rule by which a stage decides to work beside itself
+"""How many cores other jobs leave free, and how many threads the native libraries take of them.
+
+:func:`idle_cores` is the rule by which a stage decides to work beside itself
 (``measure-video`` decoding in a helper thread, ``diagnose`` fitting candidates in a helper
-process)."""
+process). The BLAS and OpenMP thread pools are this module's too: :data:`SINGLE_THREAD_ENV`
+is the environment of a process started to step one robot or run one task (one thread per
+pool), and :func:`one_blas_thread` runs OpenBLAS on one thread inside a block of this process.
+The process's own default, ``OPENBLAS_NUM_THREADS=1`` unless the user set
+it, is set by the package's ``__init__``: the earliest point, before numpy loads OpenBLAS.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +15,8 @@ import math
 import os
 import threading
 import time
+from contextlib import contextmanager
+from typing import Any
 
 #: Idle cores (beyond this process's own) from which a stage works beside itself: half a core,
 #: i.e. a 1-minute load average of the other jobs up to 0.5 on two cores. Measured for
@@ -128,3 +137,76 @@ def _cpu_times(cores: set[int] | None) -> list[tuple[int, int]]:
     if not out:
         raise ValueError("no per-core lines in /proc/stat")
     return out
+
+
+#: Environment of a child process that steps one robot or runs one task beside others (a
+#: simulated controller, a worker of the local cluster): one thread each for numba, OpenMP,
+#: OpenBLAS and MKL, so that nested thread pools do not oversubscribe a small machine.
+SINGLE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+                     "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+#: ``openblas_set_num_threads`` / ``..._get_...`` under the names OpenBLAS builds export.
+_BLAS_SYMBOLS = (("openblas_set_num_threads", "openblas_get_num_threads"),
+                 ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
+                 ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+                 ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"))
+_blas_lock = threading.Lock()
+_blas_depth = 0
+_blas_saved: list[tuple[Any, int]] = []
+
+
+def _openblas_controls() -> list[tuple[Any, Any]]:
+    """(set, get) thread-count functions of every OpenBLAS loaded in this process (numpy's and
+    scipy's are separate libraries); none where ``/proc/self/maps`` is not there."""
+    import ctypes
+
+    try:
+        with open("/proc/self/maps") as f:
+            paths = sorted({line.split()[-1] for line in f if ".so" in line
+                            and "openblas" in line.rsplit("/", 1)[-1].lower()})
+    except OSError:
+        return []
+    out = []
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for set_name, get_name in _BLAS_SYMBOLS:
+            if hasattr(lib, set_name) and hasattr(lib, get_name):
+                out.append((getattr(lib, set_name), getattr(lib, get_name)))
+                break
+    return out
+
+
+@contextmanager
+def one_blas_thread():
+    """Run OpenBLAS on one thread inside (re-entrant; the counts are restored after).
+
+    A fit's linear algebra is many small products of a tall Jacobian; OpenBLAS spreads each
+    over its threads, whose waiting spins take the cores the simulator needs: on the 2-core
+    machine of ``docs/benchmarks/diagnose.md`` a campaign's diagnosis took 2.7 x the CPU time
+    with OpenBLAS's default threads. One thread also makes the sums' order, and so the fitted
+    values, the same on every machine.
+    """
+    global _blas_depth
+    with _blas_lock:
+        if _blas_depth == 0:
+            _blas_saved.clear()
+            for set_threads, get_threads in _openblas_controls():
+                try:
+                    _blas_saved.append((set_threads, int(get_threads())))
+                    set_threads(1)
+                except (OSError, ValueError, TypeError):  # pragma: no cover - odd builds
+                    continue
+        _blas_depth += 1
+    try:
+        yield
+    finally:
+        with _blas_lock:
+            _blas_depth -= 1
+            if _blas_depth == 0:
+                for set_threads, count in _blas_saved:
+                    set_threads(count)
+                _blas_saved.clear()

@@ -18,6 +18,9 @@ nothing:
 
 ``MECANUM_HIL_JIT=always`` compiles every job, ``never`` interprets every job (slow on large
 ones), ``auto`` (default) as above. :func:`forced` sets the mode for this process only.
+
+The size of numba's thread pool is set here too: :func:`kernel_threads` for a process that
+shares the cores with a helper, :func:`few_threads` for jobs too small to wake the pool.
 """
 
 from __future__ import annotations
@@ -177,6 +180,31 @@ def kernel_threads(count: int):
         yield
         return
     numba.set_num_threads(count)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
+@contextlib.contextmanager
+def few_threads(work: float):
+    """Run numba's parallel loops on one thread when the work is small.
+
+    ``work`` is roughly the number of wheel-steps to simulate (robots x samples x 4). Waking a
+    thread pool costs more than a few thousand steps take, and on a loaded machine a parallel
+    launch waits for the busiest core, so small batches (a Jacobian) run faster serially.
+    """
+    numba = sys.modules.get("numba")
+    if numba is None or work >= 200_000:
+        # numba not loaded: the job runs interpreted (mecanum_hil._jit), or compiles now and
+        # pays far more for loading numba than its threads could cost
+        yield
+        return
+    before = numba.get_num_threads()
+    if before == 1:  # already (beside a helper: mecanum_hil._jit.kernel_threads)
+        yield
+        return
+    numba.set_num_threads(1)
     try:
         yield
     finally:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
-# before numpy loads: see mecanum_hil/__init__.py
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
 import pytest
+
+# before numpy loads: importing the package sets OPENBLAS_NUM_THREADS (mecanum_hil/__init__.py)
+import mecanum_hil  # noqa: F401
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"

@@ -107,10 +107,9 @@ def command(
     against the robot's previous period, error). A bad recording or group fails alone, in its
     row; a re-run skips groups whose inputs did not change.
     """
-    import os
 
-    # before numpy loads OpenBLAS in this process (as fit does; workers get it from the cluster)
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    # OpenBLAS on one thread: mecanum_hil/__init__.py set it before numpy loaded (workers get
+    # mecanum_hil._cores.SINGLE_THREAD_ENV from the cluster)
     from ..fleet.runner import BatchSettings
 
     _check(stage, period, method, marker, scheduler, workers, drift_threshold, fps)

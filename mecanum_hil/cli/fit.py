@@ -65,11 +65,7 @@ def command(
     json_out: JsonOpt = False,
 ) -> None:
     """Estimate A, B, C from recordings; write a calibration TOML and a report PNG."""
-    import os
-
-    # Before numpy/scipy load OpenBLAS: its worker threads, competing with numba's on a small
-    # machine, made the many tiny matrix calls of a fit up to 10x slower (docs/fit.md).
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    # OpenBLAS on one thread (docs/fit.md): mecanum_hil/__init__.py set it before numpy loaded
     from ._options import refuse_overwriting, shipped_or_file
 
     grid_options = _grid_options(method, a_grid, b_grid, c_grid, b_start)

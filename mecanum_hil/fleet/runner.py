@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
+from .._cores import SINGLE_THREAD_ENV
 from ..errors import ConfigError, MecanumHILError
 from ..io.paths import check_folder_writable
 from . import stages
@@ -40,8 +41,7 @@ from .tasks import COMMANDS, GroupSpec, run_group
 
 #: Environment of the local cluster's worker processes: one core each, no nested thread pools
 #: (OpenBLAS and numba threads on top of several workers oversubscribe a small machine).
-WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-              "NUMBA_NUM_THREADS": "1"}
+WORKER_ENV = SINGLE_THREAD_ENV
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ class Solution:
     status : int
         SciPy's codes: 0 evaluations exhausted, 1 gtol, 2 ftol, 3 xtol, 4 ftol and xtol; -1
         every step refused because the residuals there are not finite (a failure); and 5, a
-        search stopped by its caller because it stalled (``mecanum_hil.identify.fit``).
+        search stopped by its caller because it stalled (``mecanum_hil.identify.search``).
     nfev : int
         Residual evaluations.
     message : str
@@ -96,15 +96,8 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
     """
     lo = np.asarray(lower, dtype=float)
     hi = np.asarray(upper, dtype=float)
-    x = np.clip(np.asarray(x0, dtype=float), lo, hi)
-    r = np.asarray(fun(x), dtype=float)
+    x, r, cost, J, scale = _first_point(fun, jac, x0, lo, hi)
     nfev = 1
-    if not np.all(np.isfinite(r)):
-        raise ValueError("residuals are not finite at the starting point")
-    cost = 0.5 * float(r @ r)
-    J = np.asarray(jac(x), dtype=float)
-    scale = np.linalg.norm(J, axis=0)
-    scale[scale == 0.0] = 1.0
     mu = None
     nu = 2.0
     while True:
@@ -118,22 +111,13 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
         JtJ = J.T @ J
         if mu is None:
             mu = 1e-3 * float(np.max(np.diag(JtJ) / scale ** 2))
-        # the step in the free parameters only: one held on its bound does not move, and the
-        # others are solved for without it (projecting a full step stalls on an active bound)
-        step = np.zeros_like(x)
-        sub = np.ix_(free, free)
-        try:
-            step[free] = np.linalg.solve(JtJ[sub] + mu * np.diag(scale[free] ** 2), -g[free])
-        except np.linalg.LinAlgError:
-            step[free] = -g[free] / (mu * scale[free] ** 2)
+        step = _damped_step(JtJ, g, free, mu, scale, x)
         x_new = np.clip(x + step, lo, hi)
         step = x_new - x
         r_new = np.asarray(fun(x_new), dtype=float)
         nfev += 1
         cost_new = 0.5 * float(r_new @ r_new) if np.all(np.isfinite(r_new)) else math.inf
-        predicted = -(g @ step + 0.5 * step @ JtJ @ step)
-        actual = cost - cost_new
-        rho = actual / predicted if predicted > 0 else -1.0
+        actual, rho = _gain(g, step, JtJ, cost, cost_new)
         small_step = np.linalg.norm(step * scale) < xtol * (xtol + np.linalg.norm(x * scale))
         if rho > 1e-4:
             small_cost = actual < ftol * cost
@@ -143,8 +127,7 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             if small_cost or small_step:
-                return solution(x, cost, 4 if small_cost and small_step else 2 if small_cost else 3,
-                                nfev)
+                return solution(x, cost, _accepted_status(small_cost, small_step), nfev)
         else:
             if small_step and np.isfinite(cost_new):
                 return solution(x, cost, 3, nfev)
@@ -155,6 +138,74 @@ def levenberg_marquardt(fun: Callable[[np.ndarray], np.ndarray],
                 # around x that is a minimum (the step test); where every trial point failed
                 # (non-finite residuals) it is not, and the search failed
                 return solution(x, cost, 3 if np.isfinite(cost_new) else -1, nfev)
+
+
+def _first_point(fun: Callable[[np.ndarray], np.ndarray],
+                 jac: Callable[[np.ndarray], np.ndarray], x0, lo: np.ndarray, hi: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """The start ``x0`` clipped into the bounds: the point, its residuals and cost, its
+    Jacobian and the Jacobian's column norms (1 for a zero column).
+
+    Raises
+    ------
+    ValueError
+        When the residuals at the start are not finite.
+    """
+    x = np.clip(np.asarray(x0, dtype=float), lo, hi)
+    r = np.asarray(fun(x), dtype=float)
+    if not np.all(np.isfinite(r)):
+        raise ValueError("residuals are not finite at the starting point")
+    cost = 0.5 * float(r @ r)
+    J = np.asarray(jac(x), dtype=float)
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0.0] = 1.0
+    return x, r, cost, J, scale
+
+
+def _damped_step(JtJ: np.ndarray, g: np.ndarray, free: np.ndarray, mu: float,
+                 scale: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """The damped Gauss-Newton step in the free components, zero in the others.
+
+    A component held on its bound does not move, and the others are solved for without it
+    (projecting a full step stalls on an active bound); where the damped normal equations are
+    singular, a gradient step.
+
+    Parameters
+    ----------
+    JtJ : ndarray, shape (n, n)
+        ``J^T J`` at ``x``.
+    g : ndarray, shape (n,)
+        The gradient ``J^T r`` at ``x``.
+    free : ndarray of bool, shape (n,)
+        The components that may move.
+    mu : float
+        The damping, relative to ``scale**2``.
+    scale : ndarray, shape (n,)
+        The columns' norms (the largest seen).
+    x : ndarray, shape (n,)
+        The point, in the parameters' units.
+    """
+    step = np.zeros_like(x)
+    sub = np.ix_(free, free)
+    try:
+        step[free] = np.linalg.solve(JtJ[sub] + mu * np.diag(scale[free] ** 2), -g[free])
+    except np.linalg.LinAlgError:
+        step[free] = -g[free] / (mu * scale[free] ** 2)
+    return step
+
+
+def _gain(g: np.ndarray, step: np.ndarray, JtJ: np.ndarray, cost: float,
+          cost_new: float) -> tuple[float, float]:
+    """The actual decrease of the cost over ``step``, and its ratio to the decrease the
+    quadratic model predicted (-1 where it predicted none)."""
+    predicted = -(g @ step + 0.5 * step @ JtJ @ step)
+    actual = cost - cost_new
+    return actual, (actual / predicted if predicted > 0 else -1.0)
+
+
+def _accepted_status(small_cost: bool, small_step: bool) -> int:
+    """The status of a search ended on an accepted step: 4 both tests, 2 ``ftol``, 3 ``xtol``."""
+    return 4 if small_cost and small_step else 2 if small_cost else 3
 
 
 def solution(x: np.ndarray, cost: float, status: int, nfev: int) -> Solution:

@@ -17,12 +17,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from .._cores import SINGLE_THREAD_ENV
 from ..errors import LinkError
 
-#: Environment for a simulated controller: one thread each for numba and BLAS, so a
-#: controller stepping a single robot does not fight the host for the machine's cores.
-SINGLE_THREAD_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
-                     "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+# SINGLE_THREAD_ENV is a simulated controller's environment: one thread each for numba and
+# BLAS, so a controller stepping a single robot does not fight the host for the machine's cores.
 
 
 #: How long to wait for sim-robot's first line [s]. It compiles its simulator before it

@@ -265,16 +265,16 @@ def _problem(free=("A", "B", "C")):
 
 
 def test_the_jacobian_is_simulated_only_when_the_search_asks_for_it(monkeypatch):
-    from mecanum_hil.identify import fit as fit_module
+    from mecanum_hil.identify import problem
 
     batches = []
-    real = fit_module._residual_rows
+    real = problem.residual_rows
 
     def counted(data, calibs, *args):
         batches.append(len(calibs))
         return real(data, calibs, *args)
 
-    monkeypatch.setattr(fit_module, "_residual_rows", counted)
+    monkeypatch.setattr(problem, "residual_rows", counted)
     x = np.array([20.0, 9.0, 500.0])
     lazy = _problem()
     r = lazy.fun(x)
@@ -321,12 +321,12 @@ def test_a_search_that_creeps_is_stopped_at_its_best_point():
 
 
 def test_a_stalled_search_counts_as_converged(monkeypatch):
-    from mecanum_hil.identify import fit as fit_module
+    from mecanum_hil.identify import search
 
     # every search stalls after a few evaluations: the fit ends there, without an error
-    monkeypatch.setattr(fit_module, "STALL_MIN_EVALUATIONS", 3)
-    monkeypatch.setattr(fit_module, "STALL_EVALUATIONS_PER_PARAMETER", 0)
-    monkeypatch.setattr(fit_module, "RESTART_GAIN", 0.999)
+    monkeypatch.setattr(search, "STALL_MIN_EVALUATIONS", 3)
+    monkeypatch.setattr(search, "STALL_EVALUATIONS_PER_PARAMETER", 0)
+    monkeypatch.setattr(search, "RESTART_GAIN", 0.999)
     rec = measured(*step(), TRUE)
     start = {"A": 20.0, "B": 9.0, "C": 500.0, "dead_time_s": 0.0}
     res = fit_parameters([rec], Calibration(effects=Effects(dead_time_s=0.01)), ROBOT,
