@@ -45,6 +45,22 @@ def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "mecanum_hil", *args]
 
 
+def _listening_shadow(*args: str) -> tuple[subprocess.Popen, list[str]]:
+    """``shadow --transport ros2 ARGS``, once it says it is listening (its kernels compiled:
+    from an empty numba cache that takes longer than any of these tests' timelines), and the
+    lines it wrote before. Ctrl-C reaches it as it reaches a command in a terminal, even where
+    the test runner itself ignores SIGINT (a runner started in the background)."""
+    proc = subprocess.Popen(_cli("shadow", "--transport", "ros2", *args),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    lines = []
+    while not lines or "listening" not in lines[-1]:
+        line = proc.stderr.readline()
+        assert line, f"shadow ended before listening: {''.join(lines)}"
+        lines.append(line)
+    return proc, lines
+
+
 def _record(out: Path, *extra: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     return subprocess.run(_cli("record", "--transport", "ros2", "--profile", "paper-step-60",
                                "--out", str(out), "--no-progress", *extra),
@@ -336,13 +352,11 @@ def test_shadow_beside_a_driven_robot_raises_an_error_after_the_fault_only(
     profile.write_text('[profile]\nname = "hold-60"\n\n[[segments]]\nkind = "hold"\n'
                        'duration_s = 0.5\n\n[[segments]]\nkind = "step"\nduration_s = 10.0\n'
                        'n_rpm = 60.0\n')
+    events = tmp_path / "shadow.jsonl"
+    shadow, said = _listening_shadow("--events", str(events), "--json")
     started = time.monotonic()  # the robot's fault clock starts after this
     ros2_robot("--effects", str(effects))
     diag = Spy(dds["domain"], "/diagnostics", m.DiagnosticArray)
-    events = tmp_path / "shadow.jsonl"
-    shadow = subprocess.Popen(_cli("shadow", "--transport", "ros2", "--events", str(events),
-                                   "--json"),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert diag.wait_matched(60)
         driver = subprocess.run(_cli("record", "--transport", "ros2", "--profile", str(profile),
@@ -351,6 +365,7 @@ def test_shadow_beside_a_driven_robot_raises_an_error_after_the_fault_only(
         assert driver.returncode == 0, driver.stderr
         shadow.send_signal(signal.SIGINT)  # Ctrl-C is how an open-ended listen ends
         stdout, stderr = shadow.communicate(timeout=60)
+        stderr = "".join(said) + stderr
     finally:
         if shadow.poll() is None:
             shadow.kill()
@@ -461,8 +476,7 @@ def test_shadow_follows_a_teleop_that_goes_quiet_without_a_false_alarm(
     effects = tmp_path / "noise.toml"
     effects.write_text("[noise]\nwheel_rpm_std = 0.5\nseed = 4\n")
     ros2_robot("--effects", str(effects))
-    shadow = subprocess.Popen(_cli("shadow", "--transport", "ros2", "--no-events", "--json"),
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    shadow, said = _listening_shadow("--no-events", "--json")
     teleop = Ros2Node(dds["domain"])
     try:
         writer = teleop.writer("/cmd_vel", m.Twist)
@@ -475,6 +489,7 @@ def test_shadow_follows_a_teleop_that_goes_quiet_without_a_false_alarm(
         time.sleep(3.0)  # silence: the robot's reference timeout stops it
         shadow.send_signal(signal.SIGINT)
         stdout, stderr = shadow.communicate(timeout=60)
+        stderr = "".join(said) + stderr
     finally:
         if shadow.poll() is None:
             shadow.kill()
