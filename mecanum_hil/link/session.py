@@ -45,7 +45,6 @@ holds the config, the end reasons and the result. Their public names are importa
 
 from __future__ import annotations
 
-import dataclasses
 import datetime as _dt
 import math
 import os
@@ -143,17 +142,6 @@ CLOCK_DRIFT_WINDOW_S = 1.0
 #: suite on a loaded machine: ``inf`` judges no pause), and ``SessionConfig.host_stall_share``
 #: overrides both.
 HOST_STALL_SHARE = 0.5
-
-
-def with_run_limits(config: SessionConfig) -> SessionConfig:
-    """``config`` with the host-timing checks' limits resolved (:func:`run_check_limit`)."""
-    return dataclasses.replace(
-        config,
-        host_stall_share=run_check_limit(config.host_stall_share,
-                                         "MECANUM_HIL_HOST_STALL_SHARE", HOST_STALL_SHARE),
-        clock_drift_slack_s=run_check_limit(config.clock_drift_slack_s,
-                                            "MECANUM_HIL_CLOCK_DRIFT_SLACK_S",
-                                            CLOCK_DRIFT_SLACK_S))
 
 
 def run_check_limit(given: float | None, variable: str, default: float) -> float:
@@ -301,9 +289,11 @@ class RecordSession:
         self.commands = commands
         self.writer = writer
         self.config = config
-        # the run checks' limits, resolved once by run_record_session (with_run_limits)
-        self.stall_share = float(config.host_stall_share)
-        self.drift_slack_s = float(config.clock_drift_slack_s)
+        self.stall_share = run_check_limit(config.host_stall_share,
+                                           "MECANUM_HIL_HOST_STALL_SHARE", HOST_STALL_SHARE)
+        self.drift_slack_s = run_check_limit(config.clock_drift_slack_s,
+                                             "MECANUM_HIL_CLOCK_DRIFT_SLACK_S",
+                                             CLOCK_DRIFT_SLACK_S)
         self.pump = ObserverPump(observers, config.observer_queue)
         self.progress = progress
         self.t0: float | None = None
@@ -954,7 +944,9 @@ def run_record_session(
     config = config or SessionConfig()
     t, cmd = check_command_stream(t_s, commands, robot, transport)
     # the limits from the environment are refused before a file is made or a byte is sent
-    config = with_run_limits(config)
+    run_check_limit(config.host_stall_share, "MECANUM_HIL_HOST_STALL_SHARE", HOST_STALL_SHARE)
+    run_check_limit(config.clock_drift_slack_s, "MECANUM_HIL_CLOCK_DRIFT_SLACK_S",
+                    CLOCK_DRIFT_SLACK_S)
     # fsync at every flush (at least every 0.2 s): a power loss keeps what was received
     writer = RecordingWriter(out, EXTRA_COLUMNS, _start_metadata(transport, robot, metadata),
                              fsync=True)
