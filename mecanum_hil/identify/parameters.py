@@ -28,7 +28,7 @@ PARAMETER_NAMES: tuple[str, ...] = (
     "gains[0]", "gains[1]", "gains[2]", "gains[3]",
     "efficiency[0]", "efficiency[1]", "efficiency[2]",
     "controller_period_s", "drive_lag_s", "breakaway_rpm_per_s", "braking_limit_rpm_per_s",
-    "coast_decel_rpm_per_s", "no_load_rpm", "windup_top_speed_rpm",
+    "coast_decel_rpm_per_s", "no_load_rpm", "windup_top_speed_rpm", "friction_rpm_per_s",
 )
 
 #: An element of a tuple-valued effect: ``gains[2]`` -> (``gains``, ``2``).
@@ -58,6 +58,7 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "coast_decel_rpm_per_s": (0.0, math.inf),
     "no_load_rpm": (1.0, math.inf),
     "windup_top_speed_rpm": (1e-6, math.inf),
+    "friction_rpm_per_s": (0.0, math.inf),
 }
 
 #: Typical magnitude [the parameter's unit] below which a finite-difference step stops

@@ -148,13 +148,16 @@ def _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, wu, y, z, hold, dl, q
 
 
 @njit(cache=True)
-def holding_drive(B, u0, no_load, y):
-    """The loop output [rpm/s] that holds a wheel at ``y`` [rpm] in steady state: ``B y``, or
-    through a fast-decay drive (``u0`` finite) the push that balances friction and the pole,
-    less the friction: ``sign(y) ((u0 + B |y|) / (1 - |y| / no_load) - u0)`` (the droop held
-    at 1e-3 of the full push at or beyond the no-load speed)."""
+def holding_drive(B, u0, no_load, y, fric):
+    """The loop output [rpm/s] that holds a wheel at ``y`` [rpm] in steady state: ``B y``
+    plus a Coulomb friction ``fric`` [rpm/s] against the motion, or through a fast-decay drive
+    (``u0`` finite) the push that balances friction and the pole, less the friction:
+    ``sign(y) ((u0 + B |y|) / (1 - |y| / no_load) - u0)`` (the droop held at 1e-3 of the full
+    push at or beyond the no-load speed)."""
     if not u0 < np.inf:
-        return B * y
+        if y == 0.0:
+            return 0.0
+        return B * y + (fric if y > 0.0 else -fric)
     droop = max(1.0 - abs(y) / no_load, 1e-3)
     push = (u0 + B * abs(y)) / droop - u0
     return push if y >= 0.0 else -push
@@ -256,8 +259,8 @@ def _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, wu, u0, iy0, y, z, 
 
 
 @njit(cache=True, inline="always")
-def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, wu, u0, iy0, y, z, hold, dl,
-                 tab, q, eb, g, ea):
+def _drive_piece(i, u, ts, A, B, C, per, a, brk, fric, brake, dmax, wu, u0, iy0, y, z, hold,
+                 dl, tab, q, eb, g, ea):
     """Advance wheel ``i`` over ``ts`` seconds on the path of the drive's own dynamics.
 
     Between controller ticks (``per > 0``) the held output drives the motor exactly; a
@@ -271,7 +274,11 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, wu, u0, iy0, y, z,
     :func:`_fast_decay_piece`) the wheel moves by that once it has left rest (never with a
     braking limit: the two are not in one model). Accumulates the integral of the
     speed over the piece into ``q[i]``. ``eb, g, ea``: :func:`_lag_factors` of ``ts`` (when the
-    path needs them). ``wu``: the output limit ``dmax`` has no anti-windup.
+    path needs them). ``wu``: the output limit ``dmax`` has no anti-windup. ``fric`` [rpm/s]: a
+    Coulomb friction against the motion (``y' = c - B y - fric sign(y)``; callers pass
+    ``brk >= fric``): exact while the sign holds, on the closed-form path as a shift of the
+    integrator by ``fric / C``; a wheel that passes through rest within the piece keeps the
+    friction's sign for the rest of it (first order in the piece), unless it sticks.
     """
     rem = ts
     if brake < np.inf:
@@ -329,11 +336,18 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, wu, u0, iy0, y, z,
     if rem != ts:
         eb, g, ea = _lag_factors(B, a, rem)
     zi = z[i]
+    f = 0.0
+    if fric > 0.0:
+        if yi != 0.0:
+            f = fric if yi > 0.0 else -fric
+        else:  # just broken away: the friction opposes the drive that moved it
+            f = fric if _drive_at_rest(per, a, A, C, u, zi, hold[i], dl[i]) > 0.0 else -fric
     if per <= 0 and not a < np.inf:
         c = A * (u - yi) + C * zi
         if c > dmax or c < -dmax:
             sg = 1.0 if c > 0 else -1.0
             y_new, _ = _lag_pair(yi, 0.0, sg * dmax, B, np.inf, rem, eb, g, ea)
+            y_new -= f * g
             if wu:  # no anti-windup: the integrator follows the error while clamped
                 zi += (u - 0.5 * (yi + y_new)) * rem
             elif sg * (u - yi) < 0:
@@ -344,6 +358,13 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, wu, u0, iy0, y, z,
             y_new = tab[0] * yi + tab[1] * zi + tab[4] * u
             q[i] += tab[6] * yi + tab[7] * zi + tab[8] * u
             zi = tab[2] * yi + tab[3] * zi + tab[5] * u
+            if f != 0.0:
+                # the friction is the integrator shifted by f / C: a21 = -a12 / C, and
+                # (1 - a22) / C = cq2 / C, which keeps its digits as C -> 0
+                y_new += tab[2] * f
+                shift = tab[7] / C * f
+                q[i] -= shift
+                zi += shift
             _stick(i, y_new, yi, brk, per, a, A, C, u, zi, hold, dl, y, z)
             return
     else:
@@ -355,6 +376,7 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, brake, dmax, wu, u0, iy0, y, z,
             clipped = c > dmax or c < -dmax
             c = min(max(c, -dmax), dmax)
         y_new, dl[i] = _lag_pair(yi, dl[i], c, B, a, rem, eb, g, ea)
+        y_new -= f * g
         if per <= 0 and (wu or not clipped or (c > 0) != (u - yi > 0)):
             zi += (u - 0.5 * (yi + y_new)) * rem
     q[i] += 0.5 * (yi + y_new) * rem
@@ -530,7 +552,7 @@ def _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating, A,
 
 @njit(cache=True, inline="always")
 def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                            saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax, wu,
+                            saturating, per, a_lag, brk, fric, brake, u0, iy0, A, B, C, dmax, wu,
                             active):
     """Advance the four wheels over one sub-step on the path of the drive's own dynamics.
 
@@ -559,8 +581,8 @@ def _drive_dynamics_substep(tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tic
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
             if active[i]:
-                _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, wu, u0,
-                             iy0, y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
+                _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, fric, brake, dmax, wu,
+                             u0, iy0, y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
             until_tick -= piece
@@ -612,12 +634,13 @@ def simulate_kernel(
     deadband, top_speed, rate_limit : (N,) float64
         Effect parameters (0, inf and inf when absent); ``rate_limit`` in [rpm/s].
     gains : (N, 4) float64;  efficiency : (N, 3) float64
-    dyn : (N, 7) float64
+    dyn : (N, 8) float64
         The drive's own dynamics: ``controller_period_s`` [s], ``drive_lag_s`` [s],
         ``breakaway_rpm_per_s`` [rpm/s] (0 when absent), ``braking_limit_rpm_per_s`` [rpm/s]
         (inf when absent), the fast-decay drive's ``coast_decel_rpm_per_s`` [rpm/s] and
-        ``no_load_rpm`` [rpm] (inf when absent), and 1 where the output limit ``top_speed``
-        has no anti-windup (``windup``), else 0.
+        ``no_load_rpm`` [rpm] (inf when absent), 1 where the output limit ``top_speed``
+        has no anti-windup (``windup``), else 0, and ``friction_rpm_per_s`` [rpm/s] (0 when
+        absent).
     state : (N, 21) float64
         Initial wheel state (see ``STATE_WIDTH``).
     pose0 : (N, 3) float64
@@ -652,7 +675,8 @@ def simulate_kernel(
         per = dyn[r, 0]
         lag = dyn[r, 1]
         a_lag = 1.0 / lag if lag > 0 else np.inf
-        brk = dyn[r, 2]
+        fric = dyn[r, 7]
+        brk = max(dyn[r, 2], fric)  # a wheel at rest needs at least the friction to move
         brake = dyn[r, 3]
         u0 = dyn[r, 4]
         iy0 = 1.0 / dyn[r, 5]
@@ -668,8 +692,8 @@ def simulate_kernel(
         C = coeffs[r, 2]
         top = top_speed[r]
         saturating = top < np.inf
-        drive_max = B * top
-        dmax = drive_max if saturating else np.inf
+        drive_max = B * top if saturating else np.inf
+        dmax = drive_max
         rl = rate_limit[r]
         ramping = rl < np.inf
         ex = efficiency[r, 0]
@@ -697,7 +721,8 @@ def simulate_kernel(
                 if dynamics:
                     until_tick = _drive_dynamics_substep(
                         tgt, ue, ub, y, z, hold, dl, q, tab, coef, until_tick, ramping, rl,
-                        saturating, per, a_lag, brk, brake, u0, iy0, A, B, C, dmax, wu, active)
+                        saturating, per, a_lag, brk, fric, brake, u0, iy0, A, B, C, dmax, wu,
+                        active)
                 else:
                     _closed_form_substep(tgt, ue, ub, y, z, q, coef, ramping, rl, saturating,
                                          A, B, C, drive_max, top, wu, active)

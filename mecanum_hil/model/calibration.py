@@ -44,6 +44,12 @@ File layout::
     [effects.braking_limit]
     braking_limit_rpm_per_s = 2000.0
 
+or, in place of ``braking_limit`` and ``fast_decay`` (not in one model with either), a Coulomb
+friction on the turning wheel::
+
+    [effects.friction]
+    friction_rpm_per_s = 400.0
+
 or, in place of ``saturation`` (the two are not in one model), a clamped output that keeps
 integrating::
 
@@ -101,7 +107,13 @@ class Effects:
     to ``B * windup_top_speed_rpm``, but the integrator keeps integrating the error while the
     output is clamped (a firmware PI that clamps its duty without anti-windup): after a large
     step the wheel overshoots until the integral has unwound. It is not used together with
-    ``saturation``. ``slip`` scales the body
+    ``saturation``. ``friction`` is a Coulomb friction: a turning wheel is slowed by
+    ``friction_rpm_per_s`` against its motion (``y' = c - B y - F sign(y)``), and a wheel at
+    rest moves only once the drive output exceeds it (or ``breakaway_rpm_per_s``, the larger).
+    A proportional-only loop then settles below its target by an offset that does not scale
+    with the target, and a PI loop's integral winds up to overcome it. It is not used together
+    with ``braking_limit`` or ``fast_decay`` (whose coasting friction it would double).
+    ``slip`` scales the body
     twist ``(vx, vy, wz)`` by ``efficiency`` before the pose is integrated; it does not change
     wheel speeds.
 
@@ -139,6 +151,8 @@ class Effects:
     windup_top_speed_rpm : float
         Wheel speed the clamped drive output can hold at most, with the integrator still
         integrating while clamped [rpm]; ``inf`` when absent.
+    friction_rpm_per_s : float
+        Coulomb friction of a turning wheel, as a deceleration [rpm/s]; 0 when absent.
     """
 
     dead_time_s: float = 0.0
@@ -154,6 +168,7 @@ class Effects:
     coast_decel_rpm_per_s: float = math.inf
     no_load_rpm: float = math.inf
     windup_top_speed_rpm: float = math.inf
+    friction_rpm_per_s: float = 0.0
 
     def __post_init__(self) -> None:
         # 0 would hold a turning wheel at its speed for ever, a negative limit or NaN is no limit
@@ -176,6 +191,13 @@ class Effects:
         if self.windup and math.isfinite(self.top_speed_rpm):
             raise ConfigError("saturation and windup are not used together: both limit the "
                               "drive output, with and without anti-windup")
+        if not 0.0 <= self.friction_rpm_per_s < math.inf:
+            raise ConfigError("friction_rpm_per_s must be finite and >= 0 (0 when absent), got "
+                              f"{self.friction_rpm_per_s!r}")
+        if self.friction_rpm_per_s > 0 and (self.fast_decay
+                                            or math.isfinite(self.braking_limit_rpm_per_s)):
+            raise ConfigError("friction is not used together with braking_limit or fast_decay: "
+                              "their coasting wheel is already slowed by a friction")
 
     def active(self) -> dict[str, dict[str, Any]]:
         """The effects that are present, by name, with their parameters."""
@@ -214,10 +236,10 @@ class Effects:
     @property
     def drive_dynamics(self) -> bool:
         """Whether an effect of the drive's own dynamics (period, lag, breakaway, braking limit,
-        fast decay) is present."""
+        fast decay, friction) is present."""
         return (self.controller_period_s > 0 or self.drive_lag_s > 0
                 or self.breakaway_rpm_per_s > 0 or math.isfinite(self.braking_limit_rpm_per_s)
-                or self.fast_decay)
+                or self.fast_decay or self.friction_rpm_per_s > 0)
 
     def without(self, name: str) -> Effects:
         """A copy with effect ``name`` removed."""
@@ -276,15 +298,21 @@ EFFECTS: dict[str, EffectSpec] = {
         "drive output clamped without anti-windup: the integrator keeps integrating while "
         "clamped, so the wheel overshoots after large steps; the clamp holds a top wheel "
         "speed [rpm]"),
+    "friction": EffectSpec(
+        "friction", ("friction_rpm_per_s",), {"friction_rpm_per_s": 0.0},
+        "Coulomb friction: a turning wheel is slowed by this against its motion, and a wheel "
+        "at rest moves once the drive exceeds it [rpm/s]"),
 }
 
 #: Effects that are not in one model together: a fast-decay drive already coasts (its braking
-#: limit is ``coast_decel_rpm_per_s + B |y|``), and a drive output is limited either with
-#: anti-windup (``saturation``) or without (``windup``).
-EXCLUDES: dict[str, tuple[str, ...]] = {"fast_decay": ("braking_limit",),
-                                        "braking_limit": ("fast_decay",),
+#: limit is ``coast_decel_rpm_per_s + B |y|``; a Coulomb friction would slow its coasting wheel
+#: twice), and a drive output is limited either with anti-windup (``saturation``) or without
+#: (``windup``).
+EXCLUDES: dict[str, tuple[str, ...]] = {"fast_decay": ("braking_limit", "friction"),
+                                        "braking_limit": ("fast_decay", "friction"),
                                         "saturation": ("windup",),
-                                        "windup": ("saturation",)}
+                                        "windup": ("saturation",),
+                                        "friction": ("braking_limit", "fast_decay")}
 
 
 @dataclass(frozen=True)
@@ -489,6 +517,8 @@ def _read_effects(reader: TableReader | None) -> Effects:
         elif name == "windup":
             values["windup_top_speed_rpm"] = sub.number("windup_top_speed_rpm", minimum=0,
                                                         strict_minimum=True)
+        elif name == "friction":
+            values["friction_rpm_per_s"] = sub.number("friction_rpm_per_s", minimum=0.0)
     try:
         return Effects(**values)
     except ConfigError as err:  # effects that are not in one model: name the file's tables

@@ -19,8 +19,8 @@ The sub-stepped path is taken by a robot whose effects are nonlinear
 (:attr:`~mecanum_hil.model.calibration.Effects.nonlinear`): ``saturation``, ``windup``,
 ``rate_limit``, or any of the drive's own dynamics
 (:attr:`~mecanum_hil.model.calibration.Effects.drive_dynamics`: ``controller_period``,
-``drive_lag``, ``breakaway``, ``braking_limit``, ``fast_decay``). Each step is split into
-sub-steps of at most ``max_substep_s`` (default 1 ms), as
+``drive_lag``, ``breakaway``, ``braking_limit``, ``fast_decay``, ``friction``). Each step is
+split into sub-steps of at most ``max_substep_s`` (default 1 ms), as
 :func:`~mecanum_hil.model.stepper.step_plan` does for a control period. The set-point ramp and
 the drive's mode (linear or at its output limit) are decided at the start of each sub-step, and
 within a sub-step each mode is solved exactly; with the drive's own dynamics a sub-step is
@@ -136,8 +136,8 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
                  np.asarray(target_rpm, dtype=float)) * np.asarray(e.gains)
     A, B, C = calibration.coefficients
     # the kernel's Python source: four numbers need no compiled code (mecanum_hil._jit)
-    hold = np.array([holding_drive.py_func(B, e.coast_decel_rpm_per_s, e.no_load_rpm, float(v))
-                     for v in y])
+    hold = np.array([holding_drive.py_func(B, e.coast_decel_rpm_per_s, e.no_load_rpm, float(v),
+                                           e.friction_rpm_per_s) for v in y])
     state = np.zeros(STATE_WIDTH)
     state[:4] = y
     state[4:8] = (hold - A * (u - y)) / C

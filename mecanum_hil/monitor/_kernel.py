@@ -58,7 +58,8 @@ P_PER, P_LAG, P_BRK = 43, 44, 45  # the drive's own dynamics (0 when absent)
 P_BRAKE = 46  # the braking limit [rpm/s] (inf when absent)
 P_U0, P_Y0 = 47, 48  # fast-decay drive: coasting deceleration [rpm/s], no-load speed [rpm]
 P_WINDUP = 49  # 1 where the output limit P_TOP has no anti-windup (``windup``), else 0
-P_WIDTH = 50
+P_FRIC = 50  # Coulomb friction [rpm/s] (0 when absent)
+P_WIDTH = 51
 
 # --- float state ``fs`` ------------------------------------------------------------------------
 S_Y, S_Z, S_UE, S_TGT = 0, 4, 8, 12  # 4 values each
@@ -119,7 +120,7 @@ def _advance_piece(pp, fs, h, tab, q):
     ramping = rl < np.inf
     per = pp[P_PER]
     dynamics = per > 0 or pp[P_LAG] > 0 or pp[P_BRK] > 0 or pp[P_BRAKE] < np.inf or \
-        pp[P_U0] < np.inf
+        pp[P_U0] < np.inf or pp[P_FRIC] > 0
     nsub = 1
     if saturating or ramping or dynamics:
         nsub = max(1, math.ceil(h / pp[P_SUB] - 1e-9))
@@ -188,14 +189,15 @@ def _advance_piece(pp, fs, h, tab, q):
 @njit(cache=True)
 def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
     """One sub-step of the wheels with the drive's own dynamics (controller period, drive
-    lag, breakaway, braking limit, fast decay), exactly as the simulator's kernel advances it
-    (pieces end at ticks)."""
+    lag, breakaway, braking limit, fast decay, friction), exactly as the simulator's kernel
+    advances it (pieces end at ticks)."""
     A = pp[P_A]
     B = pp[P_B]
     C = pp[P_C]
     per = pp[P_PER]
     a_lag = 1.0 / pp[P_LAG] if pp[P_LAG] > 0 else np.inf
-    brk = pp[P_BRK]
+    fric = pp[P_FRIC]
+    brk = max(pp[P_BRK], fric)  # a wheel at rest needs at least the friction to move
     brake = pp[P_BRAKE]
     u0 = pp[P_U0]
     iy0 = 1.0 / pp[P_Y0]
@@ -230,8 +232,8 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
         else:  # the closed-form PI path and a fast-decay drive need none
             eb_p = g_p = ea_p = 0.0
         for i in range(4):
-            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, brake, dmax, wu, u0, iy0, y,
-                         z, hold, dl, tab, q, eb_p, g_p, ea_p)
+            _drive_piece(i, ub[i], piece, A, B, C, per, a_lag, brk, fric, brake, dmax, wu, u0,
+                         iy0, y, z, hold, dl, tab, q, eb_p, g_p, ea_p)
         rem -= piece
         if per > 0:
             fs[S_UNTIL] -= piece
@@ -356,13 +358,16 @@ def _slope(pp, fs, i):
             drive = lim
         elif drive < -lim:
             drive = -lim
-    if y == 0.0 and abs(drive) <= pp[P_BRK]:
+    fric = pp[P_FRIC]
+    if y == 0.0 and abs(drive) <= max(pp[P_BRK], fric):
         return 0.0  # held by static friction
     u0 = pp[P_U0]
     if u0 < np.inf:  # a fast-decay drive: the push along the motion, less friction
         s, f, k = _fast_decay_rates(y, drive, pp[P_B], u0, 1.0 / pp[P_Y0])
         return s * (f - k * abs(y))
     slope = drive - pp[P_B] * y
+    if fric > 0.0:  # against the motion, or against the drive that breaks the wheel away
+        slope -= fric if (y > 0.0 or (y == 0.0 and drive > 0.0)) else -fric
     brake = pp[P_BRAKE]
     if y > 0.0 and slope < -brake:
         return -brake  # the drive cannot slow the wheel faster
@@ -393,7 +398,7 @@ def _start(row, pp, fs):
         hold = 0.0
         if start_meas and not math.isnan(w):
             # steady state at the measured speed: drive A (u - y) + C z = hold with u = y
-            hold = holding_drive(pp[P_B], pp[P_U0], pp[P_Y0], w)
+            hold = holding_drive(pp[P_B], pp[P_U0], pp[P_Y0], w, pp[P_FRIC])
             fs[S_Y + i] = w
             fs[S_Z + i] = hold / pp[P_C]
             fs[S_UE + i] = w

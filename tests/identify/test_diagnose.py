@@ -85,6 +85,8 @@ HIDDEN_DRIVE = {
     # a drive that coasts: the paper's loop stops a wheel at up to ~3000 rpm/s
     "braking_limit": (Effects(braking_limit_rpm_per_s=800.0),
                       {"braking_limit_rpm_per_s": (800.0, 160.0)}),
+    # a Coulomb friction the PI's integral overcomes: it shows in every start and stop
+    "friction": (Effects(friction_rpm_per_s=600.0), {"friction_rpm_per_s": (600.0, 120.0)}),
 }
 
 

@@ -58,8 +58,8 @@ def test_calibration_round_trip_with_effects(tmp_path):
          "key 'effects.saturation.top_speed_rpm' must be > 0"),
         ("[motor]\nA = 1\nB = 2\nC = 3\n[effects.wheel_gain]\ngains = [1, 2]\n",
          "key 'effects.wheel_gain.gains' must be a list of 4"),
-        ("[motor]\nA = 1\nB = 2\nC = 3\n[effects.friction]\nx = 1\n",
-         "key 'effects.friction' is not a known key"),
+        ("[motor]\nA = 1\nB = 2\nC = 3\n[effects.stiction]\nx = 1\n",
+         "key 'effects.stiction' is not a known key"),
         ("[motor\n", "not valid TOML"),
         # a coefficient whose discretised model overflows (C = 1e300 simulated empty values)
         ("[motor]\nA = 1\nB = 2\nC = 1e300\n", "key 'motor.C' must be at most 1e+12"),

@@ -24,6 +24,9 @@ EFFECTS = {
     "windup": Effects(windup_top_speed_rpm=60.0, dead_time_s=0.013, rate_limit_rpm_per_s=900.0),
     "windup_drive": Effects(windup_top_speed_rpm=60.0, controller_period_s=0.006,
                             drive_lag_s=0.01),
+    "friction": Effects(friction_rpm_per_s=400.0, dead_time_s=0.013),
+    "friction_drive": Effects(friction_rpm_per_s=400.0, controller_period_s=0.006,
+                              drive_lag_s=0.01, breakaway_rpm_per_s=600.0, top_speed_rpm=70.0),
 }
 
 

@@ -54,6 +54,10 @@ EFFECT_CASES = {
     "windup_all": Effects(windup_top_speed_rpm=70.0, controller_period_s=0.006,
                           breakaway_rpm_per_s=300.0, drive_lag_s=0.015, dead_time_s=0.02,
                           braking_limit_rpm_per_s=800.0),
+    "friction": Effects(friction_rpm_per_s=500.0),
+    "friction_all": Effects(friction_rpm_per_s=500.0, controller_period_s=0.006,
+                            breakaway_rpm_per_s=800.0, drive_lag_s=0.015, dead_time_s=0.02,
+                            windup_top_speed_rpm=70.0),
 }
 
 

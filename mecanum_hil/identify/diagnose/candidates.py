@@ -28,7 +28,7 @@ from .localise import _Evaluator
 
 CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "windup", "rate_limit", "deadband",
                                "wheel_gain", "controller_period", "drive_lag", "breakaway",
-                               "braking_limit", "fast_decay", "slip")
+                               "friction", "braking_limit", "fast_decay", "slip")
 
 
 def compatible(pool: Iterable[str], present: Iterable[str]) -> list[str]:
@@ -263,8 +263,9 @@ def _start_values(effect: str, ev: _Evaluator, noise_rpm: float) -> dict[str, fl
     if effect == "drive_lag":
         # a second lag is a fraction of the rise time; the data's own time scale
         return {"drive_lag_s": max(0.15 * _rise_time_s(ev, noise_rpm), _sample_period_s(ev))}
-    if effect == "breakaway":
-        return {"breakaway_rpm_per_s": 0.0}  # read off the data in fit_candidate (needs A, C)
+    if effect in ("breakaway", "friction"):
+        # read off the data in fit_candidate (needs A, B, C)
+        return {effect_parameters(effect)[0]: 0.0}
     if effect == "fast_decay":
         # a coasting wheel slows at the friction (the steepest measured deceleration, as for
         # a braking limit); the push falls to nothing well above the fastest measured speed
@@ -312,6 +313,41 @@ def _breakaway_start(ev: _Evaluator, cal: Calibration, noise_rpm: float) -> floa
     return max(0.5 * (cal.A * tg + cal.C * tg * lat), 1.0)
 
 
+def _level_offset_rpm(ev: _Evaluator) -> float:
+    """How far below its target a held wheel settles, beyond a share of the target [rpm]: the
+    least-squares ``b`` of ``|y| = a |u| - b`` over the second half of every hold of a
+    target of at least 10 rpm, all measured wheels pooled (0 without two such levels)."""
+    xs, ys = [], []
+    for r in ev.recs:
+        tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2],
+                               ev.robot.k)
+        for w in range(4):
+            y = r.wheel_rpm[:, w]
+            if not np.isfinite(y).any():
+                continue
+            cuts = np.flatnonzero(np.abs(np.diff(tg[:, w])) > 1e-9) + 1
+            for first, end in zip(np.r_[0, cuts], np.r_[cuts, tg.shape[0]], strict=True):
+                half = slice((first + end) // 2, end)
+                u = tg[first, w]
+                seg = y[half]
+                seg = seg[np.isfinite(seg)]
+                if abs(u) >= 10.0 and seg.size:
+                    xs.append(abs(u))
+                    ys.append(float(np.mean(seg)) * math.copysign(1.0, u))
+    if len(set(np.round(xs, 6))) < 2:
+        return 0.0
+    _, offset = np.polyfit(np.asarray(xs), np.asarray(ys), 1)
+    return max(-float(offset), 0.0)
+
+
+def _friction_start(ev: _Evaluator, cal: Calibration, noise_rpm: float) -> float:
+    """A Coulomb friction read off the data [rpm/s]: the drive that holds a proportional loop's
+    level offset (``(A + B) b``, :func:`_level_offset_rpm`), or, where the levels show none (an
+    integral removes it), half the drive a wheel at rest felt when it started to move."""
+    return max((cal.A + cal.B) * _level_offset_rpm(ev),
+               0.5 * _breakaway_start(ev, cal, noise_rpm))
+
+
 def _candidate_bounds(effect: str, guess: Mapping[str, float],
                       duration_s: float = 2.0) -> dict[str, tuple[float, float]]:
     """Finite search ranges from the data: an effect that is absent drives its parameter
@@ -334,9 +370,10 @@ def _candidate_bounds(effect: str, guess: Mapping[str, float],
     if effect == "drive_lag":
         g = guess["drive_lag_s"]
         return {"drive_lag_s": (0.0, max(50.0 * g, 0.05))}
-    if effect == "breakaway":
-        g = guess["breakaway_rpm_per_s"]
-        return {"breakaway_rpm_per_s": (0.0, max(20.0 * g, 100.0))}
+    if effect in ("breakaway", "friction"):
+        name = effect_parameters(effect)[0]
+        g = guess[name]
+        return {name: (0.0, max(20.0 * g, 100.0))}
     if effect == "braking_limit":
         g = guess["braking_limit_rpm_per_s"]
         return {"braking_limit_rpm_per_s": (min(1.0, 0.05 * g), 20.0 * g)}
@@ -551,6 +588,8 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
     guess = _start_values(effect, ev, noise_rpm)
     if effect == "breakaway":
         guess = {"breakaway_rpm_per_s": _breakaway_start(ev, base, noise_rpm)}
+    elif effect == "friction":
+        guess = {"friction_rpm_per_s": _friction_start(ev, base, noise_rpm)}
     bounds = _candidate_bounds(effect, guess, float(np.median(
         [r.t_s[-1] - r.t_s[0] for r in ev.recs])))
     cal = with_parameters(base, guess)
