@@ -20,8 +20,8 @@ ReportOpt = Annotated[Path | None, typer.Option(
 CandidatesOpt = Annotated[str | None, typer.Option(
     "--candidates", help="Comma-separated effects to consider (default: the whole library: "
                          "dead_time, saturation, windup, rate_limit, deadband, wheel_gain, "
-                         "controller_period, drive_lag, breakaway, friction, braking_limit, "
-                         "fast_decay, slip).")]
+                         "controller_period, drive_lag, breakaway, friction, drive_deadband, "
+                         "braking_limit, fast_decay, slip).")]
 JobsOpt = Annotated[int | None, typer.Option(
     "--jobs", min=1, help="Processes that fit each round's candidates, this one included "
                           "(default: 2 where a second core is idle, else 1; the result is "

@@ -29,6 +29,7 @@ PARAMETER_NAMES: tuple[str, ...] = (
     "efficiency[0]", "efficiency[1]", "efficiency[2]",
     "controller_period_s", "drive_lag_s", "breakaway_rpm_per_s", "braking_limit_rpm_per_s",
     "coast_decel_rpm_per_s", "no_load_rpm", "windup_top_speed_rpm", "friction_rpm_per_s",
+    "drive_deadband_rpm",
 )
 
 #: An element of a tuple-valued effect: ``gains[2]`` -> (``gains``, ``2``).
@@ -59,6 +60,7 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "no_load_rpm": (1.0, math.inf),
     "windup_top_speed_rpm": (1e-6, math.inf),
     "friction_rpm_per_s": (0.0, math.inf),
+    "drive_deadband_rpm": (0.0, math.inf),
 }
 
 #: Typical magnitude [the parameter's unit] below which a finite-difference step stops

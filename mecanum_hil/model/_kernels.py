@@ -259,6 +259,29 @@ def _fast_decay_piece(i, u, rem, A, B, C, per, a, brk, dmax, wu, u0, iy0, y, z, 
 
 
 @njit(cache=True, inline="always")
+def _coast_piece(i, ts, B, a, brk, fric, u0, y, z, hold, dl, q):
+    """Advance wheel ``i`` over ``ts`` seconds with its drive off (a drive deadband): no
+    output, the integrator cleared, a lagged output decaying; the wheel slows by its pole and a
+    Coulomb friction (``fric``, or a fast-decay drive's ``u0``), exactly while its sign holds,
+    and stops at rest."""
+    yi = y[i]
+    z[i] = 0.0
+    eb, g, ea = _lag_factors(B, a, ts)
+    f = u0 if u0 < np.inf else fric
+    y_new, dl_new = _lag_pair(yi, dl[i], 0.0, B, a, ts, eb, g, ea)
+    if yi != 0.0 and f > 0.0:
+        y_new -= (f if yi > 0.0 else -f) * g
+    if yi != 0.0 and y_new * yi <= 0.0 and abs(dl_new) <= brk:
+        y_new = 0.0  # at rest, with nothing left to move it
+    elif yi == 0.0 and abs(dl_new) <= brk:
+        y_new = 0.0
+    q[i] += 0.5 * (yi + y_new) * ts
+    y[i] = y_new
+    dl[i] = dl_new
+    hold[i] = 0.0
+
+
+@njit(cache=True, inline="always")
 def _drive_piece(i, u, ts, A, B, C, per, a, brk, fric, brake, dmax, wu, u0, iy0, y, z, hold,
                  dl, tab, q, eb, g, ea):
     """Advance wheel ``i`` over ``ts`` seconds on the path of the drive's own dynamics.
@@ -278,8 +301,12 @@ def _drive_piece(i, u, ts, A, B, C, per, a, brk, fric, brake, dmax, wu, u0, iy0,
     Coulomb friction against the motion (``y' = c - B y - fric sign(y)``; callers pass
     ``brk >= fric``): exact while the sign holds, on the closed-form path as a shift of the
     integrator by ``fric / C``; a wheel that passes through rest within the piece keeps the
-    friction's sign for the rest of it (first order in the piece), unless it sticks.
+    friction's sign for the rest of it (first order in the piece), unless it sticks. A NaN
+    set-point ``u`` is a drive that is off (:func:`_coast_piece`).
     """
+    if u != u:
+        _coast_piece(i, ts, B, a, brk, fric, u0, y, z, hold, dl, q)
+        return
     rem = ts
     if brake < np.inf:
         rem = ts - _braking_phase(i, u, ts, A, B, C, per, a, brake, dmax, wu, y, z, hold, dl,
@@ -404,6 +431,10 @@ def _controller_tick(u, per, A, C, dmax, wu, y, z, hold):
     # the sampled PI: integral summed over the period, output held until the next tick; with
     # ``wu`` (no anti-windup) the integral is summed while the output is clamped too
     for i in range(4):
+        if u[i] != u[i]:  # the drive is off: no output, the integral cleared
+            hold[i] = 0.0
+            z[i] = 0.0
+            continue
         e = u[i] - y[i]
         zn = z[i] + e * per
         c = A * e + C * zn
@@ -459,9 +490,10 @@ def _record_sample(wheels_out, pose_out, r, t, y, X, Y, phi, active, with_pose):
 
 
 @njit(cache=True, inline="always")
-def _wheel_targets(n, w, th, k, db, gains, tgt):
+def _wheel_targets(n, w, th, k, db, dboff, gains, tgt):
     """Wheel targets [rpm] of the command ``(n [rpm], w [deg/s], th [deg])`` into ``tgt``:
-    inverse kinematics, then deadband ``db`` [rpm] and the wheel ``gains`` (4,)."""
+    inverse kinematics, then deadband ``db`` [rpm] and the wheel ``gains`` (4,). A target
+    below the drive deadband ``dboff`` [rpm] is NaN: that wheel's drive is off."""
     thr = math.radians(th)
     s = math.sin(thr)
     c = math.cos(thr)
@@ -474,7 +506,9 @@ def _wheel_targets(n, w, th, k, db, gains, tgt):
     tgt[2] = vx + vy - kwz
     tgt[3] = vx - vy + kwz
     for i in range(4):
-        if abs(tgt[i]) < db:
+        if abs(tgt[i]) < dboff:
+            tgt[i] = np.nan
+        elif abs(tgt[i]) < db:
             tgt[i] = 0.0
         tgt[i] *= gains[i]
 
@@ -483,9 +517,14 @@ def _wheel_targets(n, w, th, k, db, gains, tgt):
 def _ramp_setpoints(tgt, ue, ub, ramping, rl, hs):
     """Set-points ``ub`` [rpm] the four drives hold over a sub-step of ``hs`` seconds towards
     the targets ``tgt``: with a rate limit ``rl`` [rpm/s] the ramp's mean (second order in the
-    step). Advances the ramps' ends ``ue``."""
+    step). Advances the ramps' ends ``ue``. A drive that is off (a NaN target) holds NaN, and
+    its ramp starts again from 0."""
     for i in range(4):
         u = tgt[i]
+        if u != u:
+            ue[i] = 0.0
+            ub[i] = u
+            continue
         if ramping:
             d = u - ue[i]
             lim = rl * hs
@@ -634,13 +673,13 @@ def simulate_kernel(
     deadband, top_speed, rate_limit : (N,) float64
         Effect parameters (0, inf and inf when absent); ``rate_limit`` in [rpm/s].
     gains : (N, 4) float64;  efficiency : (N, 3) float64
-    dyn : (N, 8) float64
+    dyn : (N, 9) float64
         The drive's own dynamics: ``controller_period_s`` [s], ``drive_lag_s`` [s],
         ``breakaway_rpm_per_s`` [rpm/s] (0 when absent), ``braking_limit_rpm_per_s`` [rpm/s]
         (inf when absent), the fast-decay drive's ``coast_decel_rpm_per_s`` [rpm/s] and
         ``no_load_rpm`` [rpm] (inf when absent), 1 where the output limit ``top_speed``
-        has no anti-windup (``windup``), else 0, and ``friction_rpm_per_s`` [rpm/s] (0 when
-        absent).
+        has no anti-windup (``windup``), else 0, ``friction_rpm_per_s`` [rpm/s] (0 when
+        absent) and ``drive_deadband_rpm`` [rpm] (0 when absent).
     state : (N, 21) float64
         Initial wheel state (see ``STATE_WIDTH``).
     pose0 : (N, 3) float64
@@ -681,7 +720,8 @@ def simulate_kernel(
         u0 = dyn[r, 4]
         iy0 = 1.0 / dyn[r, 5]
         wu = dyn[r, 6] > 0.0
-        dynamics = per > 0 or lag > 0 or brk > 0 or brake < np.inf or u0 < np.inf
+        dboff = dyn[r, 8]
+        dynamics = per > 0 or lag > 0 or brk > 0 or brake < np.inf or u0 < np.inf or dboff > 0
         X = pose0[r, 0]
         Y = pose0[r, 1]
         phi = math.radians(pose0[r, 2])
@@ -715,7 +755,7 @@ def simulate_kernel(
                 last_n = n
                 last_w = w
                 last_th = th
-                _wheel_targets(n, w, th, k, deadband[r], gains[r], tgt)
+                _wheel_targets(n, w, th, k, deadband[r], dboff, gains[r], tgt)
             coef = table[r, didx[t]]
             for _ in range(nsub[t]):
                 if dynamics:

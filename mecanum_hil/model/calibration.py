@@ -50,6 +50,12 @@ friction on the turning wheel::
     [effects.friction]
     friction_rpm_per_s = 400.0
 
+or, in place of ``deadband`` and ``braking_limit``, a firmware that switches its drive off for
+small targets::
+
+    [effects.drive_deadband]
+    drive_deadband_rpm = 25.0
+
 or, in place of ``saturation`` (the two are not in one model), a clamped output that keeps
 integrating::
 
@@ -113,6 +119,12 @@ class Effects:
     A proportional-only loop then settles below its target by an offset that does not scale
     with the target, and a PI loop's integral winds up to overcome it. It is not used together
     with ``braking_limit`` or ``fast_decay`` (whose coasting friction it would double).
+    ``drive_deadband`` switches the drive off while a wheel's target is below
+    ``drive_deadband_rpm`` (a firmware's ``if |target| < d: duty = 0``): the output is 0, the
+    integrator is cleared, and the wheel coasts, slowed by its pole and any friction
+    (``y' = -B y - F sign(y)``, ``F`` the ``friction`` or a fast-decay drive's
+    ``coast_decel_rpm_per_s``). ``deadband`` instead hands the loop a target of 0, which it
+    brakes to. It is not used together with ``deadband`` or ``braking_limit``.
     ``slip`` scales the body
     twist ``(vx, vy, wz)`` by ``efficiency`` before the pose is integrated; it does not change
     wheel speeds.
@@ -153,6 +165,9 @@ class Effects:
         integrating while clamped [rpm]; ``inf`` when absent.
     friction_rpm_per_s : float
         Coulomb friction of a turning wheel, as a deceleration [rpm/s]; 0 when absent.
+    drive_deadband_rpm : float
+        Wheel targets below this magnitude switch the drive off: the wheel coasts [rpm]; 0 when
+        absent.
     """
 
     dead_time_s: float = 0.0
@@ -169,6 +184,7 @@ class Effects:
     no_load_rpm: float = math.inf
     windup_top_speed_rpm: float = math.inf
     friction_rpm_per_s: float = 0.0
+    drive_deadband_rpm: float = 0.0
 
     def __post_init__(self) -> None:
         # 0 would hold a turning wheel at its speed for ever, a negative limit or NaN is no limit
@@ -198,6 +214,14 @@ class Effects:
                                             or math.isfinite(self.braking_limit_rpm_per_s)):
             raise ConfigError("friction is not used together with braking_limit or fast_decay: "
                               "their coasting wheel is already slowed by a friction")
+        if not 0.0 <= self.drive_deadband_rpm < math.inf:
+            raise ConfigError("drive_deadband_rpm must be finite and >= 0 (0 when absent), got "
+                              f"{self.drive_deadband_rpm!r}")
+        if self.drive_deadband_rpm > 0 and (self.deadband_rpm > 0
+                                            or math.isfinite(self.braking_limit_rpm_per_s)):
+            raise ConfigError("drive_deadband is not used together with deadband or "
+                              "braking_limit: small targets are either braked to or coasted "
+                              "from, and a coasting wheel is not braked")
 
     def active(self) -> dict[str, dict[str, Any]]:
         """The effects that are present, by name, with their parameters."""
@@ -236,10 +260,11 @@ class Effects:
     @property
     def drive_dynamics(self) -> bool:
         """Whether an effect of the drive's own dynamics (period, lag, breakaway, braking limit,
-        fast decay, friction) is present."""
+        fast decay, friction, drive deadband) is present."""
         return (self.controller_period_s > 0 or self.drive_lag_s > 0
                 or self.breakaway_rpm_per_s > 0 or math.isfinite(self.braking_limit_rpm_per_s)
-                or self.fast_decay or self.friction_rpm_per_s > 0)
+                or self.fast_decay or self.friction_rpm_per_s > 0
+                or self.drive_deadband_rpm > 0)
 
     def without(self, name: str) -> Effects:
         """A copy with effect ``name`` removed."""
@@ -302,17 +327,25 @@ EFFECTS: dict[str, EffectSpec] = {
         "friction", ("friction_rpm_per_s",), {"friction_rpm_per_s": 0.0},
         "Coulomb friction: a turning wheel is slowed by this against its motion, and a wheel "
         "at rest moves once the drive exceeds it [rpm/s]"),
+    "drive_deadband": EffectSpec(
+        "drive_deadband", ("drive_deadband_rpm",), {"drive_deadband_rpm": 0.0},
+        "the drive is off while a wheel target is below this: the wheel coasts [rpm]"),
 }
 
 #: Effects that are not in one model together: a fast-decay drive already coasts (its braking
 #: limit is ``coast_decel_rpm_per_s + B |y|``; a Coulomb friction would slow its coasting wheel
-#: twice), and a drive output is limited either with anti-windup (``saturation``) or without
-#: (``windup``).
-EXCLUDES: dict[str, tuple[str, ...]] = {"fast_decay": ("braking_limit", "friction"),
-                                        "braking_limit": ("fast_decay", "friction"),
-                                        "saturation": ("windup",),
-                                        "windup": ("saturation",),
-                                        "friction": ("braking_limit", "fast_decay")}
+#: twice), a drive output is limited either with anti-windup (``saturation``) or without
+#: (``windup``), and a small target is either braked to (``deadband``) or coasted from
+#: (``drive_deadband``, which no braking limit slows).
+EXCLUDES: dict[str, tuple[str, ...]] = {
+    "fast_decay": ("braking_limit", "friction"),
+    "braking_limit": ("fast_decay", "friction", "drive_deadband"),
+    "saturation": ("windup",),
+    "windup": ("saturation",),
+    "friction": ("braking_limit", "fast_decay"),
+    "deadband": ("drive_deadband",),
+    "drive_deadband": ("deadband", "braking_limit"),
+}
 
 
 @dataclass(frozen=True)
@@ -519,6 +552,8 @@ def _read_effects(reader: TableReader | None) -> Effects:
                                                         strict_minimum=True)
         elif name == "friction":
             values["friction_rpm_per_s"] = sub.number("friction_rpm_per_s", minimum=0.0)
+        elif name == "drive_deadband":
+            values["drive_deadband_rpm"] = sub.number("drive_deadband_rpm", minimum=0.0)
     try:
         return Effects(**values)
     except ConfigError as err:  # effects that are not in one model: name the file's tables

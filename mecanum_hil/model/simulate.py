@@ -19,12 +19,12 @@ The sub-stepped path is taken by a robot whose effects are nonlinear
 (:attr:`~mecanum_hil.model.calibration.Effects.nonlinear`): ``saturation``, ``windup``,
 ``rate_limit``, or any of the drive's own dynamics
 (:attr:`~mecanum_hil.model.calibration.Effects.drive_dynamics`: ``controller_period``,
-``drive_lag``, ``breakaway``, ``braking_limit``, ``fast_decay``, ``friction``). Each step is
-split into sub-steps of at most ``max_substep_s`` (default 1 ms), as
-:func:`~mecanum_hil.model.stepper.step_plan` does for a control period. The set-point ramp and
-the drive's mode (linear or at its output limit) are decided at the start of each sub-step, and
-within a sub-step each mode is solved exactly; with the drive's own dynamics a sub-step is
-further cut at the controller's ticks.
+``drive_lag``, ``breakaway``, ``braking_limit``, ``fast_decay``, ``friction``,
+``drive_deadband``). Each step is split into sub-steps of at most ``max_substep_s``
+(default 1 ms), as :func:`~mecanum_hil.model.stepper.step_plan` does for a control period.
+The set-point ramp and the drive's mode (linear or at its output limit) are decided at the
+start of each sub-step, and within a sub-step each mode is solved exactly; with the drive's own
+dynamics a sub-step is further cut at the controller's ticks.
 """
 from __future__ import annotations
 
@@ -132,7 +132,8 @@ def steady_state(calibration: Calibration, wheel_rpm, target_rpm) -> np.ndarray:
 
     e = calibration.effects
     y = np.asarray(wheel_rpm, dtype=float)
-    u = np.where(np.abs(target_rpm) < e.deadband_rpm, 0.0,
+    # a target below either deadband is 0 (a drive that is off ramps from 0 when it is on)
+    u = np.where(np.abs(target_rpm) < max(e.deadband_rpm, e.drive_deadband_rpm), 0.0,
                  np.asarray(target_rpm, dtype=float)) * np.asarray(e.gains)
     A, B, C = calibration.coefficients
     # the kernel's Python source: four numbers need no compiled code (mecanum_hil._jit)

@@ -58,10 +58,10 @@ def effect_arrays(effects: Sequence[Effects]) -> tuple[np.ndarray, ...]:
     tuple of ndarray
         ``deadband (N,)`` [rpm], ``gains (N, 4)`` [-], ``top_speed (N,)`` [rpm] (the output
         limit of ``saturation`` or ``windup``), ``rate_limit (N,)`` [rpm/s], ``efficiency (N,
-        3)`` [-], ``drive (N, 8)`` (controller period [s], drive lag [s], breakaway [rpm/s],
+        3)`` [-], ``drive (N, 9)`` (controller period [s], drive lag [s], breakaway [rpm/s],
         braking limit [rpm/s], the fast-decay drive's coasting deceleration [rpm/s] and
         no-load speed [rpm], 1 where the output limit has no anti-windup, else 0, Coulomb
-        friction [rpm/s]), in the kernel's argument order.
+        friction [rpm/s], drive deadband [rpm]), in the kernel's argument order.
     """
     return (
         np.array([e.deadband_rpm for e in effects], dtype=float),
@@ -71,8 +71,8 @@ def effect_arrays(effects: Sequence[Effects]) -> tuple[np.ndarray, ...]:
         np.array([e.efficiency for e in effects], dtype=float),
         np.array([(e.controller_period_s, e.drive_lag_s, e.breakaway_rpm_per_s,
                    e.braking_limit_rpm_per_s, e.coast_decel_rpm_per_s, e.no_load_rpm,
-                   float(e.windup), e.friction_rpm_per_s) for e in effects],
-                 dtype=float).reshape(-1, 8),
+                   float(e.windup), e.friction_rpm_per_s, e.drive_deadband_rpm)
+                  for e in effects], dtype=float).reshape(-1, 9),
     )
 
 

@@ -59,7 +59,8 @@ P_BRAKE = 46  # the braking limit [rpm/s] (inf when absent)
 P_U0, P_Y0 = 47, 48  # fast-decay drive: coasting deceleration [rpm/s], no-load speed [rpm]
 P_WINDUP = 49  # 1 where the output limit P_TOP has no anti-windup (``windup``), else 0
 P_FRIC = 50  # Coulomb friction [rpm/s] (0 when absent)
-P_WIDTH = 51
+P_DBOFF = 51  # drive deadband [rpm] (0 when absent): below it the drive is off
+P_WIDTH = 52
 
 # --- float state ``fs`` ------------------------------------------------------------------------
 S_Y, S_Z, S_UE, S_TGT = 0, 4, 8, 12  # 4 values each
@@ -106,7 +107,9 @@ def _set_targets(pp, fs):
     fs[S_TGT + 2] = vx + vy - kwz
     fs[S_TGT + 3] = vx - vy + kwz
     for i in range(4):
-        if abs(fs[S_TGT + i]) < pp[P_DB]:
+        if abs(fs[S_TGT + i]) < pp[P_DBOFF]:
+            fs[S_TGT + i] = np.nan  # the drive is off, as in the simulator's kernel
+        elif abs(fs[S_TGT + i]) < pp[P_DB]:
             fs[S_TGT + i] = 0.0
         fs[S_TGT + i] *= pp[P_GAIN + i]
 
@@ -120,7 +123,7 @@ def _advance_piece(pp, fs, h, tab, q):
     ramping = rl < np.inf
     per = pp[P_PER]
     dynamics = per > 0 or pp[P_LAG] > 0 or pp[P_BRK] > 0 or pp[P_BRAKE] < np.inf or \
-        pp[P_U0] < np.inf or pp[P_FRIC] > 0
+        pp[P_U0] < np.inf or pp[P_FRIC] > 0 or pp[P_DBOFF] > 0
     nsub = 1
     if saturating or ramping or dynamics:
         nsub = max(1, math.ceil(h / pp[P_SUB] - 1e-9))
@@ -130,7 +133,7 @@ def _advance_piece(pp, fs, h, tab, q):
     C = pp[P_C]
     discretise_step(A, B, C, hs, tab)
     tab[10] = hs
-    drive_max = B * top
+    drive_max = B * top if saturating else np.inf
     k = pp[P_K]
     lin = _RPM_S_TO_RAD * pp[P_R]
     for _ in range(nsub):
@@ -207,7 +210,9 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
     ub = np.empty(4)
     for i in range(4):
         u = fs[S_TGT + i]
-        if ramping:
+        if u != u:  # the drive is off: NaN set-point, the ramp starts again from 0
+            fs[S_UE + i] = 0.0
+        elif ramping:
             d = u - fs[S_UE + i]
             lim = rl * hs
             d = min(max(d, -lim), lim)
@@ -347,8 +352,11 @@ def _residual(pp, fs, ch, buf, c, raw, r, t, ev, nev):
 def _slope(pp, fs, i):
     """Rate of change of the model's wheel ``i`` now [rpm/s] (drive output minus the pole)."""
     y = fs[S_Y + i]
+    off = fs[S_TGT + i] != fs[S_TGT + i]  # a drive deadband holds the drive off
     if pp[P_LAG] > 0:
         drive = fs[S_DL + i]
+    elif off:
+        drive = 0.0
     elif pp[P_PER] > 0:
         drive = fs[S_HOLD + i]
     else:
@@ -362,6 +370,9 @@ def _slope(pp, fs, i):
     if y == 0.0 and abs(drive) <= max(pp[P_BRK], fric):
         return 0.0  # held by static friction
     u0 = pp[P_U0]
+    if off:  # coasting: the pole and the friction (a fast-decay drive's own)
+        f = u0 if u0 < np.inf else fric
+        return drive - pp[P_B] * y - (f if y > 0.0 else -f if y < 0.0 else 0.0)
     if u0 < np.inf:  # a fast-decay drive: the push along the motion, less friction
         s, f, k = _fast_decay_rates(y, drive, pp[P_B], u0, 1.0 / pp[P_Y0])
         return s * (f - k * abs(y))

@@ -177,6 +177,7 @@ def _params(cal: Calibration, robot: RobotProfile, cfg: ShadowConfig) -> np.ndar
     pp[kn.P_TOP], pp[kn.P_RL] = e.output_limit_rpm, e.rate_limit_rpm_per_s
     pp[kn.P_WINDUP] = float(e.windup)
     pp[kn.P_FRIC] = e.friction_rpm_per_s
+    pp[kn.P_DBOFF] = e.drive_deadband_rpm
     pp[kn.P_EFF:kn.P_EFF + 3] = e.efficiency
     pp[kn.P_DELAY], pp[kn.P_SUB] = e.dead_time_s, cfg.max_substep_s
     pp[kn.P_PER], pp[kn.P_LAG], pp[kn.P_BRK] = (e.controller_period_s, e.drive_lag_s,

@@ -87,6 +87,8 @@ HIDDEN_DRIVE = {
                       {"braking_limit_rpm_per_s": (800.0, 160.0)}),
     # a Coulomb friction the PI's integral overcomes: it shows in every start and stop
     "friction": (Effects(friction_rpm_per_s=600.0), {"friction_rpm_per_s": (600.0, 120.0)}),
+    # a drive switched off below 6 rpm: every stop coasts on the motor's pole
+    "drive_deadband": (Effects(drive_deadband_rpm=6.0), {"drive_deadband_rpm": (6.0, 0.3)}),
 }
 
 

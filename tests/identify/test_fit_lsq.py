@@ -198,11 +198,13 @@ def test_residuals_are_measured_minus_model_with_nan_where_not_measured():
 def test_with_parameters_substitutes_every_named_parameter():
     values = {n: 0.5 + i for i, n in enumerate(PARAMETER_NAMES)}
     # a fast-decay drive, a braking limit and a friction are not in one model, nor saturation
-    # and windup: each in its own
+    # and windup, nor the two deadbands: each in its own
     fast_decay = ("coast_decel_rpm_per_s", "no_load_rpm")
-    models_without = [("braking_limit_rpm_per_s", "top_speed_rpm", "friction_rpm_per_s"),
-                      (*fast_decay, "windup_top_speed_rpm", "friction_rpm_per_s"),
-                      (*fast_decay, "braking_limit_rpm_per_s", "top_speed_rpm")]
+    models_without = [("braking_limit_rpm_per_s", "top_speed_rpm", "friction_rpm_per_s",
+                       "drive_deadband_rpm"),
+                      (*fast_decay, "windup_top_speed_rpm", "friction_rpm_per_s",
+                       "drive_deadband_rpm"),
+                      (*fast_decay, "braking_limit_rpm_per_s", "top_speed_rpm", "deadband_rpm")]
     for left_out in models_without:
         some = {n: v for n, v in values.items() if n not in left_out}
         cal = with_parameters(Calibration(ci95={"A": (1.0, 2.0)}), some)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from euler_reference import pi_loop_euler
 
 from mecanum_hil.errors import ConfigError
 from mecanum_hil.model import Calibration, Effects
@@ -34,36 +35,12 @@ def _wheel(A: float, B: float, C: float, effects: Effects) -> np.ndarray:
     return simulate(_commands(), T, Calibration(A, B, C, effects=effects)).wheel_rpm[0, :, 0]
 
 
-def _euler(A: float, B: float, C: float, fric: float, dt: float = 2e-6) -> np.ndarray:
-    """The PI loop around the first-order motor with a Coulomb friction, by explicit Euler on a
-    fine grid: a wheel at rest stays there while the drive is within the friction, and one
-    that reaches rest while it is, sticks."""
-    y = z = 0.0
-    ts = np.arange(0.0, T[-1] + dt / 2, dt)
-    us = _targets(ts)
-    out = np.empty(ts.size)
-    for k in range(ts.size):
-        out[k] = y
-        u = us[k]
-        c = A * (u - y) + C * z
-        if y == 0.0 and abs(c) <= fric:
-            z += u * dt
-            continue
-        sign = np.sign(y) if y != 0.0 else np.sign(c)
-        y_new = y + (c - B * y - fric * sign) * dt
-        if y != 0.0 and y_new * y < 0.0 and abs(A * u + C * z) <= fric:
-            y_new = 0.0
-        z += (u - y) * dt
-        y = y_new
-    return np.interp(T, ts, out)
-
-
 @pytest.mark.parametrize("A, B, C, fric", [(14.7, 16.1, 303.0, 800.0),
                                            (40.0, 5.0, 1e-3, 600.0),
                                            (300.0, 10.0, 2000.0, 3000.0)])
 def test_friction_follows_the_euler_reference(A, B, C, fric):
     got = _wheel(A, B, C, Effects(friction_rpm_per_s=fric))
-    assert np.abs(got - _euler(A, B, C, fric)).max() < 0.5
+    assert np.abs(got - pi_loop_euler(A, B, C, T, _targets, fric)).max() < 0.5
 
 
 def test_a_proportional_loop_settles_short_by_an_offset_that_does_not_scale():

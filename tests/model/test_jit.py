@@ -31,6 +31,7 @@ EFFECTS = {
                          efficiency=(0.9, 0.8, 0.95)),
     "drive": Effects(controller_period_s=0.007, drive_lag_s=0.02, breakaway_rpm_per_s=2000.0),
     "friction": Effects(friction_rpm_per_s=700.0, dead_time_s=0.013),
+    "drive_deadband": Effects(drive_deadband_rpm=30.0, friction_rpm_per_s=200.0),
 }
 rng = np.random.default_rng(3)
 t = np.cumsum(rng.uniform(0.004, 0.02, 150))  # irregular, like a real logger

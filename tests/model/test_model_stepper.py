@@ -27,6 +27,10 @@ EFFECTS = {
     "friction": Effects(friction_rpm_per_s=400.0, dead_time_s=0.013),
     "friction_drive": Effects(friction_rpm_per_s=400.0, controller_period_s=0.006,
                               drive_lag_s=0.01, breakaway_rpm_per_s=600.0, top_speed_rpm=70.0),
+    "drive_deadband": Effects(drive_deadband_rpm=25.0, friction_rpm_per_s=300.0,
+                              rate_limit_rpm_per_s=900.0),
+    "drive_deadband_drive": Effects(drive_deadband_rpm=25.0, controller_period_s=0.006,
+                                    drive_lag_s=0.01, coast_decel_rpm_per_s=400.0),
 }
 
 

@@ -58,6 +58,10 @@ EFFECT_CASES = {
     "friction_all": Effects(friction_rpm_per_s=500.0, controller_period_s=0.006,
                             breakaway_rpm_per_s=800.0, drive_lag_s=0.015, dead_time_s=0.02,
                             windup_top_speed_rpm=70.0),
+    "drive_deadband": Effects(drive_deadband_rpm=20.0, friction_rpm_per_s=300.0),
+    "drive_deadband_all": Effects(drive_deadband_rpm=20.0, controller_period_s=0.006,
+                                  drive_lag_s=0.015, dead_time_s=0.02, rate_limit_rpm_per_s=900.0,
+                                  coast_decel_rpm_per_s=400.0, no_load_rpm=300.0),
 }
 
 

@@ -8,8 +8,8 @@ The method, one file per step (``docs/diagnose-method.md`` has the details and t
    level ``sigma`` from the residual's differences, and the final residual's shape (onset,
    overshoot, settling; dominant frequency and damping if it rings).
 2. :mod:`.candidates` -- the effect library (:data:`CANDIDATES`: dead time, saturation, windup,
-   rate limit, deadband, wheel gain, controller period, drive lag, breakaway, friction, braking
-   limit, fast decay, slip),
+   rate limit, deadband, wheel gain, controller period, drive lag, breakaway, friction, drive
+   deadband, braking limit, fast decay, slip),
    each fitted *together with* A, B, C and the effects already kept, from start values read
    off the data (latency, rise time, steepest slope, peak, steady-state ratio, the drive at
    breakaway, the steepest deceleration).

@@ -28,7 +28,11 @@ from .localise import _Evaluator
 
 CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "windup", "rate_limit", "deadband",
                                "wheel_gain", "controller_period", "drive_lag", "breakaway",
-                               "friction", "braking_limit", "fast_decay", "slip")
+                               "friction", "drive_deadband", "braking_limit", "fast_decay",
+                               "slip")
+#: Parameters fitted on a grid (a deadband's cost is a staircase in it): held, not freed, in
+#: the least squares that refit a model holding them.
+GRID_FITTED: tuple[str, ...] = ("deadband_rpm", "drive_deadband_rpm")
 
 
 def compatible(pool: Iterable[str], present: Iterable[str]) -> list[str]:
@@ -433,9 +437,10 @@ class _Fitted:
     absent: str = ""
 
 
-def _deadband_grid(ev: _Evaluator, cal: Calibration, values: np.ndarray
-                   ) -> tuple[np.ndarray, int]:
-    """Wheel SSE for each deadband value (A, B, C held), on the recordings it can change."""
+def _deadband_grid(ev: _Evaluator, cal: Calibration, values: np.ndarray,
+                   name: str = "deadband_rpm") -> tuple[np.ndarray, int]:
+    """Wheel SSE for each value of the deadband ``name`` (A, B, C held), on the recordings it
+    can change."""
     rob = ev.robot
     touched = []
     top = float(values.max())
@@ -446,7 +451,7 @@ def _deadband_grid(ev: _Evaluator, cal: Calibration, values: np.ndarray
             touched.append(i)
     if not touched:
         return np.zeros(values.size), 0
-    cals = [with_parameters(cal, {"deadband_rpm": float(v)}) for v in values]
+    cals = [with_parameters(cal, {name: float(v)}) for v in values]
     sse = np.empty(values.size)
     n = 0
     for k, pred in enumerate(ev.predict(cals, subset=touched)):
@@ -456,11 +461,46 @@ def _deadband_grid(ev: _Evaluator, cal: Calibration, values: np.ndarray
     return sse, n
 
 
+#: Most switch-off levels :func:`_switch_off_levels` refits the coefficients for.
+SWITCH_OFF_LEVELS = 6
+
+
+def _switch_off_levels(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
+                       sources: Sequence[str], targets: np.ndarray, reach: float
+                       ) -> tuple[float, Calibration, FitResult]:
+    """The drive deadband among the levels that switch off a different set of the measured
+    small targets (just above each distinct one up to ``reach`` [rpm], at most
+    :data:`SWITCH_OFF_LEVELS` of them, spread over the quantiles), each with ``base_free``
+    refitted: the lowest in-sample error wins; returns it, its model and its fit."""
+    levels = np.unique(np.round(targets[targets <= reach], 3))
+    if levels.size > SWITCH_OFF_LEVELS:
+        levels = np.unique(np.quantile(levels, np.linspace(0.0, 1.0, SWITCH_OFF_LEVELS),
+                                       method="nearest"))
+    best: tuple[float, float, Calibration, FitResult] | None = None
+    for level in levels:
+        db = float(level) + 0.05
+        cal = with_parameters(base, {"drive_deadband_rpm": db})
+        try:
+            res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
+                                 x0={n: parameter_value(cal, n) for n in base_free},
+                                 sources=sources)
+            cal = with_parameters(cal, res.parameters)
+        except (FitError, ConfigError):
+            continue
+        ms = in_sample_ms(ev, cal)
+        if best is None or ms < best[0]:
+            best = (ms, db, cal, res)
+    if best is None:
+        raise FitError("no drive deadband level could be fitted")
+    return best[1], best[2], best[3]
+
+
 def _fit_deadband(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
-                  sources: Sequence[str]) -> _Fitted:
-    """Deadband by a coarse-to-fine grid (A, B, C held), then the rest by least squares, then
-    the grid again; the interval is the set of grid values whose SSE is within the 95 % F-test
-    bound of the best."""
+                  sources: Sequence[str], effect: str = "deadband") -> _Fitted:
+    """A deadband (``deadband`` or ``drive_deadband``) by a coarse-to-fine grid (A, B, C
+    held), then the rest by least squares, then the grid again; the interval is the set of
+    grid values whose SSE is within the 95 % F-test bound of the best."""
+    name = effect_parameters(effect)[0]
     targets = np.concatenate([np.abs(command_to_wheels(
         r.commands[:, 0], r.commands[:, 1], r.commands[:, 2], ev.robot.k)).ravel()
         for r in ev.recs])
@@ -476,7 +516,7 @@ def _fit_deadband(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
     def scan(cal: Calibration, center: float | None) -> tuple[float, tuple[float, float]]:
         coarse = np.concatenate([np.arange(0.0, top + 1e-9, 1.0), wide]) if center is None else \
             np.arange(max(center - 1.5, 0.0), center + 1.5 + 1e-9, 0.1)
-        sse, n = _deadband_grid(ev, cal, coarse)
+        sse, n = _deadband_grid(ev, cal, coarse, name)
         best = float(coarse[int(np.argmin(sse))])
         if center is None:
             return scan(cal, best)
@@ -484,15 +524,26 @@ def _fit_deadband(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
         ok = coarse[sse <= lim]
         return best, (float(ok.min()), float(ok.max()))
 
-    db, _ = scan(cal, None)
-    cal = with_parameters(cal, {"deadband_rpm": db})
-    res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
-                         x0={n: parameter_value(cal, n) for n in base_free}, sources=sources)
-    cal = with_parameters(cal, res.parameters)
+    if effect == "drive_deadband":
+        # how fast a wheel coasts is the motor's pole, which coefficients fitted with the drive
+        # always on need not know: each switch-off level is tried with them refitted
+        db, cal, res = _switch_off_levels(ev, base, base_free, sources, targets, reach)
+    else:
+        db, _ = scan(cal, None)
+        cal = with_parameters(cal, {name: db})
+        res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
+                             x0={n: parameter_value(cal, n) for n in base_free}, sources=sources)
+        cal = with_parameters(cal, res.parameters)
     db, ci = scan(cal, db)
-    cal = with_parameters(cal, {"deadband_rpm": db})
-    return _Fitted("deadband", cal, tuple(base_free), {**res.ci95, "deadband_rpm": ci},
-                   res.warnings)
+    cal = with_parameters(cal, {name: db})
+    if effect == "drive_deadband":
+        # the level tried first was coarse: the coefficients once more at the one found
+        res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
+                             x0={n: parameter_value(cal, n) for n in base_free}, sources=sources)
+        cal = with_parameters(cal, res.parameters)
+        db, ci = scan(cal, db)
+        cal = with_parameters(cal, {name: db})
+    return _Fitted(effect, cal, tuple(base_free), {**res.ci95, name: ci}, res.warnings)
 
 
 def _fit_controller_period(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
@@ -580,8 +631,8 @@ def fit_candidate(ev: _Evaluator, effect: str, base: Calibration, base_free: Seq
     is, and the lowest SSE wins. Returns the fitted model; ``free`` lists the parameters fitted
     continuously (the deadband is fitted on a grid and held during the held-out evaluation).
     """
-    if effect == "deadband":
-        return _fit_deadband(ev, base, base_free, sources)
+    if effect in ("deadband", "drive_deadband"):
+        return _fit_deadband(ev, base, base_free, sources, effect)
     if effect == "controller_period":
         return _fit_controller_period(ev, base, base_free, sources)
     new = effect_parameters(effect)

@@ -25,7 +25,8 @@ _FD_FLOOR = {"A": 1e-3, "B": 1e-3, "C": 1e-2, "dead_time_s": 1e-4, "top_speed_rp
              "rate_limit_rpm_per_s": 1e-1, "deadband_rpm": 1e-2, "drive_lag_s": 1e-4,
              "controller_period_s": 1e-4, "breakaway_rpm_per_s": 1.0,
              "braking_limit_rpm_per_s": 1e-1, "coast_decel_rpm_per_s": 1e-1,
-             "no_load_rpm": 1e-2, "windup_top_speed_rpm": 1e-2, "friction_rpm_per_s": 1.0}
+             "no_load_rpm": 1e-2, "windup_top_speed_rpm": 1e-2, "friction_rpm_per_s": 1.0,
+             "drive_deadband_rpm": 1e-2}
 #: Fewest recordings for leave-one-recording-out; with fewer, time blocks are held out.
 MIN_RECORDINGS_LORO = 2
 #: Residual evaluations of a fold's refit (from the full fit, a few trust-region steps).

@@ -30,6 +30,7 @@ from ..fit import (
 from ..regimes import Localisation, localise, pooled_noise_sd
 from .candidates import (
     CANDIDATES,
+    GRID_FITTED,
     CandidateScore,
     _effect_values,
     _Fitted,
@@ -507,7 +508,7 @@ def _diagnose(recordings, calibration, robot, names, candidates, max_rounds, ech
     rmse_base = _rmse_per_recording(ctx.ev, baseline)[0]
     say(f"refit of {', '.join(free)}: wheel RMSE {rmse_base:.3f} rpm")
     noise = _noise_level(ctx.ev, baseline)
-    model = _Model(baseline, [n for n in free if n != "deadband_rpm"], dict(ci95))
+    model = _Model(baseline, [n for n in free if n not in GRID_FITTED], dict(ci95))
     _candidate_rounds(ctx, model, candidates, accepted, noise, max_rounds)
     return _conclude(ctx, model, calibration, baseline, loc0, rmse_base, noise, reference)
 
@@ -543,7 +544,7 @@ def _refit_own_parameters(ctx: _Context, initial: Calibration, accepted: Sequenc
     refitted; returns it, the parameters freed and their 95 % intervals."""
     # an infinite parameter (a fast-decay drive without droop) stays as it is
     free = list(_COEFFICIENTS) + [p for e in accepted for p in effect_parameters(e)
-                                  if e != "deadband"
+                                  if effect_parameters(e)[0] not in GRID_FITTED
                                   and math.isfinite(parameter_value(initial, p))]
     try:
         res = fit_parameters(ctx.recs, initial, ctx.robot, free,
