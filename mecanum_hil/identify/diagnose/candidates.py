@@ -346,10 +346,13 @@ def _level_offset_rpm(ev: _Evaluator) -> float:
 
 def _friction_start(ev: _Evaluator, cal: Calibration, noise_rpm: float) -> float:
     """A Coulomb friction read off the data [rpm/s]: the drive that holds a proportional loop's
-    level offset (``(A + B) b``, :func:`_level_offset_rpm`), or, where the levels show none (an
-    integral removes it), half the drive a wheel at rest felt when it started to move."""
-    return max((cal.A + cal.B) * _level_offset_rpm(ev),
-               0.5 * _breakaway_start(ev, cal, noise_rpm))
+    level offset (``(A + B) b``, :func:`_level_offset_rpm`), or, where the levels show none
+    beyond the noise (an integral removes it), half the drive a wheel at rest felt when it
+    started to move."""
+    offset = _level_offset_rpm(ev)
+    if offset > noise_rpm:
+        return (cal.A + cal.B) * offset
+    return 0.5 * _breakaway_start(ev, cal, noise_rpm)
 
 
 def _candidate_bounds(effect: str, guess: Mapping[str, float],
