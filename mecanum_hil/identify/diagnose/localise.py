@@ -397,6 +397,76 @@ class Finding:
     description: str
 
 
+#: A wheel gain at least this far below one is checked for a level that still creeps [-].
+CREEP_GAIN_GAP = 0.02
+#: A creep is named when its pooled slope is this many standard errors from zero ...
+CREEP_Z = 4.0
+#: ... and it moves the level by this share of the target over the second half of a step [-].
+CREEP_SHARE = 0.01
+#: Steps shorter than this many samples are not read for a creep.
+CREEP_MIN_SAMPLES = 20
+
+
+def _creep(recordings: Sequence[Recording], robot: RobotProfile, wheel: int
+           ) -> tuple[float, float, float]:
+    """Pooled slope of ``wheel``'s measured speed over the second half of its steps, towards
+    each step's target [rpm/s], its standard error [rpm/s] and the mean share of the target it
+    moves the level by over that half [-]; NaN without a step of at least 10 rpm."""
+    from ..regimes import wheel_targets
+    from ..steps import split_steps
+
+    num = den = var = share = 0.0
+    n_steps = 0
+    for rec in recordings:
+        for s in split_steps(rec.t_s, wheel_targets(rec, robot), [wheel]):
+            half = slice((s.start + s.stop) // 2, s.stop)
+            t, y = rec.t_s[half], rec.wheel_rpm[half, wheel]
+            ok = np.isfinite(y)
+            if abs(s.target_rpm) < 10.0 or ok.sum() < CREEP_MIN_SAMPLES // 2:
+                continue
+            t, y = t[ok] - t[ok].mean(), y[ok]
+            slope, icpt = np.polyfit(t, y, 1)
+            towards = 1.0 if s.target_rpm >= icpt else -1.0
+            sxx = float(t @ t)
+            resid = y - (slope * t + icpt)
+            num += towards * slope * sxx
+            den += sxx
+            var += float(resid @ resid) / max(t.size - 2, 1) * sxx
+            share += towards * slope * float(np.ptp(t)) / abs(s.target_rpm)
+            n_steps += 1
+    if not n_steps or den <= 0:
+        return math.nan, math.nan, math.nan
+    return num / den, math.sqrt(var) / den, share / n_steps
+
+
+def creeping_levels(calibration: Calibration, recordings: Sequence[Recording],
+                    robot: RobotProfile, wheels: Sequence[int]) -> list[Finding]:
+    """Wheels given a gain below one whose measured level still creeps towards the target.
+
+    A gain below one says the loop settles short of its target for good. Where the measured
+    speed still moves towards the target at the end of the steps (:data:`CREEP_Z` standard
+    errors, :data:`CREEP_SHARE` of the target over their second half), the gain is the level
+    the steps reached, not one the loop settles at: a slow integral, a drift of the motor or a
+    coarsely quantised drive output do that, and the model, holding the level flat, does not.
+    Nothing is added to the calibration.
+    """
+    out = []
+    for w in wheels:
+        gain = calibration.effects.gains[w]
+        if gain > 1.0 - CREEP_GAIN_GAP:
+            continue
+        slope, se, share = _creep(recordings, robot, w)
+        if not (slope > CREEP_Z * se and share >= CREEP_SHARE):
+            continue
+        out.append(Finding(
+            "creeping_level", {"wheel": float(w + 1), "creep_rpm_per_s": slope, "gain": gain},
+            f"wheel {w + 1}'s level still creeps towards its target at {slope:.3g} rpm/s "
+            f"({100 * share:.1f} % of it over the second half of its steps): its gain of "
+            f"{gain:.3f} is the level the steps reached, not one the loop settles at; a slow "
+            f"integral, a drifting motor or a coarsely quantised output would creep so"))
+    return out
+
+
 def typical_step_s(recordings: Sequence[Recording], robot: RobotProfile) -> float:
     """Median duration of the steps of the wheel targets over all recordings [s] (NaN without
     steps); see :mod:`mecanum_hil.identify.steps`."""

@@ -366,10 +366,12 @@ def _largest(values: Sequence[float]) -> int:
 
 
 def _finding_lines(f: Finding) -> list[str]:
-    """A named property of the final model (``proportional_only``) and its figures."""
+    """A named property of the final model (``proportional_only``, ``creeping_level``) and
+    its figures."""
+    carried = "carried by A, B, C; " if f.effect == "proportional_only" else ""
     return [f"## Named: {f.effect}", "", f"{f.description[0].upper()}{f.description[1:]} "
-            "(`docs/diagnose.md`: carried by A, B, C; nothing is added to the "
-            "calibration).", "", "| figure | value |", "|---|---|",
+            f"(`docs/diagnose.md`: {carried}nothing is added to the calibration).", "",
+            "| figure | value |", "|---|---|",
             *[f"| `{k}` | {_fmt(v, 5)} |" for k, v in f.parameters.items()], ""]
 
 

@@ -48,6 +48,7 @@ from .localise import (
     _Evaluator,
     _predictions,
     _rmse_per_recording,
+    creeping_levels,
     initial_pose_at_rest,
     proportional_only,
     residual_check,
@@ -993,11 +994,13 @@ def honest_interval(cal: Calibration, name: str, interval: tuple[float, float]
 
 def _findings(cal: Calibration, recs: Sequence[Recording], robot: RobotProfile,
               say: Callable[[str], None]) -> tuple[Finding, ...]:
-    """Named properties of the final model (:func:`.localise.proportional_only`)."""
+    """Named properties of the final model (:func:`.localise.proportional_only`,
+    :func:`.localise.creeping_levels`)."""
     wheels = [w for w in range(4) if any(np.isfinite(r.wheel_rpm[:, w]).any() for r in recs)]
-    found = proportional_only(cal, typical_step_s(recs, robot), wheels)
-    if found is None:
-        return ()
-    say(f"named: proportional_only: {found.description}")
-    return (found,)
+    found = [proportional_only(cal, typical_step_s(recs, robot), wheels)]
+    found += creeping_levels(cal, recs, robot, wheels)
+    for f in found:
+        if f is not None:
+            say(f"named: {f.effect}: {f.description}")
+    return tuple(f for f in found if f is not None)
 
