@@ -30,6 +30,7 @@ from ..model._kernels import (
     _exp_se2,
     _fast_decay_rates,
     _lag_factors,
+    _ramp_setpoints,
     holding_drive,
 )
 from ..model.discretise import discretise_step
@@ -208,19 +209,9 @@ def _drive_substep(pp, fs, hs, tab, q, saturating, ramping, drive_max):
     wu = pp[P_WINDUP] > 0
     rl = pp[P_RL]
     ub = np.empty(4)
+    # the set-points as the simulator ramps them (a drive that is off holds NaN)
+    _ramp_setpoints(fs[S_TGT:S_TGT + 4], fs[S_UE:S_UE + 4], ub, ramping, rl, hs)
     for i in range(4):
-        u = fs[S_TGT + i]
-        if u != u:  # the drive is off: NaN set-point, the ramp starts again from 0
-            fs[S_UE + i] = 0.0
-        elif ramping:
-            d = u - fs[S_UE + i]
-            lim = rl * hs
-            d = min(max(d, -lim), lim)
-            u = fs[S_UE + i] + 0.5 * d
-            fs[S_UE + i] += d
-        else:
-            fs[S_UE + i] = u
-        ub[i] = u
         q[i] = 0.0
     y = fs[S_Y:S_Y + 4]
     z = fs[S_Z:S_Z + 4]

@@ -24,7 +24,7 @@ from ..fit import (
 )
 from ..regimes import measured_differences
 from .heldout import in_sample_ms
-from .localise import _Evaluator
+from .localise import _Evaluator, step_halves
 
 CANDIDATES: tuple[str, ...] = ("dead_time", "saturation", "windup", "rate_limit", "deadband",
                                "wheel_gain", "controller_period", "drive_lag", "breakaway",
@@ -319,25 +319,14 @@ def _breakaway_start(ev: _Evaluator, cal: Calibration, noise_rpm: float) -> floa
 
 def _level_offset_rpm(ev: _Evaluator) -> float:
     """How far below its target a held wheel settles, beyond a share of the target [rpm]: the
-    least-squares ``b`` of ``|y| = a |u| - b`` over the second half of every hold of a
-    target of at least 10 rpm, all measured wheels pooled (0 without two such levels)."""
+    least-squares ``b`` of ``|y| = a |u| - b`` over the second half of every step of a
+    target of at least 10 rpm (:func:`.localise.step_halves`), all measured wheels pooled (0
+    without two such levels)."""
     xs, ys = [], []
-    for r in ev.recs:
-        tg = command_to_wheels(r.commands[:, 0], r.commands[:, 1], r.commands[:, 2],
-                               ev.robot.k)
-        for w in range(4):
-            y = r.wheel_rpm[:, w]
-            if not np.isfinite(y).any():
-                continue
-            cuts = np.flatnonzero(np.abs(np.diff(tg[:, w])) > 1e-9) + 1
-            for first, end in zip(np.r_[0, cuts], np.r_[cuts, tg.shape[0]], strict=True):
-                half = slice((first + end) // 2, end)
-                u = tg[first, w]
-                seg = y[half]
-                seg = seg[np.isfinite(seg)]
-                if abs(u) >= 10.0 and seg.size:
-                    xs.append(abs(u))
-                    ys.append(float(np.mean(seg)) * math.copysign(1.0, u))
+    for w in range(4):
+        for target, _, y in step_halves(ev.recs, ev.robot, w):
+            xs.append(abs(target))
+            ys.append(float(np.mean(y)) * math.copysign(1.0, target))
     if len(set(np.round(xs, 6))) < 2:
         return 0.0
     _, offset = np.polyfit(np.asarray(xs), np.asarray(ys), 1)
@@ -464,6 +453,14 @@ def _deadband_grid(ev: _Evaluator, cal: Calibration, values: np.ndarray,
     return sse, n
 
 
+def _refit_held(ev: _Evaluator, cal: Calibration, free: Sequence[str],
+                sources: Sequence[str]) -> tuple[Calibration, FitResult]:
+    """``free`` refitted by least squares from ``cal``, the rest (a deadband) held."""
+    res = fit_parameters(ev.recs, cal, ev.robot, list(free),
+                         x0={n: parameter_value(cal, n) for n in free}, sources=sources)
+    return with_parameters(cal, res.parameters), res
+
+
 #: Most switch-off levels :func:`_switch_off_levels` refits the coefficients for.
 SWITCH_OFF_LEVELS = 6
 
@@ -482,12 +479,9 @@ def _switch_off_levels(ev: _Evaluator, base: Calibration, base_free: Sequence[st
     best: tuple[float, float, Calibration, FitResult] | None = None
     for level in levels:
         db = float(level) + 0.05
-        cal = with_parameters(base, {"drive_deadband_rpm": db})
         try:
-            res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
-                                 x0={n: parameter_value(cal, n) for n in base_free},
-                                 sources=sources)
-            cal = with_parameters(cal, res.parameters)
+            cal, res = _refit_held(ev, with_parameters(base, {"drive_deadband_rpm": db}),
+                                   base_free, sources)
         except (FitError, ConfigError):
             continue
         ms = in_sample_ms(ev, cal)
@@ -529,23 +523,15 @@ def _fit_deadband(ev: _Evaluator, base: Calibration, base_free: Sequence[str],
 
     if effect == "drive_deadband":
         # how fast a wheel coasts is the motor's pole, which coefficients fitted with the drive
-        # always on need not know: each switch-off level is tried with them refitted
-        db, cal, res = _switch_off_levels(ev, base, base_free, sources, targets, reach)
+        # always on need not know: each switch-off level is tried with them refitted, and the
+        # level found on the fine grid
+        db, cal, _ = _switch_off_levels(ev, base, base_free, sources, targets, reach)
+        db, _ = scan(cal, db)
     else:
         db, _ = scan(cal, None)
-        cal = with_parameters(cal, {name: db})
-        res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
-                             x0={n: parameter_value(cal, n) for n in base_free}, sources=sources)
-        cal = with_parameters(cal, res.parameters)
+    cal, res = _refit_held(ev, with_parameters(cal, {name: db}), base_free, sources)
     db, ci = scan(cal, db)
     cal = with_parameters(cal, {name: db})
-    if effect == "drive_deadband":
-        # the level tried first was coarse: the coefficients once more at the one found
-        res = fit_parameters(ev.recs, cal, ev.robot, list(base_free),
-                             x0={n: parameter_value(cal, n) for n in base_free}, sources=sources)
-        cal = with_parameters(cal, res.parameters)
-        db, ci = scan(cal, db)
-        cal = with_parameters(cal, {name: db})
     return _Fitted(effect, cal, tuple(base_free), {**res.ci95, name: ci}, res.warnings)
 
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -407,33 +407,43 @@ CREEP_SHARE = 0.01
 CREEP_MIN_SAMPLES = 20
 
 
+def step_halves(recordings: Sequence[Recording], robot: RobotProfile, wheel: int,
+                min_target_rpm: float = 10.0) -> Iterator[tuple[float, np.ndarray, np.ndarray]]:
+    """The second half of every step of ``wheel``'s target of at least ``min_target_rpm``
+    (:func:`mecanum_hil.identify.steps.split_steps`): its target [rpm], and the times [s] and
+    measured speeds [rpm] of its finite samples (a step without one is left out)."""
+    from ..regimes import wheel_targets
+    from ..steps import split_steps
+
+    for rec in recordings:
+        for s in split_steps(rec.t_s, wheel_targets(rec, robot), [wheel]):
+            half = slice((s.start + s.stop) // 2, s.stop)
+            y = rec.wheel_rpm[half, wheel]
+            ok = np.isfinite(y)
+            if abs(s.target_rpm) >= min_target_rpm and ok.any():
+                yield s.target_rpm, rec.t_s[half][ok], y[ok]
+
+
 def _creep(recordings: Sequence[Recording], robot: RobotProfile, wheel: int
            ) -> tuple[float, float, float]:
     """Pooled slope of ``wheel``'s measured speed over the second half of its steps, towards
     each step's target [rpm/s], its standard error [rpm/s] and the mean share of the target it
     moves the level by over that half [-]; NaN without a step of at least 10 rpm."""
-    from ..regimes import wheel_targets
-    from ..steps import split_steps
-
     num = den = var = share = 0.0
     n_steps = 0
-    for rec in recordings:
-        for s in split_steps(rec.t_s, wheel_targets(rec, robot), [wheel]):
-            half = slice((s.start + s.stop) // 2, s.stop)
-            t, y = rec.t_s[half], rec.wheel_rpm[half, wheel]
-            ok = np.isfinite(y)
-            if abs(s.target_rpm) < 10.0 or ok.sum() < CREEP_MIN_SAMPLES // 2:
-                continue
-            t, y = t[ok] - t[ok].mean(), y[ok]
-            slope, icpt = np.polyfit(t, y, 1)
-            towards = 1.0 if s.target_rpm >= icpt else -1.0
-            sxx = float(t @ t)
-            resid = y - (slope * t + icpt)
-            num += towards * slope * sxx
-            den += sxx
-            var += float(resid @ resid) / max(t.size - 2, 1) * sxx
-            share += towards * slope * float(np.ptp(t)) / abs(s.target_rpm)
-            n_steps += 1
+    for target, t, y in step_halves(recordings, robot, wheel):
+        if t.size < CREEP_MIN_SAMPLES // 2:
+            continue
+        t = t - t.mean()
+        slope, icpt = np.polyfit(t, y, 1)
+        towards = 1.0 if target >= icpt else -1.0
+        sxx = float(t @ t)
+        resid = y - (slope * t + icpt)
+        num += towards * slope * sxx
+        den += sxx
+        var += float(resid @ resid) / max(t.size - 2, 1) * sxx
+        share += towards * slope * float(np.ptp(t)) / abs(target)
+        n_steps += 1
     if not n_steps or den <= 0:
         return math.nan, math.nan, math.nan
     return num / den, math.sqrt(var) / den, share / n_steps
