@@ -473,6 +473,9 @@ def _switch_off_levels(ev: _Evaluator, base: Calibration, base_free: Sequence[st
     :data:`SWITCH_OFF_LEVELS` of them, spread over the quantiles), each with ``base_free``
     refitted: the lowest in-sample error wins; returns it, its model and its fit."""
     levels = np.unique(np.round(targets[targets <= reach], 3))
+    if levels.size == 0:
+        raise FitError(f"no wheel target at or below {reach:.4g} rpm: a drive deadband cannot "
+                       "be seen")
     if levels.size > SWITCH_OFF_LEVELS:
         levels = np.unique(np.quantile(levels, np.linspace(0.0, 1.0, SWITCH_OFF_LEVELS),
                                        method="nearest"))
